@@ -1,0 +1,63 @@
+# pinnmpc: every user-facing task. Overrides go after the target, e.g. `make train ARGS="seed=1"`.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+TORCH_SPEC ?= torch==2.13.0
+TORCH_PIP_ARGS ?=
+ARGS ?=
+SHARED_REF ?= ../shared/powercube/reference
+
+.PHONY: install train resume self-loop closed-loop closed-loop-paper evaluate bench sweep sweep-optuna tensorboard test test-all lint format contract clean
+
+install: $(VENV)/.installed  ## venv with a CPU build of torch, the package (editable) and its extras
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet "$(TORCH_SPEC)" $(TORCH_PIP_ARGS)
+	$(PY) -m pip install --quiet -e ".[dev,sweep]"
+	touch $@
+
+train: install  ## train the default PINN (under 30 min on 2 cores); outputs/train/<time>/
+	$(PY) -m pinnmpc.train $(ARGS)
+
+self-loop: install  ## the paper's 20-step self-loop test with the shipped checkpoint
+	$(PY) -m pinnmpc.self_loop $(ARGS)
+
+closed-loop: install  ## NMPC tracks the built-in reference on the RK45 plant (the main job)
+	$(PY) -m pinnmpc.closed_loop $(ARGS)
+
+closed-loop-paper: install  ## the paper's reference from ../shared (paper settings are the defaults)
+	$(PY) -m pinnmpc.closed_loop reference.path=$(SHARED_REF) $(ARGS)
+
+bench: install  ## benchmarks: bench.json, bench.md and plots in outputs/bench/<time>/
+	$(PY) -m pinnmpc.bench $(ARGS)
+
+sweep: install  ## local grid search in parallel (joblib launcher); table in the sweep dir
+	$(PY) -m pinnmpc.train -m hparams_search=grid $(ARGS)
+
+sweep-optuna: install  ## Optuna search minimising the validation RMSE
+	$(PY) -m pinnmpc.train -m hparams_search=optuna $(ARGS)
+
+tensorboard: install  ## TensorBoard over every run in outputs/
+	$(VENV)/bin/tensorboard --logdir outputs
+
+test: install  ## the default test run (a few minutes)
+	$(PY) -m pytest -m "not slow" -q
+
+test-all: install  ## every test, the slow ones too
+	$(PY) -m pytest -q
+
+lint: install
+	$(VENV)/bin/ruff check pinnmpc tests
+	$(VENV)/bin/ruff format --check pinnmpc tests
+
+format: install
+	$(VENV)/bin/ruff format pinnmpc tests
+	$(VENV)/bin/ruff check --fix pinnmpc tests
+
+contract: install  ## the outside contract checks in ../shared
+	$(PY) ../shared/tools/check_contract.py --closed-loop
+
+clean:
+	rm -rf outputs multirun .pytest_cache .ruff_cache

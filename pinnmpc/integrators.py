@@ -1,0 +1,56 @@
+"""Fixed-step integrators over one zero-hold period: baselines and accurate reference solutions."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+Rhs = Callable[[Tensor, Tensor], Tensor]
+
+
+def _n_steps(tau: float, h: float) -> int:
+    """Whole number of steps that cover tau with steps no longer than h."""
+    if tau <= 0 or h <= 0:
+        raise ValueError(f"tau and h must be positive, got tau={tau}, h={h}")
+    return max(1, round(tau / h)) if abs(tau / h - round(tau / h)) < 1e-9 else int(tau // h) + 1
+
+
+def euler_step(rhs: Rhs, x0: Tensor, u: Tensor, tau: float, h: float) -> Tensor:
+    """Explicit Euler over tau with zero-hold u (the paper's cheapest baseline)."""
+    n = _n_steps(tau, h)
+    dt = tau / n
+    x = x0
+    for _ in range(n):
+        x = x + dt * rhs(x, u)
+    return x
+
+
+def rk4_step(rhs: Rhs, x0: Tensor, u: Tensor, tau: float, h: float) -> Tensor:
+    """Classical RK4 over tau with zero-hold u; h = tau/10 is the paper's baseline."""
+    n = _n_steps(tau, h)
+    dt = tau / n
+    x = x0
+    for _ in range(n):
+        k1 = rhs(x, u)
+        k2 = rhs(x + 0.5 * dt * k1, u)
+        k3 = rhs(x + 0.5 * dt * k2, u)
+        k4 = rhs(x + dt * k3, u)
+        x = x + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
+
+
+def rk4_trajectory(rhs: Rhs, x0: Tensor, u: Tensor, times: Tensor, h: float) -> Tensor:
+    """States at the sorted times (T,) from one zero-hold start, for reference solutions at many t."""
+    out = []
+    x, t_now = x0, 0.0
+    for t in times.tolist():
+        if t > t_now:
+            x = rk4_step(rhs, x, u, t - t_now, h)
+            t_now = t
+        out.append(x)
+    return torch.stack(out, dim=0)
+
+
+INTEGRATORS: dict[str, Callable[..., Tensor]] = {"euler": euler_step, "rk4": rk4_step}

@@ -1,0 +1,61 @@
+"""Atomic writes: a killed run never leaves a half-written checkpoint, metrics file or trajectory."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+
+def atomic_write(path: str | Path, write: Callable[[Path], None]) -> Path:
+    """Write through a temporary file in the same folder, then rename over the target."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def save_json(path: str | Path, data: Any) -> Path:
+    """JSON with plain numbers, written atomically."""
+    return atomic_write(path, lambda p: p.write_text(json.dumps(data, indent=2, default=_plain) + "\n"))
+
+
+def save_npz(path: str | Path, **arrays: np.ndarray) -> Path:
+    """Compressed npz, written atomically (np.savez would append .npz to the temp name)."""
+
+    def write(p: Path) -> None:
+        with open(p, "wb") as f:
+            np.savez_compressed(f, **arrays)
+
+    return atomic_write(path, write)
+
+
+def save_torch(path: str | Path, obj: Any) -> Path:
+    """torch.save, written atomically."""
+    return atomic_write(path, lambda p: torch.save(obj, p))
+
+
+def _plain(value: Any) -> Any:
+    """numpy/torch scalars and arrays as plain JSON values."""
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().numpy()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"cannot write {type(value).__name__} to JSON")

@@ -1,0 +1,162 @@
+"""The small interface the controller depends on: a trained flow map, no Lightning needed."""
+
+from __future__ import annotations
+
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from pinnmpc.io import save_torch
+from pinnmpc.pinn import PINN
+from pinnmpc.systems.base import Box
+
+FORMAT = "pinnmpc-surrogate"
+FORMAT_VERSION = 1
+SHIPPED = Path(__file__).resolve().parent / "checkpoints" / "powercube.pt"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot serve as a surrogate; the message says why and what was expected."""
+
+
+class Surrogate:
+    """x(t) = flow from x0 under zero-hold u, batched over leading dimensions, float64 by default."""
+
+    def __init__(
+        self,
+        model: PINN,
+        tau: float,
+        state_names: tuple[str, ...],
+        input_names: tuple[str, ...],
+        meta: dict[str, Any] | None = None,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        self.model = model.to(dtype).eval().requires_grad_(False)
+        self.tau = float(tau)
+        self.dtype = dtype
+        self.state_names, self.input_names = tuple(state_names), tuple(input_names)
+        cfg = model.config
+        self.state_box = Box(cfg["state_low"], cfg["state_high"])
+        self.input_box = Box(cfg["input_low"], cfg["input_high"])
+        self.t_max = cfg["t_max"]
+        self.meta = meta or {}
+
+    @property
+    def nx(self) -> int:
+        """State dimension."""
+        return len(self.state_names)
+
+    @property
+    def nu(self) -> int:
+        """Input dimension."""
+        return len(self.input_names)
+
+    def _check(self, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """Readable shape errors and the surrogate's dtype."""
+        if x0.shape[-1] != self.nx or u.shape[-1] != self.nu:
+            raise ValueError(
+                f"surrogate expects x0 (..., {self.nx}) {self.state_names} and u (..., {self.nu}) {self.input_names}, "
+                f"got x0 {tuple(x0.shape)} and u {tuple(u.shape)}"
+            )
+        return x0.to(self.dtype), u.to(self.dtype)
+
+    def __call__(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
+        """x(t) for t (..., 1), x0 (..., nx), u (..., nu); differentiable w.r.t. x0 and u."""
+        x0, u = self._check(x0, u)
+        if t.shape[-1] != 1:
+            raise ValueError(f"surrogate expects t with last dimension 1, got t {tuple(t.shape)}")
+        return self.model(t.to(self.dtype), x0, u)
+
+    def step(self, x0: Tensor, u: Tensor) -> Tensor:
+        """x(tau): one zero-hold sampling period."""
+        x0, u = self._check(x0, u)
+        return self.model(torch.full_like(x0[..., :1], self.tau), x0, u)
+
+    def step_with_jacobian(self, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """x(tau) with A = dx/dx0 (..., nx, nx) and B = dx/du (..., nx, nu), in one forward-mode pass."""
+        x0, u = self._check(x0, u)
+        x1, jac = self.model.with_jacobian(torch.full_like(x0[..., :1], self.tau), x0, u)
+        return x1, jac[..., : self.nx], jac[..., self.nx :]
+
+    def save(self, path: str | Path) -> Path:
+        """Lean checkpoint (weights and the facts needed to rebuild), written atomically."""
+        return save_torch(
+            path,
+            {
+                "format": FORMAT,
+                "version": FORMAT_VERSION,
+                "tau": self.tau,
+                "state_names": list(self.state_names),
+                "input_names": list(self.input_names),
+                "model": self.model.config,
+                "state_dict": {k: v.float() for k, v in self.model.state_dict().items()},
+                "meta": self.meta,
+            },
+        )
+
+
+def _read(path: Path) -> dict[str, Any]:
+    """torch.load with errors a user can act on."""
+    if not path.exists():
+        raise CheckpointError(
+            f"checkpoint not found: {path} (train one with `make train`, or pass path=None for the shipped one)"
+        )
+    if path.is_dir():
+        raise CheckpointError(f"checkpoint path is a folder: {path}; expected a .pt or .ckpt file")
+    try:
+        try:
+            obj = torch.load(path, map_location="cpu", weights_only=True)
+        except pickle.UnpicklingError:
+            obj = torch.load(path, map_location="cpu", weights_only=False)  # Lightning checkpoints may hold more
+    except (RuntimeError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError, OSError) as e:
+        raise CheckpointError(
+            f"checkpoint {path} is corrupt or truncated ({type(e).__name__}); expected a file written by pinnmpc"
+        ) from e
+    if not isinstance(obj, dict):
+        raise CheckpointError(f"checkpoint {path} holds a {type(obj).__name__}; expected a pinnmpc checkpoint dict")
+    return obj
+
+
+def _unpack(obj: dict[str, Any], path: Path) -> tuple[dict[str, Any], dict[str, Tensor], dict[str, Any]]:
+    """Model config, weights and facts from either a lean file or a Lightning checkpoint."""
+    if obj.get("format") == FORMAT:
+        facts = obj
+        state = obj["state_dict"]
+    elif "pinnmpc" in obj and "state_dict" in obj:
+        facts = obj["pinnmpc"]
+        state = {k.removeprefix("model."): v for k, v in obj["state_dict"].items() if k.startswith("model.")}
+    else:
+        raise CheckpointError(
+            f"{path} is not a pinnmpc checkpoint; expected a surrogate .pt or a training .ckpt"
+        )
+    if facts.get("version", FORMAT_VERSION) > FORMAT_VERSION:
+        raise CheckpointError(
+            f"{path} has format version {facts['version']}; this pinnmpc reads up to {FORMAT_VERSION}"
+        )
+    return facts["model"], state, facts
+
+
+def load_surrogate(
+    path: str | Path | None = None,
+    nx: int | None = None,
+    nu: int | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> Surrogate:
+    """Load a trained surrogate (None: the checkpoint shipped with the package); nx/nu guard against other systems."""
+    path = SHIPPED if path is None else Path(path)
+    obj = _read(path)
+    config, state, facts = _unpack(obj, path)
+    state_names, input_names = tuple(facts["state_names"]), tuple(facts["input_names"])
+    for what, want, have in (("state", nx, len(state_names)), ("input", nu, len(input_names))):
+        if want is not None and want != have:
+            raise CheckpointError(f"{path} was trained for a system with {what} dimension {have}; expected {want}")
+    model = PINN(**config)
+    try:
+        model.load_state_dict({k: v.float() for k, v in state.items()})
+    except RuntimeError as e:
+        raise CheckpointError(f"{path}: weights do not fit the stored network config ({e})") from e
+    return Surrogate(model, facts["tau"], state_names, input_names, meta=facts.get("meta", {}), dtype=dtype)

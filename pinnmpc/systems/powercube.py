@@ -1,0 +1,133 @@
+"""Schunk PowerCube two-link arm (Fehr et al. 2020): the single source of truth for its physics.
+
+The coefficients are the identified model collected into closed form (see
+../shared/powercube/MODEL.md). They are facts of the model, not tuning knobs;
+what a user may change (training box, input bounds, plant mismatch) lives in
+conf/system/powercube.yaml.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from pinnmpc.systems.base import Box, check_shapes
+
+GRAVITY = 9.80665  # scipy.constants.g, m/s^2
+
+
+@dataclass(frozen=True)
+class PowerCubeParams:
+    """Identified coefficients; the two scales model plant mismatch (1.0 = nominal)."""
+
+    c: float = 0.3107549862  # coupling inertia term, kg m^2
+    m11: float = 2.3212965868565  # constant part of M11
+    m12: float = 0.6693697768565  # constant part of M12 = M21
+    m22: float = 2.0261489768565  # M22
+    grav_a: float = 1.626138  # gravity moment of link A (times g)
+    grav_ab: float = 1.72641659  # gravity moment of link B (times g)
+    visc_a: float = 76.556  # viscous friction joint A
+    tanh_a: tuple[tuple[float, float], ...] = ((3.924, 5.0), (10.838, 10.0), (2.236, 20.0))  # (gain, slope)
+    visc_b: float = 56.231  # viscous friction joint B
+    tanh_b: tuple[tuple[float, float], ...] = ((0.368, 5.0), (0.368, 10.0), (8.342, 100.0))  # (gain, slope)
+    coulomb_b: float = 0.492  # Coulomb friction joint B (sign term)
+    gain: float = 161.0  # input matrix B = gain * I (current to torque)
+    friction_scale: float = 1.0  # multiplies every friction term (plant mismatch studies)
+    mass_scale: float = 1.0  # multiplies the mass matrix (plant mismatch studies)
+
+
+DEFAULT_PARAMS = PowerCubeParams()
+
+
+Array = Tensor | np.ndarray
+
+
+def _xp(a: Array):
+    """Array namespace of a: the same formulas serve torch (PINN, controller) and numpy (scipy plant)."""
+    return torch if isinstance(a, Tensor) else np
+
+
+def _friction(v: Array, viscous: float, tanh_terms: tuple[tuple[float, float], ...]) -> Array:
+    """Viscous plus smoothed-Coulomb friction torque (positive opposes motion)."""
+    xp = _xp(v)
+    out = viscous * v
+    for gain, slope in tanh_terms:
+        out = out + gain * xp.tanh(slope * v)
+    return out
+
+
+def mass_matrix(x: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> tuple[Array, Array, Array]:
+    """Entries (M11, M12, M22) of the symmetric mass matrix M(beta)."""
+    cb = _xp(x).cos(x[..., 1])
+    s = p.mass_scale
+    return s * (p.m11 + 2 * p.c * cb), s * (p.m12 + p.c * cb), s * p.m22 + 0 * cb
+
+
+def generalized_forces(x: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> tuple[Array, Array]:
+    """Right side h - k + B u of M qdd = h - k + B u."""
+    xp = _xp(x)
+    alpha, beta, da, db = x[..., 0], x[..., 1], x[..., 2], x[..., 3]
+    sb = xp.sin(beta)
+    s = p.mass_scale
+    k1 = -s * p.c * sb * (2 * da * db + db * db)
+    k2 = s * p.c * sb * da * da
+    g_ab = p.grav_ab * GRAVITY * xp.sin(alpha + beta)
+    f = p.friction_scale
+    h1 = p.grav_a * GRAVITY * xp.sin(alpha) + g_ab - f * _friction(da, p.visc_a, p.tanh_a)
+    h2 = g_ab - f * (_friction(db, p.visc_b, p.tanh_b) + p.coulomb_b * xp.sign(db))
+    return h1 - k1 + p.gain * u[..., 0], h2 - k2 + p.gain * u[..., 1]
+
+
+def rhs(x: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> Array:
+    """dx/dt = [dalpha, dbeta, M^-1 (h - k + B u)], with the 2x2 solve in closed form."""
+    m11, m12, m22 = mass_matrix(x, p)
+    r1, r2 = generalized_forces(x, u, p)
+    det = m11 * m22 - m12 * m12
+    dda = (m22 * r1 - m12 * r2) / det
+    ddb = (m11 * r2 - m12 * r1) / det
+    return _xp(x).stack((x[..., 2], x[..., 3], dda, ddb), -1)
+
+
+def mass_residual(x: Array, dxdt: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> Array:
+    """The paper's residual [dq/dt - qd ; M d(qd)/dt + k - h - B u]: no division by det M."""
+    m11, m12, m22 = mass_matrix(x, p)
+    r1, r2 = generalized_forces(x, u, p)
+    acc_a, acc_b = dxdt[..., 2], dxdt[..., 3]
+    return _xp(x).stack(
+        (
+            dxdt[..., 0] - x[..., 2],
+            dxdt[..., 1] - x[..., 3],
+            m11 * acc_a + m12 * acc_b - r1,
+            m12 * acc_a + m22 * acc_b - r2,
+        ),
+        -1,
+    )
+
+
+@dataclass(frozen=True)
+class PowerCube:
+    """The PowerCube as a System: physics plus the box a surrogate is trained on."""
+
+    params: PowerCubeParams = field(default_factory=PowerCubeParams)
+    state_box: Box = Box((-math.pi, -math.pi, -2.5, -2.5), (math.pi, math.pi, 2.5, 2.5))
+    input_box: Box = Box((-0.5, -0.5), (0.5, 0.5))
+    name: str = "powercube"
+    state_names: tuple[str, ...] = ("alpha", "beta", "dalpha", "dbeta")
+    input_names: tuple[str, ...] = ("u1", "u2")
+
+    def rhs(self, x: Array, u: Array) -> Array:
+        """Batched dx/dt: differentiable for torch tensors, fast for numpy arrays (the plant)."""
+        check_shapes(self, x, u)
+        return rhs(x, u, self.params)
+
+    def residual(self, x: Tensor, dxdt: Tensor, u: Tensor, form: str = "explicit") -> Tensor:
+        """ODE residual; 'mass' is the paper's M-multiplied form, 'explicit' is dxdt - rhs."""
+        if form == "explicit":
+            return dxdt - rhs(x, u, self.params)
+        if form == "mass":
+            return mass_residual(x, dxdt, u, self.params)
+        raise ValueError(f"unknown residual form {form!r}; expected 'explicit' or 'mass'")

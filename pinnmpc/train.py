@@ -1,0 +1,100 @@
+"""`python -m pinnmpc.train [overrides]`: train a PINN surrogate; outputs go to the Hydra run dir."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+import lightning as L
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from pinnmpc.io import save_json
+from pinnmpc.pinn import PINN
+from pinnmpc.surrogate import load_surrogate
+from pinnmpc.systems.base import System
+from pinnmpc.training.data import flow_scale
+from pinnmpc.training.export import SurrogateFacts
+
+
+def build_model(cfg: DictConfig, system: System) -> PINN:
+    """The network for this system's training box; output scale estimated from the flow when 'auto'."""
+    scale = cfg.model.output_scale
+    if scale == "auto":
+        a = cfg.model.auto_scale
+        scale = flow_scale(system, cfg.t_max, a.samples, a.h, a.quantile, cfg.seed)
+    return PINN(
+        state_low=system.state_box.low,
+        state_high=system.state_box.high,
+        input_low=system.input_box.low,
+        input_high=system.input_box.high,
+        t_max=cfg.t_max,
+        hidden=list(cfg.model.hidden),
+        activation=cfg.model.activation,
+        ic=cfg.model.ic,
+        output_scale=None if scale is None else list(scale),
+    )
+
+
+def resolve_ckpt(cfg: DictConfig, run_dir: Path) -> str | None:
+    """Checkpoint to resume from: an explicit ckpt_path, or with resume=true this run dir's last.ckpt."""
+    if cfg.ckpt_path:
+        path = Path(cfg.ckpt_path)
+        if not path.is_file():
+            raise FileNotFoundError(f"ckpt_path={cfg.ckpt_path} does not exist; expected a Lightning .ckpt file")
+        return str(path)
+    last = run_dir / "checkpoints" / "last.ckpt"
+    return str(last) if cfg.resume and last.is_file() else None
+
+
+def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """Fit, export the best network as surrogate.pt, and return its validation metrics."""
+    L.seed_everything(cfg.seed, workers=True)
+    torch.set_num_threads(cfg.threads)
+    system: System = instantiate(cfg.system)
+    model = build_model(cfg, system)
+    datamodule = instantiate(cfg.data, _partial_=True)(system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed)
+    module = instantiate(cfg.module, _partial_=True)(system=system, model=model, tau=cfg.tau)
+    ckpt_dir = run_dir / "checkpoints"
+    best = L.pytorch.callbacks.ModelCheckpoint(
+        dirpath=ckpt_dir, filename="best", monitor="val/rmse_position", mode="min", save_last=True
+    )
+    callbacks = [best, SurrogateFacts(cfg.tau), L.pytorch.callbacks.LearningRateMonitor(logging_interval="epoch")]
+    logger = L.pytorch.loggers.TensorBoardLogger(save_dir=str(run_dir), name="tensorboard", version="")
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=logger, default_root_dir=str(run_dir))
+    start = time.perf_counter()
+    trainer.fit(module, datamodule=datamodule, ckpt_path=resolve_ckpt(cfg, run_dir))
+    wall = time.perf_counter() - start
+    source = best.best_model_path or best.last_model_path
+    surrogate = load_surrogate(source)
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+    surrogate.meta = {
+        "trained_with": "python -m pinnmpc.train " + " ".join(cfg.get("overrides", [])),
+        "config": OmegaConf.to_container(cfg, resolve=True),
+        "wall_time_s": wall,
+        "epochs": trainer.current_epoch,
+        "best_val_rmse_position": float(best.best_model_score) if best.best_model_score is not None else None,
+        "final_metrics": metrics,
+    }
+    surrogate.save(run_dir / "surrogate.pt")
+    summary = {"wall_time_s": wall, "epochs": trainer.current_epoch, "best_checkpoint": source, **surrogate.meta}
+    summary.pop("config")
+    save_json(run_dir / "train_metrics.json", summary)
+    return summary
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+def main(cfg: DictConfig) -> float:
+    """CLI: returns the best validation position RMSE, so Optuna sweeps can minimise it."""
+    run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
+    summary = train(cfg, run_dir)
+    score = summary["best_val_rmse_position"]
+    print(f"best val RMSE (positions) {score:.3e} rad; surrogate: {run_dir / 'surrogate.pt'}")
+    return score
+
+
+if __name__ == "__main__":
+    main()

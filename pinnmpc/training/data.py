@@ -1,0 +1,126 @@
+"""Latin-hypercube collocation and data points, redrawn on schedule, and a fixed validation set."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import lightning as L
+import numpy as np
+import torch
+from scipy.stats import qmc
+from torch import Tensor
+from torch.utils.data import DataLoader
+
+from pinnmpc.integrators import rk4_step
+from pinnmpc.systems.base import System
+
+
+def lhs_box(n: int, low: Sequence[float], high: Sequence[float], seed: int) -> Tensor:
+    """n Latin-hypercube points in the box, float64, reproducible by seed."""
+    sampler = qmc.LatinHypercube(d=len(low), seed=seed)
+    return torch.from_numpy(qmc.scale(sampler.random(n), list(low), list(high)))
+
+
+def uniform_box(n: int, low: Sequence[float], high: Sequence[float], seed: int) -> Tensor:
+    """n independent uniform points: held-out sets must not share the LHS structure."""
+    rng = np.random.default_rng(seed)
+    return torch.from_numpy(rng.uniform(low, high, size=(n, len(low))))
+
+
+def reference_flow(system: System, x0: Tensor, u: Tensor, tau: float, h: float) -> Tensor:
+    """Accurate x(tau) by fine fixed-step RK4, vectorised over the batch."""
+    with torch.no_grad():
+        return rk4_step(system.rhs, x0.double(), u.double(), tau, h)
+
+
+def flow_scale(system: System, t_max: float, n: int, h: float, quantile: float, seed: int) -> list[float]:
+    """Typical size of x(t_max) - x0 per state, so every network output is O(1)."""
+    x0 = uniform_box(n, system.state_box.low, system.state_box.high, seed)
+    u = uniform_box(n, system.input_box.low, system.input_box.high, seed + 1)
+    delta = (reference_flow(system, x0, u, t_max, h) - x0).abs()
+    return torch.quantile(delta, quantile, dim=0).clamp_min(1e-6).tolist()
+
+
+class CollocationDataModule(L.LightningDataModule):
+    """Full-batch training points (redrawn at `resample_epochs`) and one-step validation rollouts."""
+
+    def __init__(
+        self,
+        system: System,
+        tau: float,
+        t_max: float,
+        n_collocation: int = 20000,
+        n_data: int = 100,
+        resample_every: int = 0,
+        resample_epochs: Sequence[int] = (),
+        n_val: int = 1000,
+        val_h: float = 1e-4,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if n_collocation < 1 or n_data < 0 or n_val < 1:
+            raise ValueError(
+                f"need n_collocation >= 1, n_data >= 0, n_val >= 1; got {n_collocation}, {n_data}, {n_val}"
+            )
+        if not 0 < tau <= t_max:
+            raise ValueError(f"need 0 < tau <= t_max, got tau={tau}, t_max={t_max}")
+        self.system, self.tau, self.t_max = system, float(tau), float(t_max)
+        self.n_collocation, self.n_data = int(n_collocation), int(n_data)
+        self.resample_every, self.resample_epochs = int(resample_every), {int(e) for e in resample_epochs}
+        self.n_val, self.val_h, self.seed = int(n_val), float(val_h), int(seed)
+        self.draws = 0
+        self.batch: dict[str, Tensor] = {}
+        self.val: dict[str, Tensor] = {}
+        self._drawn_for_epoch = -1
+
+    def draw(self) -> None:
+        """Draw a fresh set of collocation and data points; the k-th draw is fixed by (seed, k)."""
+        s = self.system
+        seed = self.seed + 7919 * self.draws
+        low = (0.0, *s.state_box.low, *s.input_box.low)
+        high = (self.t_max, *s.state_box.high, *s.input_box.high)
+        pts = lhs_box(self.n_collocation, low, high, seed)
+        nx = s.state_box.dim
+        batch = {"t": pts[:, :1], "x0": pts[:, 1 : 1 + nx], "u": pts[:, 1 + nx :]}
+        if self.n_data:
+            data = lhs_box(self.n_data, low[1:], high[1:], seed + 1)
+            batch.update(data_x0=data[:, :nx], data_u=data[:, nx:])
+        self.batch = batch
+        self.draws += 1
+
+    def setup(self, stage: str | None = None) -> None:
+        """Initial draw and the held-out validation rollouts (computed once)."""
+        if not self.batch:
+            self.draw()
+        if not self.val:
+            s = self.system
+            x0 = uniform_box(self.n_val, s.state_box.low, s.state_box.high, self.seed + 104729)
+            u = uniform_box(self.n_val, s.input_box.low, s.input_box.high, self.seed + 104730)
+            self.val = {"x0": x0, "u": u, "x1": reference_flow(s, x0, u, self.tau, self.val_h)}
+
+    def due(self, epoch: int) -> bool:
+        """Whether the schedule asks for new points at this epoch."""
+        if epoch == 0:
+            return False
+        return epoch in self.resample_epochs or (self.resample_every > 0 and epoch % self.resample_every == 0)
+
+    def train_dataloader(self) -> DataLoader:
+        """One full batch per epoch; redraws first when the schedule says so."""
+        epoch = self.trainer.current_epoch if self.trainer is not None else 0
+        if self.due(epoch) and epoch != self._drawn_for_epoch:
+            self.draw()
+            self._drawn_for_epoch = epoch
+        return DataLoader([self.batch], batch_size=None)
+
+    def val_dataloader(self) -> DataLoader:
+        """The fixed held-out one-step rollouts, one batch."""
+        return DataLoader([self.val], batch_size=None)
+
+    def state_dict(self) -> dict:
+        """Resume with the same draw counter, so a resumed run draws what the original would have."""
+        return {"draws": self.draws}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore the draw counter and redraw the points that were in use."""
+        self.draws = max(0, int(state["draws"]) - 1)
+        self.draw()

@@ -1,0 +1,151 @@
+"""Training logic only: losses, L-BFGS with stall recovery, validation RMSE. The network stays a plain nn.Module."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from pinnmpc.pinn import PINN
+from pinnmpc.systems.base import System
+
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+class PINNModule(L.LightningModule):
+    """Data loss at t = 0 plus ODE-residual loss at collocation points, minimised full-batch."""
+
+    def __init__(
+        self,
+        system: System,
+        model: PINN,
+        tau: float,
+        residual_form: str = "explicit",
+        residual_scale: Sequence[float] | str = "auto",
+        weight_physics: float = 1.0,
+        weight_data: float = 1.0,
+        dtype: str = "float32",
+        adam_epochs: int = 0,
+        adam_lr: float = 1e-3,
+        lbfgs_lr: float = 1.0,
+        lbfgs_max_iter: int = 100,
+        lbfgs_history: int = 100,
+        lbfgs_tolerance_grad: float = 1e-9,
+        lbfgs_tolerance_change: float = 1e-12,
+        stall_min_evals: int = 3,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters(ignore=["system", "model"])
+        if dtype not in DTYPES:
+            raise ValueError(f"unknown dtype {dtype!r}; expected one of {sorted(DTYPES)}")
+        self.automatic_optimization = False
+        self.system = system
+        self.model = model.to(DTYPES[dtype])
+        self.tau = float(tau)
+        scale = self._residual_scale(residual_scale)
+        self.register_buffer("res_scale", scale.to(DTYPES[dtype]))
+        self.stalls = 0
+
+    def _residual_scale(self, residual_scale: Sequence[float] | str) -> Tensor:
+        """Divide each residual component by its typical size so no state dominates the loss."""
+        nx = self.model.nx
+        if residual_scale == "auto":
+            if self.hparams.residual_form == "explicit":
+                return self.model.out_scale.detach().double() / self.model.t_max
+            return torch.ones(nx, dtype=torch.float64)
+        scale = torch.tensor(list(residual_scale), dtype=torch.float64)
+        if scale.shape != (nx,) or torch.any(scale <= 0):
+            raise ValueError(f"residual_scale must be 'auto' or {nx} positive numbers, got {list(residual_scale)}")
+        return scale
+
+    def _cast(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Training dtype (float32 is ~2x faster on CPU; the surrogate runs in float64 later)."""
+        return {k: v.to(self.res_scale.dtype) for k, v in batch.items()}
+
+    def losses(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Physics, data and total loss for one full batch."""
+        b = self._cast(batch)
+        x, dxdt = self.model.with_time_derivative(b["t"], b["x0"], b["u"])
+        res = self.system.residual(x, dxdt, b["u"], self.hparams.residual_form) / self.res_scale
+        out = {"physics": res.square().mean()}
+        total = self.hparams.weight_physics * out["physics"]
+        if "data_x0" in b and self.hparams.weight_data > 0:
+            x0 = b["data_x0"]
+            x_at_0 = self.model(torch.zeros_like(x0[..., :1]), x0, b["data_u"])
+            out["data"] = ((x_at_0 - x0) / self.model.out_scale).square().mean()
+            total = total + self.hparams.weight_data * out["data"]
+        out["total"] = total
+        return out
+
+    def configure_optimizers(self) -> list[torch.optim.Optimizer]:
+        """L-BFGS with strong Wolfe line search (the paper), plus an optional Adam warm-up."""
+        h = self.hparams
+        lbfgs = torch.optim.LBFGS(
+            self.model.parameters(),
+            lr=h.lbfgs_lr,
+            max_iter=h.lbfgs_max_iter,
+            history_size=h.lbfgs_history,
+            tolerance_grad=h.lbfgs_tolerance_grad,
+            tolerance_change=h.lbfgs_tolerance_change,
+            line_search_fn="strong_wolfe",
+        )
+        return [lbfgs, torch.optim.Adam(self.model.parameters(), lr=h.adam_lr)]
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        """One optimiser call over the full batch; recover from an L-BFGS stall."""
+        lbfgs, adam = self.optimizers()
+        use_adam = self.current_epoch < self.hparams.adam_epochs
+        opt = adam if use_adam else lbfgs
+
+        def closure() -> Tensor:
+            opt.zero_grad()
+            loss = self.losses(batch)["total"]
+            self.manual_backward(loss)
+            return loss
+
+        evals_before = self._lbfgs_evals(lbfgs)
+        opt.step(closure=closure)
+        with torch.no_grad():
+            parts = self.losses(batch)
+        if not math.isfinite(float(parts["total"])):
+            raise FloatingPointError(
+                f"training loss became {float(parts['total'])} at epoch {self.current_epoch}; "
+                "the last good checkpoint is kept (try a smaller lbfgs_lr or an Adam warm-up)"
+            )
+        if not use_adam and self._lbfgs_evals(lbfgs) - evals_before < self.hparams.stall_min_evals:
+            self._recover_from_stall(lbfgs)
+        for name, value in parts.items():
+            self.log(f"train/loss_{name}", value, prog_bar=name == "total", on_step=False, on_epoch=True, batch_size=1)
+        self.log("train/stalls", float(self.stalls), on_step=False, on_epoch=True, batch_size=1)
+        return parts["total"]
+
+    @staticmethod
+    def _lbfgs_evals(opt: torch.optim.Optimizer) -> int:
+        """Total function evaluations L-BFGS has made (its state lives on the first parameter)."""
+        inner = getattr(opt, "optimizer", opt)
+        first = next(iter(inner.param_groups[0]["params"]))
+        return int(inner.state.get(first, {}).get("func_evals", 0))
+
+    def _recover_from_stall(self, opt: torch.optim.Optimizer) -> None:
+        """PyTorch's L-BFGS returns at once after hitting a tolerance: forget its history and redraw points."""
+        inner = getattr(opt, "optimizer", opt)
+        inner.state.clear()
+        self.stalls += 1
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if datamodule is not None and hasattr(datamodule, "draw"):
+            datamodule.draw()
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
+        """One-step RMSE at t = tau per state against the accurate reference rollouts."""
+        b = self._cast(batch)
+        t = torch.full_like(b["x0"][..., :1], self.tau)
+        err = self.model(t, b["x0"], b["u"]) - b["x1"]
+        rmse = err.double().square().mean(dim=0).sqrt()
+        for name, value in zip(self.system.state_names, rmse):
+            self.log(f"val/rmse_{name}", value, batch_size=1)
+        n_pos = len(self.system.state_names) // 2
+        self.log("val/rmse_position", rmse[:n_pos].max(), prog_bar=True, batch_size=1)
+        self.log("val/rmse_velocity", rmse[n_pos:].max(), batch_size=1)

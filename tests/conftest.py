@@ -1,0 +1,50 @@
+"""Shared fixtures: paths to ../shared (skipped when absent) and Hydra configs composed from conf/."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+SHARED = ROOT.parent / "shared" / "powercube"
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _one_thread() -> None:
+    """Small tensors are fastest and most repeatable on one thread."""
+    torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="session")
+def golden() -> dict[str, np.ndarray]:
+    """The golden vectors from ../shared, or skip."""
+    path = SHARED / "golden.npz"
+    if not path.is_file():
+        pytest.skip(f"{path} is absent")
+    return dict(np.load(path))
+
+
+@pytest.fixture(scope="session")
+def paper_reference_dir() -> Path:
+    """The paper's reference folder from ../shared, or skip."""
+    if not (SHARED / "reference" / "y_soll.mat").is_file():
+        pytest.skip(f"{SHARED / 'reference'} is absent")
+    return SHARED / "reference"
+
+
+@pytest.fixture
+def make_cfg() -> Callable[..., DictConfig]:
+    """Compose a config from conf/ exactly as the CLI does, with overrides."""
+
+    def _make(name: str, overrides: list[str] | None = None) -> DictConfig:
+        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+            return compose(config_name=name, overrides=overrides or [])
+
+    return _make

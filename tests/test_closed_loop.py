@@ -1,0 +1,86 @@
+"""Real closed loops: shipped surrogate, real solver, real scipy plant, short references."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pinnmpc.closed_loop import run_closed_loop
+from tests.conftest import ROOT
+
+KEYS = {
+    "mae": {"alpha", "beta", "dalpha", "dbeta"},
+    "ocp_time_s": {"mean", "median", "p95", "max"},
+    "plant_step_time_s": {"median"},
+}
+
+
+def _check_metrics(m: dict) -> None:
+    for key, sub in KEYS.items():
+        assert sub <= set(m[key]), key
+    for key in ("steps", "u_abs_max", "reference", "status", "fallbacks", "out_of_box_steps"):
+        assert key in m, key
+    assert all(np.isfinite(v) and v >= 0 for v in m["mae"].values())
+
+
+def test_short_closed_loop_tracks_and_respects_bounds(make_cfg, tmp_path):
+    cfg = make_cfg("closed_loop", ["max_steps=15", "progress=false"])
+    m = run_closed_loop(cfg, tmp_path)
+    _check_metrics(m)
+    assert m["status"] == "ok" and m["steps"] == 15 and m["fallbacks"] == 0
+    assert m["u_abs_max"] <= 0.5
+    assert m["mae"]["alpha"] < 0.05 and m["mae"]["beta"] < 0.05
+    traj = np.load(tmp_path / "trajectory.npz")
+    assert traj["x"].shape == (16, 4) and traj["u"].shape == (15, 2)
+    assert np.all(np.abs(traj["u"]) <= 0.5)
+    assert (tmp_path / "closed_loop.png").stat().st_size > 10_000
+    assert json.loads((tmp_path / "metrics.json").read_text()) == json.loads(json.dumps(m))
+
+
+def test_paper_reference_short_run(make_cfg, tmp_path, paper_reference_dir):
+    cfg = make_cfg(
+        "closed_loop", [f"reference.path={paper_reference_dir}", "max_steps=10", "progress=false", "plots=false"]
+    )
+    m = run_closed_loop(cfg, tmp_path)
+    _check_metrics(m)
+    assert m["reference"].endswith("reference") and m["steps"] == 10
+
+
+def test_input_rate_penalty_smooths_inputs(make_cfg, tmp_path):
+    common = ["max_steps=20", "progress=false", "plots=false"]
+    base = run_closed_loop(make_cfg("closed_loop", common), tmp_path / "a")
+    rate = run_closed_loop(make_cfg("closed_loop", [*common, "controller.R_rate=[1.0,1.0]"]), tmp_path / "b")
+    jumps = [np.abs(np.diff(np.load(tmp_path / d / "trajectory.npz")["u"], axis=0)).max() for d in ("a", "b")]
+    assert jumps[1] < 0.9 * jumps[0]
+    assert base["status"] == rate["status"] == "ok"
+
+
+def test_tau_mismatch_is_rejected(make_cfg, tmp_path):
+    with pytest.raises(ValueError, match="tau=0.1 differs"):
+        run_closed_loop(make_cfg("closed_loop", ["tau=0.1", "progress=false"]), tmp_path)
+    assert not list(tmp_path.iterdir())
+
+
+def test_cli_writes_metrics(tmp_path):
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pinnmpc.closed_loop",
+            "max_steps=5",
+            "progress=false",
+            "plots=false",
+            f"hydra.run.dir={tmp_path}",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "MAE alpha" in r.stdout
+    _check_metrics(json.loads((tmp_path / "metrics.json").read_text()))

@@ -1,0 +1,132 @@
+"""Real Lightning training on tiny sizes: the loss falls, points are redrawn reproducibly, runs resume."""
+
+from __future__ import annotations
+
+import json
+
+import lightning as L
+import torch
+
+from pinnmpc.surrogate import load_surrogate
+from pinnmpc.systems import PowerCube
+from pinnmpc.train import build_model, train
+from pinnmpc.training.data import CollocationDataModule, lhs_box
+from pinnmpc.training.module import PINNModule
+
+TINY = [
+    "data.n_collocation=256",
+    "data.n_data=16",
+    "data.n_val=64",
+    "data.val_h=1e-3",
+    "model.hidden=[16,16]",
+    "model.auto_scale.samples=64",
+    "model.auto_scale.h=1e-2",
+    "module.lbfgs_max_iter=5",
+    "trainer.max_time=null",
+    "trainer.check_val_every_n_epoch=1",
+    "trainer.enable_progress_bar=false",
+    "trainer.enable_model_summary=false",
+    "threads=1",
+]
+
+
+def _tiny_module(make_cfg, *overrides: str) -> tuple[PINNModule, CollocationDataModule]:
+    cfg = make_cfg("train", [*TINY, *overrides])
+    system = PowerCube()
+    model = build_model(cfg, system)
+    dm = CollocationDataModule(system, tau=0.2, t_max=0.25, n_collocation=256, n_data=16, n_val=64, val_h=1e-3)
+    module = PINNModule(system, model, tau=0.2, lbfgs_max_iter=5, residual_form=cfg.module.residual_form)
+    return module, dm
+
+
+def test_lbfgs_steps_lower_the_loss(make_cfg, tmp_path):
+    module, dm = _tiny_module(make_cfg)
+    dm.setup()
+    before = float(module.losses(dm.batch)["total"])
+    trainer = L.Trainer(
+        max_epochs=3,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+        num_sanity_val_steps=0,
+    )
+    trainer.fit(module, datamodule=dm)
+    after = float(module.losses(dm.batch)["total"])
+    assert after < 0.5 * before
+
+
+def test_soft_initial_condition_has_a_data_loss(make_cfg):
+    cfg = make_cfg("train", [*TINY, "experiment=paper"])
+    system = PowerCube()
+    module = PINNModule(system, build_model(cfg, system), tau=0.2, residual_form="mass")
+    dm = CollocationDataModule(system, tau=0.2, t_max=0.25, n_collocation=64, n_data=8, n_val=8, val_h=1e-2)
+    dm.setup()
+    parts = module.losses(dm.batch)
+    assert set(parts) == {"physics", "data", "total"}
+    assert parts["data"] > 0
+
+
+def test_resampling_changes_points_and_is_reproducible():
+    system = PowerCube()
+    a = CollocationDataModule(system, 0.2, 0.25, n_collocation=128, n_data=8, n_val=8, val_h=1e-2, seed=5)
+    b = CollocationDataModule(system, 0.2, 0.25, n_collocation=128, n_data=8, n_val=8, val_h=1e-2, seed=5)
+    a.setup(), b.setup()
+    first = {k: v.clone() for k, v in a.batch.items()}
+    assert all(torch.equal(first[k], b.batch[k]) for k in first)
+    a.draw(), b.draw()
+    assert not torch.equal(first["x0"], a.batch["x0"])
+    assert all(torch.equal(a.batch[k], b.batch[k]) for k in first)
+    assert torch.equal(a.val["x1"], b.val["x1"])
+    assert a.due(50) is False and CollocationDataModule(system, 0.2, 0.25, resample_every=10).due(20)
+
+
+def test_lhs_is_stratified_in_every_coordinate():
+    pts = lhs_box(100, [0.0, -1.0], [1.0, 1.0], seed=0)
+    for j, (lo, hi) in enumerate([(0.0, 1.0), (-1.0, 1.0)]):
+        bins = torch.floor((pts[:, j] - lo) / (hi - lo) * 100).long()
+        assert torch.equal(torch.sort(bins).values, torch.arange(100))
+
+
+def test_train_writes_checkpoints_metrics_and_a_loadable_surrogate(make_cfg, tmp_path):
+    cfg = make_cfg("train", [*TINY, "trainer.max_epochs=2"])
+    summary = train(cfg, tmp_path)
+    for name in ("surrogate.pt", "train_metrics.json", "checkpoints/best.ckpt", "checkpoints/last.ckpt"):
+        assert (tmp_path / name).is_file(), name
+    assert (tmp_path / "tensorboard").is_dir()
+    assert json.loads((tmp_path / "train_metrics.json").read_text())["epochs"] == summary["epochs"] == 2
+    for path in (tmp_path / "surrogate.pt", tmp_path / "checkpoints" / "last.ckpt"):
+        s = load_surrogate(path)
+        x = s.step(torch.zeros(2, 4, dtype=torch.float64), torch.zeros(2, 2, dtype=torch.float64))
+        assert x.shape == (2, 4) and torch.all(torch.isfinite(x))
+    assert summary["best_val_rmse_position"] > 0
+
+
+def test_resume_continues_from_last_checkpoint(make_cfg, tmp_path):
+    train(make_cfg("train", [*TINY, "trainer.max_epochs=2"]), tmp_path)
+    first = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=False)
+    summary = train(make_cfg("train", [*TINY, "trainer.max_epochs=4", "resume=true"]), tmp_path)
+    second = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=False)
+    assert summary["epochs"] == 4
+    assert second["global_step"] > first["global_step"]
+    assert second["epoch"] == 3 and first["epoch"] == 1
+
+
+def test_stalled_lbfgs_is_detected_and_recovered(make_cfg, tmp_path):
+    module, dm = _tiny_module(make_cfg)
+    module.hparams.lbfgs_tolerance_change = 1e3  # any step counts as converged: L-BFGS returns at once
+    module.hparams.stall_min_evals = 5
+    trainer = L.Trainer(
+        max_epochs=3,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+        num_sanity_val_steps=0,
+        reload_dataloaders_every_n_epochs=1,
+    )
+    trainer.fit(module, datamodule=dm)
+    assert module.stalls >= 2
+    assert dm.draws >= 3
