@@ -15,6 +15,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
 
+from pinnmpc.cli import run_cli
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import NMPC
 from pinnmpc.io import save_json, save_npz
@@ -187,7 +188,7 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 def main(cfg: DictConfig) -> None:
     """CLI: print the headline numbers and where the outputs went."""
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    m = run_closed_loop(cfg, run_dir)
+    m = run_cli(lambda: run_closed_loop(cfg, run_dir), "pinnmpc.closed_loop")
     print(
         f"{m['status']}: {m['steps']} steps on {m['reference']}; MAE alpha {m['mae']['alpha']:.2e} rad, "
         f"beta {m['mae']['beta']:.2e} rad; OCP median {1e3 * m['ocp_time_s']['median']:.2f} ms "

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +10,9 @@ from matplotlib.animation import FuncAnimation, PillowWriter
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import NullFormatter
+
+from pinnmpc.io import atomic_write
 
 STATE_NAMES = ("alpha", "beta", "dalpha", "dbeta")
 STATE_UNITS = ("rad", "rad", "rad/s", "rad/s")
@@ -23,26 +24,13 @@ LINK_LENGTHS = (0.5, 0.4)  # m, drawing lengths of the two links (not the identi
 DPI = 120  # PNG resolution: legible on screen, small on disk
 FPS = 10  # GIF playback rate
 MAX_FRAMES = 300  # GIF frame cap: keeps file size and render time bounded for long runs
-ERROR_FLOOR = 1e-12  # exact zeros are clipped to this so they stay visible on a log axis
+ERROR_FLOOR = 1e-12  # absolute floor: exact zeros are clipped up so they stay visible on a log axis
+ERROR_DECADES = 6  # ... and to this many decades below the largest error, so one exact zero does not squash the axis
+MAX_XTICKS = 12  # scaling plots label each measured x when there are few, else leave log ticks
 MAX_MARKERS = 25  # markers per curve: dense markers would hide the line they annotate
 TRACKING_FIGSIZE = (10.0, 9.0)
 SCALING_FIGSIZE = (6.5, 4.5)
 ARM_FIGSIZE = (5.0, 5.0)
-
-
-def _atomic(path: str | Path, write: Callable[[Path], None], suffix: str = ".tmp") -> Path:
-    """Same-folder temp file then os.replace: a crash never leaves a half-written image (suffix for format sniffing)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def _as_2d(name: str, a: np.ndarray, rows: int, cols: int) -> np.ndarray:
@@ -84,19 +72,26 @@ def _plot_inputs(
     u_high: Sequence[float] | None = None,
 ) -> None:
     """Zero-hold steps, since that is what the plant actually received between samples."""
+    # identical bounds drawn once in black: per-input coloured lines would hide each other
+    shared = u_low is not None and u_high is not None and len(set(u_low)) == 1 and len(set(u_high)) == 1
     for i, name in enumerate(names):
         color = f"C{i}"
         ax.plot(t, u_held[:, i], drawstyle="steps-post", color=color, lw=1.4, label=name)
-        if u_low is not None and u_high is not None:
+        if u_low is not None and u_high is not None and not shared:
             for j, bound in enumerate((u_low[i], u_high[i])):
                 ax.axhline(bound, color=color, ls="--", lw=0.9, alpha=0.8, label=f"{name} bounds" if j == 0 else None)
+    if u_low is not None and u_high is not None and shared:
+        for j, bound in enumerate((u_low[0], u_high[0])):
+            ax.axhline(bound, color="k", ls="--", lw=0.9, alpha=0.7, label="bounds" if j == 0 else None)
     ax.set_title("inputs (zero-hold)")
     ax.set_ylabel(_label("u", "/".join(dict.fromkeys(units))))
 
 
 def _plot_errors(ax: Axes, t: np.ndarray, err: np.ndarray, names: Sequence[str], units: Sequence[str]) -> None:
     """Log scale: errors span many decades, and linear axes hide the small ones entirely."""
-    clipped = np.maximum(np.abs(err), ERROR_FLOOR)  # NaN stays NaN and is simply not drawn
+    largest = np.nanmax(np.abs(err)) if np.any(np.isfinite(err)) else 1.0
+    floor = max(ERROR_FLOOR, largest * 10.0**-ERROR_DECADES)
+    clipped = np.maximum(np.abs(err), floor)  # NaN stays NaN and is simply not drawn
     for i, name in enumerate(names):
         ax.plot(t, clipped[:, i], color=f"C{i}", lw=1.2, label=name)
     ax.set_yscale("log")
@@ -200,6 +195,10 @@ def scaling_figure(
         ax.plot(xs_arr, ys_arr, marker=markers[i % len(markers)], lw=1.4, label=name)
     if logx:
         ax.set_xscale("log")
+        ticks = np.unique(xs_arr[np.isfinite(xs_arr) & (xs_arr > 0)])
+        if 0 < ticks.size <= MAX_XTICKS:  # horizons read as 5, 10, 20, not 5x10^0, 10^1, 2x10^1
+            ax.set_xticks(ticks, labels=[f"{v:g}" for v in ticks])
+            ax.xaxis.set_minor_formatter(NullFormatter())
     if logy:
         ax.set_yscale("log")
     ax.set_xlabel(xlabel)
@@ -214,7 +213,7 @@ def scaling_figure(
 
 def save_figure(fig: Figure, path: str | Path, dpi: int = DPI) -> Path:
     """PNG written atomically, so a watcher or a crash never sees a truncated image."""
-    return _atomic(path, lambda p: fig.savefig(p, format="png", dpi=dpi))
+    return atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=dpi))
 
 
 def arm_points(x: np.ndarray, link_lengths: tuple[float, float] = LINK_LENGTHS) -> np.ndarray:
@@ -255,7 +254,8 @@ def animate_arm(
     ax.set(xlim=(-reach, reach), ylim=(-reach, reach), aspect="equal", xlabel="x [m]", ylabel="y [m]")
     ax.grid(True, alpha=0.3)
     ax.plot(p_ref[:, 2, 0], p_ref[:, 2, 1], color="0.6", lw=0.8, ls=":", label="reference tip path")
-    (ref_line,) = ax.plot([], [], color="0.5", ls="--", lw=2.5, marker="o", alpha=0.5, label="reference")
+    # wide and faint underneath: still visible once the actual arm lies exactly on top of it
+    (ref_line,) = ax.plot([], [], color="C2", ls="--", lw=7, marker="o", ms=10, alpha=0.35, label="reference")
     (trace,) = ax.plot([], [], color="C1", lw=1.0, label="tip trace")
     (arm_line,) = ax.plot([], [], color="C0", lw=3.5, marker="o", ms=7, mfc="k", mec="k", label="actual")
     label = ax.text(0.03, 0.96, "", transform=ax.transAxes, va="top", family="monospace")
@@ -270,4 +270,4 @@ def animate_arm(
         return ref_line, arm_line, trace, label
 
     anim = FuncAnimation(fig, draw, frames=frames.tolist(), blit=False, repeat=False)
-    return _atomic(path, lambda tmp: anim.save(tmp, writer=PillowWriter(fps=fps)), suffix=".gif")
+    return atomic_write(path, lambda tmp: anim.save(tmp, writer=PillowWriter(fps=fps)), suffix=".gif")

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import pickle
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +14,7 @@ from pinnmpc.systems.base import Box
 
 FORMAT = "pinnmpc-surrogate"
 FORMAT_VERSION = 1
+REQUIRED_FACTS = ("tau", "state_names", "input_names", "model")  # what load_surrogate needs besides the weights
 SHIPPED = Path(__file__).resolve().parent / "checkpoints" / "powercube.pt"
 
 
@@ -93,7 +92,7 @@ class Surrogate:
                 "state_names": list(self.state_names),
                 "input_names": list(self.input_names),
                 "model": self.model.config,
-                "state_dict": {k: v.float() for k, v in self.model.state_dict().items()},
+                "state_dict": self.model.state_dict(),
                 "meta": self.meta,
             },
         )
@@ -108,13 +107,11 @@ def _read(path: Path) -> dict[str, Any]:
     if path.is_dir():
         raise CheckpointError(f"checkpoint path is a folder: {path}; expected a .pt or .ckpt file")
     try:
-        try:
-            obj = torch.load(path, map_location="cpu", weights_only=True)
-        except pickle.UnpicklingError:
-            obj = torch.load(path, map_location="cpu", weights_only=False)  # Lightning checkpoints may hold more
-    except (RuntimeError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError, OSError) as e:
+        obj = torch.load(path, map_location="cpu", weights_only=True)  # never runs code from a file
+    except Exception as e:  # noqa: BLE001 - any failure to unpickle means the file is not a usable checkpoint
         raise CheckpointError(
-            f"checkpoint {path} is corrupt or truncated ({type(e).__name__}); expected a file written by pinnmpc"
+            f"checkpoint {path} cannot be read ({type(e).__name__}: corrupt, truncated or not a torch file); "
+            "expected a .pt or .ckpt written by pinnmpc"
         ) from e
     if not isinstance(obj, dict):
         raise CheckpointError(f"checkpoint {path} holds a {type(obj).__name__}; expected a pinnmpc checkpoint dict")
@@ -125,14 +122,15 @@ def _unpack(obj: dict[str, Any], path: Path) -> tuple[dict[str, Any], dict[str, 
     """Model config, weights and facts from either a lean file or a Lightning checkpoint."""
     if obj.get("format") == FORMAT:
         facts = obj
-        state = obj["state_dict"]
+        state = obj.get("state_dict")
     elif "pinnmpc" in obj and "state_dict" in obj:
         facts = obj["pinnmpc"]
         state = {k.removeprefix("model."): v for k, v in obj["state_dict"].items() if k.startswith("model.")}
     else:
-        raise CheckpointError(
-            f"{path} is not a pinnmpc checkpoint; expected a surrogate .pt or a training .ckpt"
-        )
+        raise CheckpointError(f"{path} is not a pinnmpc checkpoint; expected a surrogate .pt or a training .ckpt")
+    missing = [k for k in REQUIRED_FACTS if k not in facts] + ([] if isinstance(state, dict) else ["state_dict"])
+    if missing:
+        raise CheckpointError(f"{path} lacks {missing}; expected a complete pinnmpc checkpoint")
     if facts.get("version", FORMAT_VERSION) > FORMAT_VERSION:
         raise CheckpointError(
             f"{path} has format version {facts['version']}; this pinnmpc reads up to {FORMAT_VERSION}"
@@ -154,9 +152,12 @@ def load_surrogate(
     for what, want, have in (("state", nx, len(state_names)), ("input", nu, len(input_names))):
         if want is not None and want != have:
             raise CheckpointError(f"{path} was trained for a system with {what} dimension {have}; expected {want}")
-    model = PINN(**config)
     try:
-        model.load_state_dict({k: v.float() for k, v in state.items()})
-    except RuntimeError as e:
+        model = PINN(**config)
+        first = next(iter(state.values()), None)
+        if first is not None:
+            model = model.to(first.dtype)  # keep float64 weights exact
+        model.load_state_dict(state)
+    except (RuntimeError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: weights do not fit the stored network config ({e})") from e
     return Surrogate(model, facts["tau"], state_names, input_names, meta=facts.get("meta", {}), dtype=dtype)

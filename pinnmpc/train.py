@@ -12,6 +12,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from pinnmpc.cli import run_cli
 from pinnmpc.io import save_json
 from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import load_surrogate
@@ -90,7 +91,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 def main(cfg: DictConfig) -> float:
     """CLI: returns the best validation position RMSE, so Optuna sweeps can minimise it."""
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    summary = train(cfg, run_dir)
+    summary = run_cli(lambda: train(cfg, run_dir), "pinnmpc.train")
     score = summary["best_val_rmse_position"]
     print(f"best val RMSE (positions) {score:.3e} rad; surrogate: {run_dir / 'surrogate.pt'}")
     return score

@@ -39,6 +39,10 @@ def test_tracking_figure_layout() -> None:
     assert np.all(ydata >= plots.ERROR_FLOOR)  # the exact-zero dalpha error was clipped, not dropped
     steps = [line for ax in fig.axes for line in ax.get_lines() if line.get_drawstyle() == "steps-post"]
     assert len(steps) == 2 and all(len(line.get_xdata()) == t.size for line in steps)
+    legend = [txt.get_text() for txt in fig.axes[-1].get_legend().get_texts()]
+    assert legend == ["u1", "u1 bounds", "u2", "u2 bounds"]
+    shared = plots.tracking_figure(t, x_ref, x, u, u_low=(-2.0, -2.0), u_high=(2.0, 2.0))
+    assert [txt.get_text() for txt in shared.axes[-1].get_legend().get_texts()] == ["u1", "u2", "bounds"]
 
 
 def test_tracking_figure_rejects_bad_shapes() -> None:

@@ -90,7 +90,8 @@ class NMPC:
             ok, info = False, None
         if not ok:
             fallback = True
-            U = self.clip(torch.nan_to_num(self._shifted(self.U), nan=0.0, posinf=0.0, neginf=0.0))  # noqa: N806
+            # self.U is already the previous plan shifted: its first entry is the input planned for now
+            U = self.clip(torch.nan_to_num(self.U, nan=0.0, posinf=0.0, neginf=0.0))  # noqa: N806
         elapsed = time.perf_counter() - start
         self.U = self._shifted(U) if self.warm_start else torch.zeros_like(U).clamp(self.low, self.high)
         self.u_prev = U[0].clone()

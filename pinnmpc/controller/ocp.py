@@ -1,13 +1,32 @@
-"""The horizon optimal control problem as a batched nonlinear least-squares problem on a surrogate."""
+"""The horizon optimal control problem as a batched nonlinear least-squares problem on a surrogate.
+
+Everything here works on torch tensors (autograd, for the torch.optim solvers) and on
+numpy arrays (the fast Gauss-Newton path), with the same formulas.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from types import ModuleType
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from pinnmpc.flow_numpy import NumpyFlow
 from pinnmpc.surrogate import Surrogate
+
+Array = Tensor | np.ndarray
+
+
+def xp_of(a: Array) -> ModuleType:
+    """Array namespace of a (torch or numpy)."""
+    return torch if isinstance(a, Tensor) else np
+
+
+def cat(parts: list[Array], axis: int) -> Array:
+    """Concatenate in either namespace."""
+    return torch.cat(parts, axis) if isinstance(parts[0], Tensor) else np.concatenate(parts, axis)
 
 
 def psd_sqrt(matrix: Sequence[Sequence[float]] | Sequence[float], n: int, name: str) -> Tensor:
@@ -19,7 +38,7 @@ def psd_sqrt(matrix: Sequence[Sequence[float]] | Sequence[float], n: int, name: 
         raise ValueError(f"{name} must be {n} diagonal entries or an {n}x{n} matrix, got shape {tuple(m.shape)}")
     if not torch.all(torch.isfinite(m)):
         raise ValueError(f"{name} has non-finite entries: {m.tolist()}")
-    if not torch.allclose(m, m.T, atol=1e-12):
+    if not torch.allclose(m, m.T, rtol=0.0, atol=1e-12):
         raise ValueError(f"{name} must be symmetric, got {m.tolist()}")
     eig, vec = torch.linalg.eigh(m)
     if eig.min() < -1e-12 * max(1.0, float(eig.abs().max())):
@@ -28,15 +47,15 @@ def psd_sqrt(matrix: Sequence[Sequence[float]] | Sequence[float], n: int, name: 
 
 
 class HorizonOCP:
-    """min_U sum_i ||W_q (x_ref_i - x_i)||^2 + ||W_r u_i||^2 + ||W_d (u_i - u_{i-1})||^2, x_{i+1} = s.step(x_i, u_i)."""
+    """min_U sum_i ||W_q (x_i - x_ref_i)||^2 + ||W_r u_i||^2 + ||W_d (u_i - u_{i-1})||^2, x_{i+1} = s.step(x_i, u_i)."""
 
     def __init__(
         self,
         surrogate: Surrogate,
         horizon: int,
-        Q: Sequence,  # noqa: N803 - names from the field
-        R: Sequence,  # noqa: N803
-        R_rate: Sequence | None = None,  # noqa: N803
+        Q: Sequence,
+        R: Sequence,
+        R_rate: Sequence | None = None,
     ) -> None:
         if int(horizon) < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
@@ -44,55 +63,94 @@ class HorizonOCP:
         self.horizon = int(horizon)
         nx, nu = surrogate.nx, surrogate.nu
         self.nx, self.nu = nx, nu
-        self.w_q = psd_sqrt(Q, nx, "Q")
-        self.w_r = psd_sqrt(R, nu, "R")
-        self.w_d = None if R_rate is None else psd_sqrt(R_rate, nu, "R_rate")
-        if self.w_d is not None and not torch.any(self.w_d != 0):
-            self.w_d = None
+        w_d = None if R_rate is None else psd_sqrt(R_rate, nu, "R_rate")
+        if w_d is not None and not torch.any(w_d != 0):
+            w_d = None
+        self.weights = {torch: (psd_sqrt(Q, nx, "Q"), psd_sqrt(R, nu, "R"), w_d)}
+        self.weights[np] = tuple(None if w is None else w.numpy() for w in self.weights[torch])
+        self.flow = NumpyFlow.from_pinn(surrogate.model, surrogate.tau) if hasattr(surrogate, "model") else None
+
+    @property
+    def w_q(self) -> Tensor:
+        """Square root of Q (torch)."""
+        return self.weights[torch][0]
+
+    @property
+    def w_r(self) -> Tensor:
+        """Square root of R (torch)."""
+        return self.weights[torch][1]
+
+    @property
+    def w_d(self) -> Tensor | None:
+        """Square root of R_rate (torch), None when the rate penalty is off."""
+        return self.weights[torch][2]
+
+    @property
+    def has_rate(self) -> bool:
+        """Whether the input-rate penalty is on."""
+        return self.weights[np][2] is not None
 
     @property
     def n_residuals(self) -> int:
         """Length of the stacked residual vector per problem."""
-        per_step = self.nx + self.nu + (self.nu if self.w_d is not None else 0)
-        return self.horizon * per_step
+        return self.horizon * (self.nx + self.nu + (self.nu if self.has_rate else 0))
 
-    def rollout(self, x0: Tensor, U: Tensor) -> Tensor:  # noqa: N803
+    def _step(self, x: Array, u: Array) -> Array:
+        """One surrogate step in the namespace of x."""
+        if isinstance(x, Tensor):
+            return self.surrogate.step(x, u)
+        if self.flow is not None:
+            return self.flow.step(x, u)
+        return self.surrogate.step(torch.from_numpy(x), torch.from_numpy(u)).numpy()
+
+    def _step_with_jacobian(self, x: Array, u: Array) -> tuple[Array, Array, Array]:
+        """One surrogate step with its Jacobians, in the namespace of x."""
+        if isinstance(x, Tensor):
+            return self.surrogate.step_with_jacobian(x, u)
+        if self.flow is not None:
+            return self.flow.step_with_jacobian(x, u)
+        return tuple(v.numpy() for v in self.surrogate.step_with_jacobian(torch.from_numpy(x), torch.from_numpy(u)))
+
+    def rollout(self, x0: Array, U: Array) -> Array:
         """Predicted states x_1..x_H (..., H, nx) by self-loop of the surrogate."""
         xs, x = [], x0
         for i in range(self.horizon):
-            x = self.surrogate.step(x, U[..., i, :])
+            x = self._step(x, U[..., i, :])
             xs.append(x)
-        return torch.stack(xs, dim=-2)
+        return xp_of(x0).stack(xs, -2)
 
-    def residuals(self, X: Tensor, U: Tensor, x_ref: Tensor, u_prev: Tensor) -> Tensor:  # noqa: N803
+    def residuals(self, X: Array, U: Array, x_ref: Array, u_prev: Array) -> Array:
         """Stacked weighted residuals (..., m); the cost is their squared norm."""
-        parts = [((X - x_ref) @ self.w_q.T).flatten(-2), (U @ self.w_r.T).flatten(-2)]
-        if self.w_d is not None:
-            du = U - torch.cat((u_prev.unsqueeze(-2), U[..., :-1, :]), dim=-2)
-            parts.append((du @ self.w_d.T).flatten(-2))
-        return torch.cat(parts, dim=-1)
+        w_q, w_r, w_d = self.weights[xp_of(U)]
+        lead = U.shape[:-2]
+        parts = [((X - x_ref) @ w_q.T).reshape(*lead, -1), (U @ w_r.T).reshape(*lead, -1)]
+        if w_d is not None:
+            du = U - cat([u_prev[..., None, :], U[..., :-1, :]], -2)
+            parts.append((du @ w_d.T).reshape(*lead, -1))
+        return cat(parts, -1)
 
-    def cost(self, x0: Tensor, U: Tensor, x_ref: Tensor, u_prev: Tensor) -> Tensor:  # noqa: N803
+    def cost(self, x0: Array, U: Array, x_ref: Array, u_prev: Array) -> Array:
         """Horizon cost per problem (...,)."""
-        return self.residuals(self.rollout(x0, U), U, x_ref, u_prev).square().sum(-1)
+        return (self.residuals(self.rollout(x0, U), U, x_ref, u_prev) ** 2).sum(-1)
 
-    def residuals_and_jacobian(self, x0: Tensor, U: Tensor, x_ref: Tensor, u_prev: Tensor) -> tuple[Tensor, Tensor]:  # noqa: N803
-        """Residuals (B, m) and their Jacobian (B, m, H*nu) from step Jacobians chained along the horizon."""
-        batch, n_var = x0.shape[:-1], self.horizon * self.nu
-        sens = torch.zeros(*batch, self.nx, n_var, dtype=x0.dtype)  # d x_i / d U
+    def residuals_and_jacobian(self, x0: Array, U: Array, x_ref: Array, u_prev: Array) -> tuple[Array, Array]:
+        """Residuals (..., m) and their Jacobian (..., m, H*nu) from step Jacobians chained along the horizon."""
+        xp = xp_of(x0)
+        w_q, w_r, w_d = self.weights[xp]
+        lead, n_var = x0.shape[:-1], self.horizon * self.nu
+        sens = xp.zeros((*lead, self.nx, n_var), dtype=xp.float64)  # d x_i / d U
         xs, sens_list, x = [], [], x0
         for i in range(self.horizon):
-            x, a, b = self.surrogate.step_with_jacobian(x, U[..., i, :])
+            x, a, b = self._step_with_jacobian(x, U[..., i, :])
             sens = a @ sens
             sens[..., :, i * self.nu : (i + 1) * self.nu] += b
             xs.append(x)
             sens_list.append(sens)
-        X = torch.stack(xs, dim=-2)  # noqa: N806
-        r = self.residuals(X, U, x_ref, u_prev)
-        jac_x = self.w_q @ torch.stack(sens_list, dim=-3)  # (B, H, nx, n_var)
-        eye_u = torch.eye(n_var, dtype=x0.dtype).reshape(self.horizon, self.nu, n_var)
-        parts = [jac_x.flatten(-3, -2), (self.w_r @ eye_u).flatten(-3, -2).expand(*batch, -1, -1)]
-        if self.w_d is not None:
-            shifted = torch.cat((torch.zeros_like(eye_u[:1]), eye_u[:-1]), dim=0)
-            parts.append((self.w_d @ (eye_u - shifted)).flatten(-3, -2).expand(*batch, -1, -1))
-        return r, torch.cat(parts, dim=-2)
+        r = self.residuals(xp.stack(xs, -2), U, x_ref, u_prev)
+        jac_x = (w_q @ xp.stack(sens_list, -3)).reshape(*lead, self.horizon * self.nx, n_var)
+        eye_u = xp.eye(n_var, dtype=xp.float64).reshape(self.horizon, self.nu, n_var)
+        parts = [jac_x, xp.broadcast_to((w_r @ eye_u).reshape(n_var, n_var), (*lead, n_var, n_var))]
+        if w_d is not None:
+            shifted = cat([xp.zeros_like(eye_u[:1]), eye_u[:-1]], 0)
+            parts.append(xp.broadcast_to((w_d @ (eye_u - shifted)).reshape(n_var, n_var), (*lead, n_var, n_var)))
+        return r, cat(parts, -2)

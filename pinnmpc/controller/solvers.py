@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -58,9 +59,9 @@ class RMSpropSolver:
             opt.step()
             with torch.no_grad():
                 U.copy_(torch.maximum(torch.minimum(U, high), low))
-            if abs(prev - float(cost)) < self.tol:
+            if abs(prev - float(cost.detach())) < self.tol:
                 break
-            prev = float(cost)
+            prev = float(cost.detach())
         U = U.detach()  # noqa: N806
         with torch.no_grad():
             final = ocp.cost(x0, U, x_ref, u_prev)
@@ -91,7 +92,7 @@ class LBFGSSolver:
 
         prev = float("inf")
         for _ in range(self.rounds):
-            cost = float(opt.step(closure))
+            cost = float(opt.step(closure).detach())
             with torch.no_grad():
                 U.copy_(torch.maximum(torch.minimum(U, high), low))
             if abs(prev - cost) < self.tol * max(1.0, abs(cost)):
@@ -105,12 +106,12 @@ class LBFGSSolver:
 
 @dataclass
 class GaussNewtonSolver:
-    """Projected Gauss-Newton / Levenberg-Marquardt on the least-squares structure, batched.
+    """Projected Gauss-Newton / Levenberg-Marquardt on the least-squares structure, batched, in numpy.
 
     Jacobians come from forward-mode tangents through the network; bounds are handled
     by an active set (variables at a bound whose gradient points outward are frozen)
-    and projection; the step length is picked from a few candidates evaluated in one
-    batched rollout.
+    and projection; the step length is the best of a few candidates evaluated in one
+    batched rollout. numpy, because batch-1 solves are dominated by per-op overhead.
     """
 
     max_iter: int = 30  # iteration cap
@@ -119,61 +120,80 @@ class GaussNewtonSolver:
     damping: float = 1e-9  # Levenberg-Marquardt damping, relative to the mean diagonal of J^T J
     step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.01)  # candidate step lengths per iteration
 
-    def solve(self, ocp, x0, U0, x_ref, u_prev, low, high):  # noqa: ANN001, ANN201, N803, C901
+    def solve(self, ocp, x0, U0, x_ref, u_prev, low, high):  # noqa: ANN001, ANN201
+        """Accepts torch or numpy; returns the same kind."""
+        as_torch = isinstance(U0, Tensor)
+        args = [
+            a.detach().numpy() if isinstance(a, Tensor) else np.asarray(a, dtype=np.float64)
+            for a in (x0, U0, x_ref, u_prev, low, high)
+        ]
+        U, iterations, cost, converged = self._solve(ocp, *args)
+        if as_torch:
+            return torch.from_numpy(U), SolveInfo(
+                torch.from_numpy(iterations), torch.from_numpy(cost), torch.from_numpy(converged)
+            )
+        return U, SolveInfo(iterations, cost, converged)
+
+    def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high):  # noqa: ANN001, ANN202
         """Iterate until every problem has converged or max_iter is reached."""
         shape = U0.shape
+        horizon_nu = shape[-2:]
         n = shape[-1] * shape[-2]
-        U = torch.maximum(torch.minimum(U0, high), low).reshape(-1, n)  # noqa: N806
-        lo, hi = low.expand(shape).reshape(-1, n), high.expand(shape).reshape(-1, n)
         x0b, refb, upb = (
             x0.reshape(-1, x0.shape[-1]),
             x_ref.reshape(-1, *x_ref.shape[-2:]),
             u_prev.reshape(-1, shape[-1]),
         )
+        U = np.clip(U0, low, high).reshape(-1, n)
+        lo = np.broadcast_to(low, shape).reshape(-1, n)
+        hi = np.broadcast_to(high, shape).reshape(-1, n)
         batch = U.shape[0]
-        active_problems = torch.ones(batch, dtype=torch.bool)
-        iterations = torch.zeros(batch, dtype=torch.long)
-        alphas = torch.tensor(self.step_lengths, dtype=U.dtype)
-        eye = torch.eye(n, dtype=U.dtype)
-        cost = torch.zeros(batch, dtype=U.dtype)
-        with torch.no_grad():
-            for _ in range(self.max_iter):
-                idx = active_problems.nonzero().squeeze(-1)
-                if idx.numel() == 0:
-                    break
-                u_i = U[idx]
-                r, jac = ocp.residuals_and_jacobian(x0b[idx], u_i.reshape(-1, *shape[-2:]), refb[idx], upb[idx])
-                f = r.square().sum(-1)
-                cost[idx] = f
-                grad = 2 * (jac.transpose(-1, -2) @ r.unsqueeze(-1)).squeeze(-1)
-                bound = ((u_i <= lo[idx]) & (grad > 0)) | ((u_i >= hi[idx]) & (grad < 0))
-                pgrad = torch.where(bound, 0.0, grad)
-                done = pgrad.abs().amax(-1) < self.tol_grad
-                free = (~bound).to(U.dtype)
-                jtj = jac.transpose(-1, -2) @ jac
-                mu = self.damping * jtj.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-30)
-                hess = jtj * free.unsqueeze(-1) * free.unsqueeze(-2) + torch.diag_embed(1 - free)
-                hess = hess + mu[:, None, None] * eye
-                delta = torch.linalg.solve(hess, (-pgrad / 2).unsqueeze(-1)).squeeze(-1)
-                cand = u_i.unsqueeze(1) + alphas[None, :, None] * delta.unsqueeze(1)
-                cand = torch.maximum(torch.minimum(cand, hi[idx].unsqueeze(1)), lo[idx].unsqueeze(1))
-                k = len(self.step_lengths)
-                c = ocp.cost(
-                    x0b[idx].repeat_interleave(k, 0),
-                    cand.reshape(-1, *shape[-2:]),
-                    refb[idx].repeat_interleave(k, 0),
-                    upb[idx].repeat_interleave(k, 0),
-                ).reshape(-1, k)
-                best_c, best = c.min(-1)
-                improved = best_c < f
-                step = improved & ~done
-                U[idx[step]] = cand[step, best[step]]
-                cost[idx[step]] = best_c[step]
-                iterations[idx] += 1
-                small = (f - best_c) <= self.tol_cost * f.clamp_min(1e-300)
-                active_problems[idx[done | ~improved | small]] = False
-        converged = ~active_problems
-        return U.reshape(shape), SolveInfo(iterations, cost.reshape(shape[:-2]), converged.reshape(shape[:-2]))
+        running = np.ones(batch, dtype=bool)
+        iterations = np.zeros(batch, dtype=np.int64)
+        cost = np.zeros(batch)
+        alphas = np.asarray(self.step_lengths, dtype=np.float64)
+        k = len(alphas)
+        eye = np.eye(n)
+        for _ in range(self.max_iter):
+            idx = np.flatnonzero(running)
+            if idx.size == 0:
+                break
+            u_i, x_i, ref_i, up_i = U[idx], x0b[idx], refb[idx], upb[idx]
+            r, jac = ocp.residuals_and_jacobian(x_i, u_i.reshape(-1, *horizon_nu), ref_i, up_i)
+            f = (r * r).sum(-1)
+            cost[idx] = f
+            jt = np.swapaxes(jac, -1, -2)
+            grad = 2.0 * (jt @ r[..., None])[..., 0]
+            bound = ((u_i <= lo[idx]) & (grad > 0)) | ((u_i >= hi[idx]) & (grad < 0))
+            pgrad = np.where(bound, 0.0, grad)
+            done = np.abs(pgrad).max(-1) < self.tol_grad
+            free = (~bound).astype(np.float64)
+            jtj = jt @ jac
+            mu = self.damping * np.maximum(np.diagonal(jtj, 0, -2, -1).mean(-1), 1e-30)
+            hess = jtj * free[:, :, None] * free[:, None, :] + (1.0 - free)[:, :, None] * eye + mu[:, None, None] * eye
+            delta = np.linalg.solve(hess, -0.5 * pgrad[..., None])[..., 0]
+            cand = np.clip(
+                u_i[:, None, :] + alphas[None, :, None] * delta[:, None, :], lo[idx][:, None, :], hi[idx][:, None, :]
+            )
+            m = idx.size
+            c = ocp.cost(
+                np.repeat(x_i, k, 0), cand.reshape(m * k, *horizon_nu), np.repeat(ref_i, k, 0), np.repeat(up_i, k, 0)
+            ).reshape(m, k)
+            best = c.argmin(-1)
+            best_c = c[np.arange(m), best]
+            improved = best_c < f
+            step = improved & ~done
+            U[idx[step]] = cand[step, best[step]]
+            cost[idx[step]] = best_c[step]
+            iterations[idx] += 1
+            small = (f - best_c) <= self.tol_cost * np.maximum(f, 1e-300)
+            running[idx[done | ~improved | small]] = False
+        return (
+            U.reshape(shape),
+            iterations.reshape(shape[:-2]),
+            cost.reshape(shape[:-2]),
+            (~running).reshape(shape[:-2]),
+        )
 
 
 SOLVERS = {"gauss_newton": GaussNewtonSolver, "rmsprop": RMSpropSolver, "lbfgs": LBFGSSolver}

@@ -1,0 +1,187 @@
+"""A real bench run at tiny sizes: every section runs, bench.json is sane, bench.md has the tables, PNGs exist."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+
+from pinnmpc.bench import RK4Model, run_bench
+from pinnmpc.systems import PowerCube
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+MAX_STEPS = 5  # closed-loop solves per row: enough OCPs for the optimality section
+TINY = [
+    "progress=false",
+    "step.batch_sizes=[1,8]",
+    "step.n_states=8",
+    "step.repeats=3",
+    "step.warmup=1",
+    "step.rk45_loop_repeats=1",
+    f"closed_loop.max_steps={MAX_STEPS}",
+    "controller.solvers.rmsprop.max_iter=30",
+    "optimality.n_states=5",
+    "scaling.horizons=[2,3]",
+    "scaling.batch_sizes=[1,4]",
+    "scaling.step_batch_sizes=[1,8]",
+    "scaling.repeats=2",
+    "scaling.warmup=1",
+    "scaling.step_repeats=2",
+    "scaling.step_warmup=1",
+]
+SECTIONS_OFF = [f"{s}.enabled=false" for s in ("step", "closed_loop", "optimality", "scaling")]
+
+
+def _cfg(overrides: list[str]) -> DictConfig:
+    """conf/bench.yaml composed the way the CLI composes it."""
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name="bench", overrides=overrides)
+
+
+def _numbers(obj: Any, path: str = "") -> Iterator[tuple[str, Any]]:
+    """Every number in a JSON tree, with its key path."""
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _numbers(v, f"{path}.{k}")
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from _numbers(v, f"{path}[{i}]")
+    elif isinstance(obj, int | float) and not isinstance(obj, bool):
+        yield path, obj
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
+    """One tiny run shared by the tests below (the run is the expensive part)."""
+    run_dir = tmp_path_factory.mktemp("bench")
+    return run_bench(_cfg(TINY), run_dir), run_dir
+
+
+def test_json_round_trips_and_is_finite(bench: tuple[dict[str, Any], Path]) -> None:
+    result, run_dir = bench
+    on_disk = json.loads((run_dir / "bench.json").read_text())
+    assert on_disk == json.loads(json.dumps(result))
+    assert {"machine", "paper", "step", "closed_loop", "optimality", "scaling", "elapsed_s"} <= set(on_disk)
+    bad = [(p, v) for p, v in _numbers({k: v for k, v in on_disk.items() if k != "machine"}) if not math.isfinite(v)]
+    assert not bad
+
+
+def test_step_table(bench: tuple[dict[str, Any], Path]) -> None:
+    step = bench[0]["step"]
+    assert set(step["timing"]) == {"1", "8"}
+    expected = {"pinn_f64", "pinn_f32", "euler_numpy", "euler_torch", "rk4_numpy", "rk4_torch", "rk45"}
+    for b, rows in step["timing"].items():
+        assert set(rows) == expected
+        rk45 = step["rk45_median_s"][b]
+        assert rk45 == rows["rk45"]["median_s"] > 0
+        for row in rows.values():
+            assert all(isinstance(row[k], float) and row[k] > 0 for k in ("median_s", "mean_s", "p95_s"))
+            assert row["ratio_to_rk45"] == pytest.approx(row["median_s"] / rk45, rel=1e-12)
+            assert row["per_sample_median_s"] == pytest.approx(row["median_s"] / int(b), rel=1e-12)
+    for key, rmse in step["rmse"].items():
+        assert set(rmse) == {"alpha", "beta", "dalpha", "dbeta"}
+        assert all(math.isfinite(v) and v > 0 for v in rmse.values()), key
+    for name in ("euler", "rk4"):  # numpy and torch run the same formulas: the same answer
+        np_rmse, torch_rmse = step["rmse"][f"{name}_numpy"], step["rmse"][f"{name}_torch"]
+        assert np_rmse == pytest.approx(torch_rmse, rel=1e-9)
+
+
+def test_step_skips_rk45_batch_rows_when_asked(tmp_path: Path) -> None:
+    off = [o for o in SECTIONS_OFF if not o.startswith("step")]
+    result = run_bench(_cfg([*TINY, *off, "step.rk45_batch=skip"]), tmp_path)
+    assert "rk45" in result["step"]["timing"]["1"]
+    assert "rk45" not in result["step"]["timing"]["8"]
+    assert all("ratio_to_rk45" not in row for row in result["step"]["timing"]["8"].values())
+    assert "—" in (tmp_path / "bench.md").read_text()
+
+
+def test_closed_loop_rows(bench: tuple[dict[str, Any], Path]) -> None:
+    cl = bench[0]["closed_loop"]
+    assert set(cl["rows"]) == {"pinn_gauss_newton", "pinn_rmsprop", "true_rk4_gauss_newton"}
+    for key, row in cl["rows"].items():
+        assert row["status"] == "ok", key
+        assert row["steps"] == MAX_STEPS
+        assert all(v > 0 for v in row["mae"].values())
+        t = row["ocp_time_s"]
+        assert 0 < t["median"] <= t["p95"] <= t["max"]
+        assert row["ratio_ocp_to_plant"] == pytest.approx(t["median"] / row["plant_step_median_s"], rel=1e-12)
+        assert row["iterations_mean"] > 0 and row["fallbacks"] >= 0
+
+
+def test_optimality(bench: tuple[dict[str, Any], Path]) -> None:
+    op = bench[0]["optimality"]
+    assert op["n_states"] == MAX_STEPS
+    assert 0.0 <= op["fraction_within"] <= 1.0
+    assert op["rel_gap"]["min"] <= op["rel_gap"]["median"] <= op["rel_gap"]["p95"] <= op["rel_gap"]["max"]
+    assert op["rel_gap"]["min"] > -1e-9  # the Gauss-Newton start is among the L-BFGS-B starts
+    assert sum(op["best_start_counts"].values()) == op["n_states"]
+
+
+def test_scaling_and_plots(bench: tuple[dict[str, Any], Path]) -> None:
+    result, run_dir = bench
+    sc = result["scaling"]
+    assert [r["horizon"] for r in sc["horizon"]] == [2, 3]
+    assert [r["batch"] for r in sc["batch"]] == [1, 4]
+    for r in sc["horizon"] + sc["batch"]:
+        assert r["median_s"] > 0
+        assert r["problems_per_s"] == pytest.approx(r["batch"] / r["median_s"], rel=1e-12)
+    assert all(v > 0 for k, vs in sc["step"].items() for v in vs), sc["step"]
+    assert len(sc["plots"]) == 3
+    for name in sc["plots"]:
+        path = run_dir / name
+        assert path.read_bytes()[:8] == PNG_MAGIC
+    assert not list(run_dir.glob(".*.tmp"))  # atomic writes left no temp files
+
+
+def test_markdown_has_every_table(bench: tuple[dict[str, Any], Path]) -> None:
+    md = (bench[1] / "bench.md").read_text()
+    for text in (
+        "Machine:",
+        "torch threads 1",
+        "## 1. One-step cost",
+        "### batch 1",
+        "### batch 8",
+        "| PINN float64 (torch) |",
+        "RMSE alpha",
+        "## 2. Closed loop",
+        "| PINN-MPC, gauss_newton |",
+        "true model (RK4",
+        "paper (RMSprop",
+        "7.53e-03",
+        "## 3. OCP optimality",
+        "## 4. Scaling",
+        "### OCP vs horizon",
+    ):
+        assert text in md, text
+    assert "4.14e-04" in md and "1.77e-03" in md  # the paper's one-step numbers sit next to ours
+
+
+def test_all_sections_off_still_writes_reports(tmp_path: Path) -> None:
+    result = run_bench(_cfg(SECTIONS_OFF), tmp_path)
+    assert {"step", "closed_loop", "optimality", "scaling"}.isdisjoint(result)
+    assert "Machine:" in (tmp_path / "bench.md").read_text()
+    assert json.loads((tmp_path / "bench.json").read_text())["elapsed_s"] == {}
+
+
+def test_rk4_model_jacobians_agree() -> None:
+    system = PowerCube()
+    x0 = torch.tensor([[0.3, -0.4, 0.5, 1e-3], [-1.0, 0.8, -0.2, 0.7]], dtype=torch.float64)
+    u = torch.tensor([[0.1, -0.2], [0.4, 0.3]], dtype=torch.float64)
+    fwd, rev = RK4Model(system, 0.2, 0.02, "jacfwd"), RK4Model(system, 0.2, 0.02, "reverse")
+    x1f, Af, Bf = fwd.step_with_jacobian(x0, u)
+    x1r, Ar, Br = rev.step_with_jacobian(x0, u)
+    assert Af.shape == (2, 4, 4) and Bf.shape == (2, 4, 2)
+    torch.testing.assert_close(x1f, fwd.step(x0, u), rtol=0, atol=1e-14)
+    torch.testing.assert_close((x1r, Ar, Br), (x1f, Af, Bf), rtol=1e-10, atol=1e-12)
+    eps = 1e-6  # central differences along u1 of the second sample (away from dbeta = 0)
+    du = torch.tensor([eps, 0.0], dtype=torch.float64)
+    fd = (rev.step(x0[1], u[1] + du) - rev.step(x0[1], u[1] - du)) / (2 * eps)
+    torch.testing.assert_close(Br[1, :, 0], fd, rtol=1e-5, atol=1e-7)
