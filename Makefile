@@ -7,7 +7,7 @@ TORCH_PIP_ARGS ?=
 ARGS ?=
 SHARED_REF ?= ../shared/powercube/reference
 
-.PHONY: install train resume self-loop closed-loop closed-loop-paper evaluate bench sweep sweep-optuna tensorboard test test-all lint format contract clean
+.PHONY: install train self-loop closed-loop closed-loop-paper robustness bench sweep sweep-optuna tensorboard test test-all lint format contract clean
 
 install: $(VENV)/.installed  ## venv with a CPU build of torch, the package (editable) and its extras
 
@@ -29,6 +29,9 @@ closed-loop: install  ## NMPC tracks the built-in reference on the RK45 plant (t
 
 closed-loop-paper: install  ## the paper's reference from ../shared (paper settings are the defaults)
 	$(PY) -m pinnmpc.closed_loop reference.path=$(SHARED_REF) $(ARGS)
+
+robustness: install  ## closed loops under measurement noise and friction/mass mismatch, one table
+	$(PY) -m pinnmpc.robustness $(ARGS)
 
 bench: install  ## benchmarks: bench.json, bench.md and plots in outputs/bench/<time>/
 	$(PY) -m pinnmpc.bench $(ARGS)

@@ -30,7 +30,6 @@ from omegaconf import DictConfig, OmegaConf
 from scipy.optimize import minimize
 from torch import Tensor
 
-import pinnmpc
 from pinnmpc.closed_loop import metrics, plant_system, simulate
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import NMPC
@@ -39,14 +38,13 @@ from pinnmpc.controller.solvers import SolveInfo, Solver
 from pinnmpc.integrators import euler_step, rk4_step
 from pinnmpc.io import atomic_write, save_json
 from pinnmpc.plant import ScipyPlant
-from pinnmpc.references import Reference, load_reference
+from pinnmpc.references import Reference, load_reference, resolve_reference_path
 from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.systems.base import Box, System
 from pinnmpc.training.data import reference_flow, uniform_box
 
 log = logging.getLogger(__name__)
 
-PAPER_REFERENCE = Path(pinnmpc.__file__).resolve().parents[1].parent / "shared" / "powercube" / "reference"
 PERCENTILE = 95.0  # the "p95" of every table
 STATUS_CHARS = 40  # a failed loop's status is cut to this many characters in its table cell
 OPENBLAS_SETTERS = (  # thread setters of the OpenBLAS builds numpy and scipy ship (as threadpoolctl looks them up)
@@ -137,13 +135,6 @@ def as_numpy(y: Tensor | np.ndarray) -> np.ndarray:
     if isinstance(y, Tensor):
         return y.detach().to(torch.float64).numpy()
     return np.asarray(y, dtype=np.float64)
-
-
-def resolve_reference_path(path: str | None) -> str | None:
-    """'auto': the paper's reference in ../shared when it exists (never copied into the project), else a built-in."""
-    if path == "auto":
-        return str(PAPER_REFERENCE) if PAPER_REFERENCE.is_dir() else None
-    return path
 
 
 # ---------------------------------------------------------------------------------------------------------------

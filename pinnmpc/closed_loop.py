@@ -20,7 +20,7 @@ from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import NMPC
 from pinnmpc.io import save_json, save_npz
 from pinnmpc.plant import PlantError, ScipyPlant
-from pinnmpc.references import Reference, load_reference, out_of_box
+from pinnmpc.references import Reference, load_reference, out_of_box, resolve_reference_path
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import System
 
@@ -142,7 +142,7 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         raise ValueError(
             f"tau={cfg.tau} differs from the surrogate's tau={surrogate.tau} (a PINN predicts one period of its tau)"
         )
-    ref = load_reference(cfg.reference.path, surrogate.tau, cfg.reference.name)
+    ref = load_reference(resolve_reference_path(cfg.reference.path), surrogate.tau, cfg.reference.name)
     dist = out_of_box(ref, surrogate.state_box.low, surrogate.state_box.high)
     if dist > 0:
         log.warning(

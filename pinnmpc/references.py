@@ -18,6 +18,7 @@ CSV_COLUMNS = ("t", *STATE_NAMES)  # columns a .csv reference must name in its h
 MAT_FILES = {"y_soll": 2, "Dy_soll": 2, "t_soll": 1}  # paper's .mat files (variable = file stem) and their rows
 KINDS = "a folder with y_soll.mat, Dy_soll.mat and t_soll.mat, a .npz (t, x) or a .csv (t, alpha, beta, dalpha, dbeta)"
 BUILTIN_DT = 0.01  # s, sampling of the built-in references; fine enough to resample to any controller step
+PAPER_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "powercube" / "reference"  # never copied here
 RESAMPLE_SLACK = 1e-9  # s, a grid point this close past the last sample still counts as inside
 
 
@@ -327,3 +328,10 @@ def out_of_box(ref: Reference, low: Sequence[float], high: Sequence[float]) -> f
     if np.any(lo > hi):
         raise ReferenceError(f"box low {lo.tolist()} exceeds high {hi.tolist()}; expected low <= high")
     return float(np.max(np.maximum(lo - ref.x, ref.x - hi).clip(min=0.0)))
+
+
+def resolve_reference_path(path: str | Path | None) -> str | None:
+    """'auto': the paper's reference in ../shared when it exists, else None (a built-in); other values as given."""
+    if str(path) == "auto":
+        return str(PAPER_REFERENCE) if PAPER_REFERENCE.is_dir() else None
+    return None if path is None else str(path)

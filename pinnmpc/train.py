@@ -18,7 +18,7 @@ from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import flow_scale
-from pinnmpc.training.export import SurrogateFacts
+from pinnmpc.training.export import AtomicCheckpoint, SurrogateFacts
 
 
 def build_model(cfg: DictConfig, system: System) -> PINN:
@@ -60,16 +60,17 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     datamodule = instantiate(cfg.data, _partial_=True)(system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed)
     module = instantiate(cfg.module, _partial_=True)(system=system, model=model, tau=cfg.tau)
     ckpt_dir = run_dir / "checkpoints"
-    best = L.pytorch.callbacks.ModelCheckpoint(
-        dirpath=ckpt_dir, filename="best", monitor="val/rmse_position", mode="min", save_last=True
+    best = AtomicCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/rmse_position", mode="min")
+    last = AtomicCheckpoint(  # every epoch, so a killed run loses at most one epoch of work
+        dirpath=ckpt_dir, filename="last", every_n_epochs=1, save_on_train_epoch_end=True, enable_version_counter=False
     )
-    callbacks = [best, SurrogateFacts(cfg.tau), L.pytorch.callbacks.LearningRateMonitor(logging_interval="epoch")]
+    callbacks = [best, last, SurrogateFacts(cfg.tau)]
     logger = L.pytorch.loggers.TensorBoardLogger(save_dir=str(run_dir), name="tensorboard", version="")
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=logger, default_root_dir=str(run_dir))
     start = time.perf_counter()
     trainer.fit(module, datamodule=datamodule, ckpt_path=resolve_ckpt(cfg, run_dir))
     wall = time.perf_counter() - start
-    source = best.best_model_path or best.last_model_path
+    source = best.best_model_path or last.best_model_path
     surrogate = load_surrogate(source)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
     surrogate.meta = {

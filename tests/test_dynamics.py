@@ -103,3 +103,12 @@ def test_plant_failure_is_an_error():
         plant.step(np.array([np.nan, 0.0, 0.0, 0.0]), np.zeros(2))
     with pytest.raises(ValueError, match="tau must be > 0"):
         ScipyPlant(PowerCube(), 0.0)
+
+
+def test_physics_parameters_are_validated():
+    with pytest.raises(ValueError, match="friction_scale must be a finite number, got nan"):
+        PowerCubeParams(friction_scale=float("nan"))
+    with pytest.raises(ValueError, match="mass_scale must be a finite number, got '.nan'"):
+        PowerCubeParams(mass_scale=".nan")
+    with pytest.raises(ValueError, match="mass_scale > 0"):
+        PowerCubeParams(mass_scale=0.0)

@@ -3,15 +3,22 @@
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
+import sys
+import time
 
 import lightning as L
+import pytest
 import torch
 
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems import PowerCube
 from pinnmpc.train import build_model, train
 from pinnmpc.training.data import CollocationDataModule, lhs_box
+from pinnmpc.training.export import AtomicCheckpoint
 from pinnmpc.training.module import PINNModule
+from tests.conftest import ROOT
 
 TINY = [
     "data.n_collocation=256",
@@ -110,7 +117,7 @@ def test_resume_continues_from_last_checkpoint(make_cfg, tmp_path):
     second = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=False)
     assert summary["epochs"] == 4
     assert second["global_step"] > first["global_step"]
-    assert second["epoch"] == 3 and first["epoch"] == 1
+    assert second["epoch"] == first["epoch"] + 2
 
 
 def test_stalled_lbfgs_is_detected_and_recovered(make_cfg, tmp_path):
@@ -130,3 +137,49 @@ def test_stalled_lbfgs_is_detected_and_recovered(make_cfg, tmp_path):
     trainer.fit(module, datamodule=dm)
     assert module.stalls >= 2
     assert dm.draws >= 3
+
+
+def test_nan_loss_stops_with_a_message_and_keeps_the_last_good_checkpoint(make_cfg, tmp_path):
+    train(make_cfg("train", [*TINY, "trainer.max_epochs=2"]), tmp_path)
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    good = last.read_bytes()
+    module, dm = _tiny_module(make_cfg)
+    dm.setup()
+    dm.batch["x0"][0, 0] = float("nan")  # a corrupt collocation point poisons the full-batch loss
+    keep_last = AtomicCheckpoint(dirpath=tmp_path / "checkpoints", filename="last", enable_version_counter=False)
+    trainer = L.Trainer(
+        max_epochs=2,
+        logger=False,
+        callbacks=[keep_last],
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        default_root_dir=tmp_path,
+        num_sanity_val_steps=0,
+    )
+    with pytest.raises(FloatingPointError, match="training loss became nan"):
+        trainer.fit(module, datamodule=dm)
+    assert last.read_bytes() == good
+    s = load_surrogate(last)
+    assert torch.all(torch.isfinite(s.step(torch.zeros(1, 4), torch.zeros(1, 2))))
+
+
+def test_killed_training_resumes_without_losing_work(make_cfg, tmp_path):
+    cmd = [sys.executable, "-m", "pinnmpc.train", *TINY, "trainer.max_epochs=100000", f"hydra.run.dir={tmp_path}"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    try:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and proc.poll() is None:
+            if last.is_file() and torch.load(last, weights_only=True)["epoch"] >= 3:
+                break
+            time.sleep(0.5)
+        assert proc.poll() is None, "training ended before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    killed = torch.load(last, weights_only=True)
+    summary = train(make_cfg("train", [*TINY, f"trainer.max_epochs={killed['epoch'] + 2}", "resume=true"]), tmp_path)
+    resumed = torch.load(last, weights_only=True)
+    assert summary["epochs"] == killed["epoch"] + 2
+    assert resumed["global_step"] > killed["global_step"]

@@ -39,6 +39,16 @@ class PowerCubeParams:
     friction_scale: float = 1.0  # multiplies every friction term (plant mismatch studies)
     mass_scale: float = 1.0  # multiplies the mass matrix (plant mismatch studies)
 
+    def __post_init__(self) -> None:
+        for name in ("friction_scale", "mass_scale"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                raise ValueError(f"PowerCube {name} must be a finite number, got {value!r}")
+        if self.mass_scale <= 0 or self.friction_scale < 0:
+            raise ValueError(
+                f"need mass_scale > 0 and friction_scale >= 0, got {self.mass_scale} and {self.friction_scale}"
+            )
+
 
 DEFAULT_PARAMS = PowerCubeParams()
 

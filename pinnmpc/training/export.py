@@ -1,10 +1,27 @@
-"""Checkpoint hooks that keep training runs loadable as surrogates without Lightning."""
+"""Checkpoint callbacks: atomic writes, and the facts that make a training checkpoint loadable as a surrogate."""
 
 from __future__ import annotations
 
 from typing import Any
+from weakref import proxy
 
 import lightning as L
+from lightning.pytorch.callbacks import ModelCheckpoint
+
+from pinnmpc.io import atomic_write
+
+
+class AtomicCheckpoint(ModelCheckpoint):
+    """ModelCheckpoint whose files appear whole or not at all: a killed run never leaves a truncated .ckpt."""
+
+    def _save_checkpoint(self, trainer: L.Trainer, filepath: str) -> None:
+        """Lightning's save, through a temporary file and a rename."""
+        atomic_write(filepath, lambda tmp: trainer.save_checkpoint(str(tmp), self.save_weights_only), suffix=".ckpt")
+        self._last_global_step_saved = trainer.global_step
+        self._last_checkpoint_saved = filepath
+        if trainer.is_global_zero:
+            for logger in trainer.loggers:
+                logger.after_save_checkpoint(proxy(self))
 
 
 class SurrogateFacts(L.Callback):

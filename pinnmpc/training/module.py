@@ -36,6 +36,7 @@ class PINNModule(L.LightningModule):
         lbfgs_tolerance_grad: float = 1e-9,
         lbfgs_tolerance_change: float = 1e-12,
         stall_min_evals: int = 3,
+        stall_rel_tol: float = 1e-6,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["system", "model"])
@@ -107,7 +108,7 @@ class PINNModule(L.LightningModule):
             return loss
 
         evals_before = self._lbfgs_evals(lbfgs)
-        opt.step(closure=closure)
+        start_loss = float(opt.step(closure=closure).detach())  # torch optimizers return the first closure value
         with torch.no_grad():
             parts = self.losses(batch)
         if not math.isfinite(float(parts["total"])):
@@ -115,12 +116,17 @@ class PINNModule(L.LightningModule):
                 f"training loss became {float(parts['total'])} at epoch {self.current_epoch}; "
                 "the last good checkpoint is kept (try a smaller lbfgs_lr or an Adam warm-up)"
             )
-        if not use_adam and self._lbfgs_evals(lbfgs) - evals_before < self.hparams.stall_min_evals:
+        if not use_adam and self._stalled(start_loss, float(parts["total"]), self._lbfgs_evals(lbfgs) - evals_before):
             self._recover_from_stall(lbfgs)
         for name, value in parts.items():
             self.log(f"train/loss_{name}", value, prog_bar=name == "total", on_step=False, on_epoch=True, batch_size=1)
         self.log("train/stalls", float(self.stalls), on_step=False, on_epoch=True, batch_size=1)
         return parts["total"]
+
+    def _stalled(self, start_loss: float, end_loss: float, evals: int) -> bool:
+        """Too few evaluations (a tolerance was hit) or too little progress (float32 line searches stall)."""
+        progress = (start_loss - end_loss) / max(abs(start_loss), 1e-30)
+        return evals < self.hparams.stall_min_evals or progress < self.hparams.stall_rel_tol
 
     @staticmethod
     def _lbfgs_evals(opt: torch.optim.Optimizer) -> int:
