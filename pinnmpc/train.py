@@ -17,8 +17,8 @@ from pinnmpc.io import save_json
 from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import System
+from pinnmpc.training.callbacks import AtomicCheckpoint, SelfLoopFigure, SurrogateFacts
 from pinnmpc.training.data import flow_scale
-from pinnmpc.training.export import AtomicCheckpoint, SurrogateFacts
 
 
 def build_model(cfg: DictConfig, system: System) -> PINN:
@@ -51,7 +51,7 @@ def resolve_ckpt(cfg: DictConfig, run_dir: Path) -> str | None:
     return str(last) if cfg.resume and last.is_file() else None
 
 
-def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+def train(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnmpc.train") -> dict[str, Any]:
     """Fit, export the best network as surrogate.pt, and return its validation metrics."""
     L.seed_everything(cfg.seed, workers=True)
     torch.set_num_threads(cfg.threads)
@@ -64,7 +64,10 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     last = AtomicCheckpoint(  # every epoch, so a killed run loses at most one epoch of work
         dirpath=ckpt_dir, filename="last", every_n_epochs=1, save_on_train_epoch_end=True, enable_version_counter=False
     )
-    callbacks = [best, last, SurrogateFacts(cfg.tau)]
+    figure = SelfLoopFigure(
+        cfg.self_loop_figure.every_n_epochs, cfg.self_loop_figure.steps, cfg.self_loop_figure.amplitude
+    )
+    callbacks = [best, last, SurrogateFacts(cfg.tau), figure]
     logger = L.pytorch.loggers.TensorBoardLogger(save_dir=str(run_dir), name="tensorboard", version="")
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=logger, default_root_dir=str(run_dir))
     start = time.perf_counter()
@@ -74,7 +77,7 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     surrogate = load_surrogate(source)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
     surrogate.meta = {
-        "trained_with": "python -m pinnmpc.train " + " ".join(cfg.get("overrides", [])),
+        "trained_with": command,
         "config": OmegaConf.to_container(cfg, resolve=True),
         "wall_time_s": wall,
         "epochs": trainer.current_epoch,
@@ -91,8 +94,10 @@ def train(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 def main(cfg: DictConfig) -> float:
     """CLI: returns the best validation position RMSE, so Optuna sweeps can minimise it."""
-    run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    summary = run_cli(lambda: train(cfg, run_dir), "pinnmpc.train")
+    hydra_cfg = hydra.core.hydra_config.HydraConfig.get()
+    run_dir = Path(hydra_cfg.runtime.output_dir)
+    command = " ".join(["python -m pinnmpc.train", *hydra_cfg.overrides.task])
+    summary = run_cli(lambda: train(cfg, run_dir, command), "pinnmpc.train")
     score = summary["best_val_rmse_position"]
     print(f"best val RMSE (positions) {score:.3e} rad; surrogate: {run_dir / 'surrogate.pt'}")
     return score

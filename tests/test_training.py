@@ -15,8 +15,8 @@ import torch
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems import PowerCube
 from pinnmpc.train import build_model, train
+from pinnmpc.training.callbacks import AtomicCheckpoint
 from pinnmpc.training.data import CollocationDataModule, lhs_box
-from pinnmpc.training.export import AtomicCheckpoint
 from pinnmpc.training.module import PINNModule
 from tests.conftest import ROOT
 
@@ -33,6 +33,8 @@ TINY = [
     "trainer.check_val_every_n_epoch=1",
     "trainer.enable_progress_bar=false",
     "trainer.enable_model_summary=false",
+    "self_loop_figure.every_n_epochs=1",
+    "self_loop_figure.steps=3",
     "threads=1",
 ]
 
