@@ -1,13 +1,15 @@
-# pinnmpc: every user-facing task. Overrides go after the target, e.g. `make train ARGS="seed=1"`.
+# pinnmpc: every user-facing task. Hydra overrides go after the target, e.g. `make closed-loop animate=true`
+# or `make train seed=1` (or in ARGS="..."); the make variables below are not passed on.
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
 TORCH_PIP_ARGS ?=
 ARGS ?=
+OVERRIDES := $(filter-out ARGS=% PYTHON=% VENV=% TORCH_SPEC=% TORCH_PIP_ARGS=% SHARED_REF=%,$(MAKEOVERRIDES)) $(ARGS)
 SHARED_REF ?= ../shared/powercube/reference
 
-.PHONY: install train self-loop closed-loop closed-loop-paper robustness bench sweep sweep-optuna tensorboard test test-all lint format contract clean
+.PHONY: install train self-loop closed-loop closed-loop-paper robustness evaluate bench sweep sweep-optuna tensorboard test test-all lint format contract clean
 
 install: $(VENV)/.installed  ## venv with a CPU build of torch, the package (editable) and its extras
 
@@ -19,28 +21,31 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 train: install  ## train the default PINN (under 30 min on 2 cores); outputs/train/<time>/
-	$(PY) -m pinnmpc.train $(ARGS)
+	$(PY) -m pinnmpc.train $(OVERRIDES)
 
 self-loop: install  ## the paper's 20-step self-loop test with the shipped checkpoint
-	$(PY) -m pinnmpc.self_loop $(ARGS)
+	$(PY) -m pinnmpc.self_loop $(OVERRIDES)
 
 closed-loop: install  ## NMPC tracks the built-in reference on the RK45 plant (the main job)
-	$(PY) -m pinnmpc.closed_loop $(ARGS)
+	$(PY) -m pinnmpc.closed_loop $(OVERRIDES)
 
 closed-loop-paper: install  ## the paper's reference from ../shared (paper settings are the defaults)
-	$(PY) -m pinnmpc.closed_loop reference.path=$(SHARED_REF) $(ARGS)
+	$(PY) -m pinnmpc.closed_loop reference.path=$(SHARED_REF) $(OVERRIDES)
 
 robustness: install  ## closed loops under measurement noise and friction/mass mismatch, one table
-	$(PY) -m pinnmpc.robustness $(ARGS)
+	$(PY) -m pinnmpc.robustness $(OVERRIDES)
+
+evaluate: install  ## one-step accuracy and cost of the surrogate vs Euler/RK4/RK45 (the bench's step table only)
+	$(PY) -m pinnmpc.bench closed_loop.enabled=false optimality.enabled=false scaling.enabled=false $(OVERRIDES)
 
 bench: install  ## benchmarks: bench.json, bench.md and plots in outputs/bench/<time>/
-	$(PY) -m pinnmpc.bench $(ARGS)
+	$(PY) -m pinnmpc.bench $(OVERRIDES)
 
 sweep: install  ## local grid search in parallel (joblib launcher); table in the sweep dir
-	$(PY) -m pinnmpc.train -m hparams_search=grid $(ARGS)
+	$(PY) -m pinnmpc.train -m hparams_search=grid $(OVERRIDES)
 
 sweep-optuna: install  ## Optuna search minimising the validation RMSE
-	$(PY) -m pinnmpc.train -m hparams_search=optuna $(ARGS)
+	$(PY) -m pinnmpc.train -m hparams_search=optuna $(OVERRIDES)
 
 tensorboard: install  ## TensorBoard over every run in outputs/
 	$(VENV)/bin/tensorboard --logdir outputs

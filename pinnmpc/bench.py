@@ -35,6 +35,7 @@ from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import NMPC
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers import SolveInfo, Solver
+from pinnmpc.flow_numpy import NumpyFlow
 from pinnmpc.integrators import euler_step, rk4_step
 from pinnmpc.io import atomic_write, save_json
 from pinnmpc.plant import ScipyPlant
@@ -238,11 +239,13 @@ def _rk45_loop(plant: ScipyPlant, x: np.ndarray, u: np.ndarray) -> np.ndarray:
 def step_methods(system: System, pinn64: Surrogate, pinn32: Surrogate, plant: ScipyPlant, h: float) -> list[StepMethod]:
     """Every row of the one-step table: the PINN in two precisions, fixed-step baselines in numpy and torch, RK45."""
     tau = pinn64.tau
+    pinn_numpy = NumpyFlow.from_pinn(pinn64.model, tau)  # what the Gauss-Newton controller evaluates
     euler = partial(euler_step, system.rhs, tau=tau, h=h)
     rk4 = partial(rk4_step, system.rhs, tau=tau, h=h)
     return [
         StepMethod("pinn_f64", "PINN float64 (torch)", "pinn", _torch_inputs(torch.float64), pinn64.step),
         StepMethod("pinn_f32", "PINN float32 (torch)", "pinn", _torch_inputs(torch.float32), pinn32.step),
+        StepMethod("pinn_numpy", "PINN float64 (numpy fast path)", "pinn", _numpy_inputs, pinn_numpy.step),
         StepMethod("euler_numpy", f"Euler h={h:g} (numpy)", "euler", _numpy_inputs, euler),
         StepMethod("euler_torch", f"Euler h={h:g} (torch)", "euler", _torch_inputs(torch.float64), euler),
         StepMethod("rk4_numpy", f"RK4 h={h:g} (numpy)", "rk4", _numpy_inputs, rk4),

@@ -16,8 +16,8 @@ from pinnmpc.io import atomic_write
 METRICS = ("best_val_rmse_position", "wall_time_s", "epochs")  # train_metrics.json keys in the table
 
 
-def collect(sweep_dir: Path) -> list[dict[str, Any]]:
-    """One row per finished run: its overrides and its training metrics."""
+def collect(sweep_dir: Path, swept: set[str] | None = None) -> list[dict[str, Any]]:
+    """One row per finished run: its swept overrides (all when swept is None) and its training metrics."""
     rows = []
     for metrics_file in sorted(
         sweep_dir.glob("*/train_metrics.json"), key=lambda p: int(p.parent.name) if p.parent.name.isdigit() else 0
@@ -27,7 +27,8 @@ def collect(sweep_dir: Path) -> list[dict[str, Any]]:
         overrides = OmegaConf.to_container(OmegaConf.load(overrides_file)) if overrides_file.is_file() else []
         m = json.loads(metrics_file.read_text())
         final = m.get("final_metrics", {})
-        row = {"run": run.name, "overrides": " ".join(overrides)}
+        shown = [o for o in overrides if swept is None or o.split("=", 1)[0].lstrip("+~") in swept]
+        row = {"run": run.name, "overrides": " ".join(shown)}
         row.update({k: m.get(k) for k in METRICS})
         row.update({k.removeprefix("val/"): v for k, v in final.items() if k.startswith("val/rmse_")})
         rows.append(row)
@@ -62,6 +63,7 @@ class SweepTable(Callback):
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """Collect and write; print where the table went."""
         sweep_dir = Path(config.hydra.sweep.dir)
-        rows = collect(sweep_dir)
+        params = OmegaConf.select(config, "hydra.sweeper.params")
+        rows = collect(sweep_dir, set(params) if params else None)
         write_tables(sweep_dir, rows)
         print(f"sweep table ({len(rows)} runs): {sweep_dir / 'sweep_results.md'}")

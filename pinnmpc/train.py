@@ -99,6 +99,10 @@ def main(cfg: DictConfig) -> float:
     command = " ".join(["python -m pinnmpc.train", *hydra_cfg.overrides.task])
     summary = run_cli(lambda: train(cfg, run_dir, command), "pinnmpc.train")
     score = summary["best_val_rmse_position"]
+    if score is None:  # the run ended before its first validation epoch
+        every = cfg.trainer.check_val_every_n_epoch
+        print(f"no validation ran (trainer.check_val_every_n_epoch={every}); outputs in {run_dir}")
+        return float("inf")
     print(f"best val RMSE (positions) {score:.3e} rad; surrogate: {run_dir / 'surrogate.pt'}")
     return score
 

@@ -77,7 +77,7 @@ def test_json_round_trips_and_is_finite(bench: tuple[dict[str, Any], Path]) -> N
 def test_step_table(bench: tuple[dict[str, Any], Path]) -> None:
     step = bench[0]["step"]
     assert set(step["timing"]) == {"1", "8"}
-    expected = {"pinn_f64", "pinn_f32", "euler_numpy", "euler_torch", "rk4_numpy", "rk4_torch", "rk45"}
+    expected = {"pinn_f64", "pinn_f32", "pinn_numpy", "euler_numpy", "euler_torch", "rk4_numpy", "rk4_torch", "rk45"}
     for b, rows in step["timing"].items():
         assert set(rows) == expected
         rk45 = step["rk45_median_s"][b]

@@ -36,7 +36,8 @@ class PINNModule(L.LightningModule):
         lbfgs_tolerance_grad: float = 1e-9,
         lbfgs_tolerance_change: float = 1e-12,
         stall_min_evals: int = 3,
-        stall_rel_tol: float = 1e-6,
+        stall_rel_tol: float = 0.0,
+        stall_redraw: bool = True,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["system", "model"])
@@ -136,12 +137,12 @@ class PINNModule(L.LightningModule):
         return int(inner.state.get(first, {}).get("func_evals", 0))
 
     def _recover_from_stall(self, opt: torch.optim.Optimizer) -> None:
-        """PyTorch's L-BFGS returns at once after hitting a tolerance: forget its history and redraw points."""
+        """PyTorch's L-BFGS returns at once after hitting a tolerance: forget its history (and redraw points)."""
         inner = getattr(opt, "optimizer", opt)
         inner.state.clear()
         self.stalls += 1
         datamodule = getattr(self.trainer, "datamodule", None)
-        if datamodule is not None and hasattr(datamodule, "draw"):
+        if self.hparams.stall_redraw and datamodule is not None and hasattr(datamodule, "draw"):
             datamodule.draw()
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
