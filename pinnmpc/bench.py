@@ -10,7 +10,6 @@ Writes bench.json, bench.md and PNG plots (all atomically) into the run dir and 
 
 from __future__ import annotations
 
-import ctypes
 import logging
 import os
 import platform
@@ -28,6 +27,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from scipy.optimize import minimize
+from threadpoolctl import threadpool_info
 from torch import Tensor
 
 from pinnmpc.closed_loop import metrics, plant_system, simulate
@@ -42,46 +42,18 @@ from pinnmpc.plant import ScipyPlant
 from pinnmpc.references import Reference, load_reference, resolve_reference_path
 from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.systems.base import Box, System
+from pinnmpc.threads import use_threads
 from pinnmpc.training.data import reference_flow, uniform_box
 
 log = logging.getLogger(__name__)
 
 PERCENTILE = 95.0  # the "p95" of every table
 STATUS_CHARS = 40  # a failed loop's status is cut to this many characters in its table cell
-OPENBLAS_SETTERS = (  # thread setters of the OpenBLAS builds numpy and scipy ship (as threadpoolctl looks them up)
-    "openblas_set_num_threads",
-    "openblas_set_num_threads64_",
-    "scipy_openblas_set_num_threads",
-    "scipy_openblas_set_num_threads64_",
-)
 Model = Any  # Surrogate or RK4Model: anything with the interface HorizonOCP uses
 
 
 # ---------------------------------------------------------------------------------------------------------------
 # Machine and timing helpers
-
-
-def limit_blas_threads(n: int) -> list[str]:
-    """Cap OpenBLAS threads: threaded BLAS on a busy 2-core box makes tiny L-BFGS-B iterations ~50x slower."""
-    maps = Path("/proc/self/maps")
-    if not maps.exists():
-        return []
-    paths = sorted(
-        {line.split()[-1] for line in maps.read_text().splitlines() if "openblas" in line.rsplit("/", 1)[-1].lower()}
-    )
-    limited = []
-    for path in paths:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for name in OPENBLAS_SETTERS:
-            setter = getattr(lib, name, None)
-            if setter is not None:
-                setter(int(n))
-                limited.append(Path(path).name)
-                break
-    return limited
 
 
 def cpu_model() -> str:
@@ -94,7 +66,7 @@ def cpu_model() -> str:
     return platform.processor() or "unknown CPU"
 
 
-def machine_info(blas_libs: list[str]) -> dict[str, Any]:
+def machine_info() -> dict[str, Any]:
     """Where the numbers were measured: timings mean nothing without the machine and library versions."""
     return {
         "platform": platform.platform(),
@@ -105,7 +77,7 @@ def machine_info(blas_libs: list[str]) -> dict[str, Any]:
         "numpy": np.__version__,
         "scipy": scipy.__version__,
         "torch_threads": torch.get_num_threads(),
-        "blas_threads_limited": blas_libs,
+        "blas_threads": [(i["internal_api"], i["num_threads"]) for i in threadpool_info()],
         "load_average_1min": float(os.getloadavg()[0]) if hasattr(os, "getloadavg") else float("nan"),
     }
 
@@ -862,13 +834,12 @@ def render_markdown(result: dict[str, Any], names: Sequence[str]) -> str:
 def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Run the enabled sections; write bench.json, bench.md and plots into run_dir; return the JSON content."""
     run_dir = Path(run_dir)
-    torch.set_num_threads(int(cfg.threads))
-    blas = limit_blas_threads(int(cfg.threads))
+    use_threads(cfg.threads)
     system: System = instantiate(cfg.system)
     names = tuple(system.state_names)
     pinn64 = load_surrogate(cfg.checkpoint, nx=len(names), nu=len(system.input_names))
     result: dict[str, Any] = {
-        "machine": machine_info(blas),
+        "machine": machine_info(),
         "paper": OmegaConf.to_container(cfg.paper, resolve=True),
         "config": OmegaConf.to_container(cfg, resolve=True),
     }

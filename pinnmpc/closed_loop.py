@@ -10,7 +10,6 @@ from typing import Any
 
 import hydra
 import numpy as np
-import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 from tqdm.auto import tqdm
@@ -23,6 +22,7 @@ from pinnmpc.plant import PlantError, ScipyPlant
 from pinnmpc.references import Reference, load_reference, out_of_box, resolve_reference_path
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import System
+from pinnmpc.threads import use_threads
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +135,7 @@ def metrics(
 
 def run_closed_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Load surrogate and reference, run the loop, write metrics.json, trajectory.npz and plots."""
-    torch.set_num_threads(cfg.threads)
+    use_threads(cfg.threads)
     system: System = instantiate(cfg.system)
     surrogate = load_surrogate(cfg.checkpoint, nx=len(system.state_names), nu=len(system.input_names))
     if cfg.tau is not None and abs(cfg.tau - surrogate.tau) > 1e-12:

@@ -16,6 +16,7 @@ from pinnmpc.io import save_json, save_npz
 from pinnmpc.plant import ScipyPlant
 from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
+from pinnmpc.threads import use_threads
 
 
 def sine_inputs(steps: int, amplitude: float) -> np.ndarray:
@@ -43,7 +44,7 @@ def rollout_plant(plant: ScipyPlant, x0: np.ndarray, u: np.ndarray) -> np.ndarra
 
 def run_self_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Both rollouts, the error per state, metrics.json, self_loop.npz and a plot."""
-    torch.set_num_threads(cfg.threads)
+    use_threads(cfg.threads)
     system: System = instantiate(cfg.system)
     surrogate = load_surrogate(cfg.checkpoint, nx=len(system.state_names), nu=len(system.input_names))
     u = sine_inputs(cfg.steps, cfg.amplitude)

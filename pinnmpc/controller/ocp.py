@@ -68,6 +68,7 @@ class HorizonOCP:
             w_d = None
         self.weights = {torch: (psd_sqrt(Q, nx, "Q"), psd_sqrt(R, nu, "R"), w_d)}
         self.weights[np] = tuple(None if w is None else w.numpy() for w in self.weights[torch])
+        self._jac_u: dict[ModuleType, Array] = {}
         self.flow = NumpyFlow.from_pinn(surrogate.model, surrogate.tau) if hasattr(surrogate, "model") else None
 
     @property
@@ -136,7 +137,7 @@ class HorizonOCP:
     def residuals_and_jacobian(self, x0: Array, U: Array, x_ref: Array, u_prev: Array) -> tuple[Array, Array]:
         """Residuals (..., m) and their Jacobian (..., m, H*nu) from step Jacobians chained along the horizon."""
         xp = xp_of(x0)
-        w_q, w_r, w_d = self.weights[xp]
+        w_q = self.weights[xp][0]
         lead, n_var = x0.shape[:-1], self.horizon * self.nu
         sens = xp.zeros((*lead, self.nx, n_var), dtype=xp.float64)  # d x_i / d U
         xs, sens_list, x = [], [], x0
@@ -148,9 +149,18 @@ class HorizonOCP:
             sens_list.append(sens)
         r = self.residuals(xp.stack(xs, -2), U, x_ref, u_prev)
         jac_x = (w_q @ xp.stack(sens_list, -3)).reshape(*lead, self.horizon * self.nx, n_var)
-        eye_u = xp.eye(n_var, dtype=xp.float64).reshape(self.horizon, self.nu, n_var)
-        parts = [jac_x, xp.broadcast_to((w_r @ eye_u).reshape(n_var, n_var), (*lead, n_var, n_var))]
-        if w_d is not None:
-            shifted = cat([xp.zeros_like(eye_u[:1]), eye_u[:-1]], 0)
-            parts.append(xp.broadcast_to((w_d @ (eye_u - shifted)).reshape(n_var, n_var), (*lead, n_var, n_var)))
-        return r, cat(parts, -2)
+        jac_u = self._input_jacobian(xp)  # constant: the input and input-rate residuals are linear in U
+        return r, cat([jac_x, xp.broadcast_to(jac_u, (*lead, *jac_u.shape))], -2)
+
+    def _input_jacobian(self, xp: ModuleType) -> Array:
+        """d(input residuals)/dU, computed once per namespace."""
+        if xp not in self._jac_u:
+            _, w_r, w_d = self.weights[xp]
+            n_var = self.horizon * self.nu
+            eye_u = xp.eye(n_var, dtype=xp.float64).reshape(self.horizon, self.nu, n_var)
+            parts = [(w_r @ eye_u).reshape(n_var, n_var)]
+            if w_d is not None:
+                shifted = cat([xp.zeros_like(eye_u[:1]), eye_u[:-1]], 0)
+                parts.append((w_d @ (eye_u - shifted)).reshape(n_var, n_var))
+            self._jac_u[xp] = cat(parts, 0)
+        return self._jac_u[xp]

@@ -120,6 +120,11 @@ class GaussNewtonSolver:
     damping: float = 1e-9  # Levenberg-Marquardt damping, relative to the mean diagonal of J^T J
     step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.01)  # candidate step lengths per iteration
 
+    def __post_init__(self) -> None:
+        self.alphas = np.asarray(self.step_lengths, dtype=np.float64)
+        if self.alphas.ndim != 1 or self.alphas.size == 0 or np.any(self.alphas <= 0):
+            raise ValueError(f"step_lengths must be a non-empty list of positive numbers, got {self.step_lengths}")
+
     def solve(self, ocp, x0, U0, x_ref, u_prev, low, high):  # noqa: ANN001, ANN201
         """Accepts torch or numpy; returns the same kind."""
         as_torch = isinstance(U0, Tensor)
@@ -154,7 +159,7 @@ class GaussNewtonSolver:
         cost = (r * r).sum(-1)
         running = np.ones(batch, dtype=bool)
         iterations = np.zeros(batch, dtype=np.int64)
-        alphas = np.asarray(self.step_lengths, dtype=np.float64)
+        alphas = self.alphas
         k, eye = len(alphas), np.eye(n)
         for _ in range(self.max_iter):
             idx = np.flatnonzero(running)
