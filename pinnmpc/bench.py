@@ -40,7 +40,7 @@ from pinnmpc.integrators import euler_step, rk4_step
 from pinnmpc.io import atomic_write, save_json
 from pinnmpc.plant import ScipyPlant
 from pinnmpc.references import Reference, load_reference, resolve_reference_path
-from pinnmpc.surrogate import Surrogate, load_surrogate
+from pinnmpc.surrogate import Dimensions, Surrogate, load_surrogate
 from pinnmpc.systems.base import Box, System
 from pinnmpc.threads import use_threads
 from pinnmpc.training.data import reference_flow, uniform_box
@@ -114,7 +114,7 @@ def as_numpy(y: Tensor | np.ndarray) -> np.ndarray:
 # The true-model baseline: RK4 of the physics behind the Surrogate interface
 
 
-class RK4Model:
+class RK4Model(Dimensions):
     """The true dynamics integrated by RK4 behind the Surrogate interface: the controller's perfect-model baseline."""
 
     def __init__(self, system: System, tau: float, h: float, jacobian: str = "reverse") -> None:
@@ -127,16 +127,6 @@ class RK4Model:
         self.state_box: Box = system.state_box
         self.input_box: Box = system.input_box
         self._jacfwd = torch.func.vmap(torch.func.jacfwd(self._flow_with_aux, argnums=(0, 1), has_aux=True))
-
-    @property
-    def nx(self) -> int:
-        """State dimension."""
-        return len(self.state_names)
-
-    @property
-    def nu(self) -> int:
-        """Input dimension."""
-        return len(self.input_names)
 
     def _flow(self, x0: Tensor, u: Tensor) -> Tensor:
         """x(tau) by RK4 with step h over the torch rhs."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from matplotlib.animation import FuncAnimation, PillowWriter
@@ -31,6 +32,15 @@ MAX_MARKERS = 25  # markers per curve: dense markers would hide the line they an
 TRACKING_FIGSIZE = (10.0, 9.0)
 SCALING_FIGSIZE = (6.5, 4.5)
 ARM_FIGSIZE = (5.0, 5.0)
+
+
+class Labels(NamedTuple):
+    """Names and units of states and inputs, for systems other than the PowerCube."""
+
+    state_names: Sequence[str] = STATE_NAMES
+    state_units: Sequence[str] = STATE_UNITS
+    input_names: Sequence[str] = INPUT_NAMES
+    input_units: Sequence[str] = INPUT_UNITS
 
 
 def _as_2d(name: str, a: np.ndarray, rows: int, cols: int) -> np.ndarray:
@@ -111,6 +121,36 @@ def _finish(fig: Figure, axes: np.ndarray, title: str) -> Figure:
     return fig
 
 
+def _comparison_figure(
+    t: np.ndarray,
+    first: tuple[str, np.ndarray, dict],
+    second: tuple[str, np.ndarray, dict],
+    u: np.ndarray,
+    title: str,
+    labels: Labels | None,
+    u_bounds: tuple[Sequence[float], Sequence[float]] | None = None,
+) -> Figure:
+    """Two trajectories per state, their difference on a log axis, and the zero-hold inputs: the shared layout."""
+    t = _time(t)
+    state_names, state_units, input_names, input_units = labels or Labels()
+    n, nx, nu = t.size, len(state_names), len(input_names)
+    (name_a, x_a, style_a), (name_b, x_b, style_b) = first, second
+    x_a, x_b = _as_2d(name_a, x_a, n, nx), _as_2d(name_b, x_b, n, nx)
+    u_held = _held_inputs(t, u, nu)
+    if u_bounds is not None and (len(u_bounds[0]) != nu or len(u_bounds[1]) != nu):
+        raise ValueError(f"u_low and u_high need {nu} entries, got {len(u_bounds[0])} and {len(u_bounds[1])}")
+    fig = Figure(figsize=TRACKING_FIGSIZE, layout="constrained")
+    axes = fig.subplots(3, 2, sharex=True)
+    for i, ax in enumerate(axes[:2].flat):
+        ax.plot(t, x_a[:, i], **style_a)
+        ax.plot(t, x_b[:, i], **style_b)
+        ax.set_title(state_names[i])
+        ax.set_ylabel(_label(state_names[i], state_units[i]))
+    _plot_errors(axes[2, 0], t, x_b - x_a, state_names, state_units)
+    _plot_inputs(axes[2, 1], t, u_held, input_names, input_units, *(u_bounds or (None, None)))
+    return _finish(fig, axes, title)
+
+
 def tracking_figure(
     t: np.ndarray,
     x_ref: np.ndarray,
@@ -119,29 +159,12 @@ def tracking_figure(
     u_low: Sequence[float],
     u_high: Sequence[float],
     title: str = "",
-    state_names: Sequence[str] = STATE_NAMES,
-    state_units: Sequence[str] = STATE_UNITS,
-    input_names: Sequence[str] = INPUT_NAMES,
-    input_units: Sequence[str] = INPUT_UNITS,
+    labels: Labels | None = None,
 ) -> Figure:
     """Closed-loop overview in one glance: does it track, how well (log error), and at what input effort."""
-    t = _time(t)
-    n, nx, nu = t.size, len(state_names), len(input_names)
-    x_ref, x = _as_2d("x_ref", x_ref, n, nx), _as_2d("x", x, n, nx)
-    u_held = _held_inputs(t, u, nu)
-    if len(u_low) != nu or len(u_high) != nu:
-        raise ValueError(f"u_low and u_high need {nu} entries, got {len(u_low)} and {len(u_high)}")
-
-    fig = Figure(figsize=TRACKING_FIGSIZE, layout="constrained")
-    axes = fig.subplots(3, 2, sharex=True)
-    for i, ax in enumerate(axes[:2].flat):
-        ax.plot(t, x_ref[:, i], color="k", ls="--", lw=1.2, label="reference")
-        ax.plot(t, x[:, i], color="C0", lw=1.4, label="actual")
-        ax.set_title(state_names[i])
-        ax.set_ylabel(_label(state_names[i], state_units[i]))
-    _plot_errors(axes[2, 0], t, x - x_ref, state_names, state_units)
-    _plot_inputs(axes[2, 1], t, u_held, input_names, input_units, u_low, u_high)
-    return _finish(fig, axes, title)
+    reference = ("x_ref", x_ref, {"color": "k", "ls": "--", "lw": 1.2, "label": "reference"})
+    actual = ("x", x, {"color": "C0", "lw": 1.4, "label": "actual"})
+    return _comparison_figure(t, reference, actual, u, title, labels, (u_low, u_high))
 
 
 def self_loop_figure(
@@ -150,28 +173,13 @@ def self_loop_figure(
     x_pinn: np.ndarray,
     u: np.ndarray,
     title: str = "",
-    state_names: Sequence[str] = STATE_NAMES,
-    state_units: Sequence[str] = STATE_UNITS,
-    input_names: Sequence[str] = INPUT_NAMES,
-    input_units: Sequence[str] = INPUT_UNITS,
+    labels: Labels | None = None,
 ) -> Figure:
     """Surrogate validation: where and how fast the PINN rollout drifts from the plant under the same inputs."""
-    t = _time(t)
-    n, nx, nu = t.size, len(state_names), len(input_names)
-    x_plant, x_pinn = _as_2d("x_plant", x_plant, n, nx), _as_2d("x_pinn", x_pinn, n, nx)
-    u_held = _held_inputs(t, u, nu)
-
-    fig = Figure(figsize=TRACKING_FIGSIZE, layout="constrained")
-    axes = fig.subplots(3, 2, sharex=True)
-    every = max(1, n // MAX_MARKERS)
-    for i, ax in enumerate(axes[:2].flat):
-        ax.plot(t, x_plant[:, i], color="C0", lw=1.6, label="plant")
-        ax.plot(t, x_pinn[:, i], color="C1", ls="--", lw=1.2, marker="o", ms=3.5, markevery=every, label="PINN")
-        ax.set_title(state_names[i])
-        ax.set_ylabel(_label(state_names[i], state_units[i]))
-    _plot_errors(axes[2, 0], t, x_pinn - x_plant, state_names, state_units)
-    _plot_inputs(axes[2, 1], t, u_held, input_names, input_units)
-    return _finish(fig, axes, title)
+    every = max(1, np.asarray(t).size // MAX_MARKERS)
+    plant = ("x_plant", x_plant, {"color": "C0", "lw": 1.6, "label": "plant"})
+    pinn_style = {"color": "C1", "ls": "--", "lw": 1.2, "marker": "o", "ms": 3.5, "markevery": every, "label": "PINN"}
+    return _comparison_figure(t, plant, ("x_pinn", x_pinn, pinn_style), u, title, labels)
 
 
 def scaling_figure(

@@ -22,7 +22,24 @@ class CheckpointError(ValueError):
     """A checkpoint that cannot serve as a surrogate; the message says why and what was expected."""
 
 
-class Surrogate:
+class Dimensions:
+    """nx and nu from the state and input names, for anything with the surrogate interface."""
+
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+
+    @property
+    def nx(self) -> int:
+        """State dimension."""
+        return len(self.state_names)
+
+    @property
+    def nu(self) -> int:
+        """Input dimension."""
+        return len(self.input_names)
+
+
+class Surrogate(Dimensions):
     """x(t) = flow from x0 under zero-hold u, batched over leading dimensions, float64 by default."""
 
     def __init__(
@@ -43,16 +60,6 @@ class Surrogate:
         self.input_box = Box(cfg["input_low"], cfg["input_high"])
         self.t_max = cfg["t_max"]
         self.meta = meta or {}
-
-    @property
-    def nx(self) -> int:
-        """State dimension."""
-        return len(self.state_names)
-
-    @property
-    def nu(self) -> int:
-        """Input dimension."""
-        return len(self.input_names)
 
     def _check(self, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """Readable shape errors and the surrogate's dtype."""

@@ -48,20 +48,20 @@ def _tiny_module(make_cfg, *overrides: str) -> tuple[PINNModule, CollocationData
     return module, dm
 
 
+def _quiet_trainer(tmp_path, **kwargs) -> L.Trainer:
+    """A real Trainer without logger, checkpoints or progress output."""
+    defaults = dict(
+        logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+        default_root_dir=tmp_path, num_sanity_val_steps=0,
+    )  # fmt: skip
+    return L.Trainer(**{**defaults, **kwargs})
+
+
 def test_lbfgs_steps_lower_the_loss(make_cfg, tmp_path):
     module, dm = _tiny_module(make_cfg)
     dm.setup()
     before = float(module.losses(dm.batch)["total"])
-    trainer = L.Trainer(
-        max_epochs=3,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        default_root_dir=tmp_path,
-        num_sanity_val_steps=0,
-    )
-    trainer.fit(module, datamodule=dm)
+    _quiet_trainer(tmp_path, max_epochs=3).fit(module, datamodule=dm)
     after = float(module.losses(dm.batch)["total"])
     assert after < 0.5 * before
 
@@ -126,17 +126,7 @@ def test_stalled_lbfgs_is_detected_and_recovered(make_cfg, tmp_path):
     module, dm = _tiny_module(make_cfg)
     module.hparams.lbfgs_tolerance_change = 1e3  # any step counts as converged: L-BFGS returns at once
     module.hparams.stall_min_evals = 5
-    trainer = L.Trainer(
-        max_epochs=3,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        default_root_dir=tmp_path,
-        num_sanity_val_steps=0,
-        reload_dataloaders_every_n_epochs=1,
-    )
-    trainer.fit(module, datamodule=dm)
+    _quiet_trainer(tmp_path, max_epochs=3, reload_dataloaders_every_n_epochs=1).fit(module, datamodule=dm)
     assert module.stalls >= 2
     assert dm.draws >= 3
 
@@ -149,15 +139,7 @@ def test_nan_loss_stops_with_a_message_and_keeps_the_last_good_checkpoint(make_c
     dm.setup()
     dm.batch["x0"][0, 0] = float("nan")  # a corrupt collocation point poisons the full-batch loss
     keep_last = AtomicCheckpoint(dirpath=tmp_path / "checkpoints", filename="last", enable_version_counter=False)
-    trainer = L.Trainer(
-        max_epochs=2,
-        logger=False,
-        callbacks=[keep_last],
-        enable_progress_bar=False,
-        enable_model_summary=False,
-        default_root_dir=tmp_path,
-        num_sanity_val_steps=0,
-    )
+    trainer = _quiet_trainer(tmp_path, max_epochs=2, callbacks=[keep_last], enable_checkpointing=True)
     with pytest.raises(FloatingPointError, match="training loss became nan"):
         trainer.fit(module, datamodule=dm)
     assert last.read_bytes() == good
