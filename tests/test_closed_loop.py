@@ -84,3 +84,18 @@ def test_cli_writes_metrics(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert "MAE alpha" in r.stdout
     _check_metrics(json.loads((tmp_path / "metrics.json").read_text()))
+
+
+def test_plant_failure_stops_cleanly_and_keeps_what_was_reached(make_cfg, tmp_path):
+    cfg = make_cfg("closed_loop", ["max_steps=5", "progress=false", "plots=false", "plant.mass_scale=1e-300"])
+    m = run_closed_loop(cfg, tmp_path)  # a near-massless plant: RK45 cannot resolve it and gives up
+    assert m["status"].startswith("plant_failure: plant integration failed")
+    traj = np.load(tmp_path / "trajectory.npz")
+    assert traj["x"].shape == (1, 4)
+    assert json.loads((tmp_path / "metrics.json").read_text())["status"] == m["status"]
+    r = subprocess.run(
+        [sys.executable, "-m", "pinnmpc.closed_loop", "max_steps=5", "progress=false", "plots=false",
+         "plant.mass_scale=1e-300", f"hydra.run.dir={tmp_path / 'cli'}"],
+        capture_output=True, text=True, cwd=ROOT, timeout=300,
+    )  # fmt: skip
+    assert r.returncode == 1 and "plant_failure" in r.stdout
