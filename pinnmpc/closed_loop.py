@@ -95,7 +95,7 @@ def simulate(
         us.append(u)
     return {
         "x": np.array(xs),
-        "u": np.array(us).reshape(-1, ref.x.shape[1] // 2 if not us else len(us[0])),
+        "u": np.array(us, dtype=np.float64).reshape(-1, nmpc.ocp.nu),
         "status": status,
         "out_of_box_steps": out_of_box_steps,
     }

@@ -86,7 +86,7 @@ class NMPC:
             U, info = self.solve(x0[None], ref[None], self.U[None], self.u_prev[None])  # noqa: N806
             U = U[0]  # noqa: N806
             ok = bool(torch.all(torch.isfinite(U))) and bool(torch.isfinite(info.cost).all())
-        except (RuntimeError, FloatingPointError):  # e.g. a singular solve on a non-finite model output
+        except (RuntimeError, FloatingPointError, np.linalg.LinAlgError):  # e.g. a singular solve on NaN outputs
             ok, info = False, None
         if not ok:
             fallback = True
