@@ -118,7 +118,7 @@ class GaussNewtonSolver:
     tol_grad: float = 1e-9  # converged when the projected gradient's max-norm is below this
     tol_cost: float = 1e-10  # ... or the relative cost decrease predicted (or achieved) is below this
     damping: float = 1e-9  # Levenberg-Marquardt damping, relative to the mean diagonal of J^T J
-    step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.01)  # candidate step lengths per iteration
+    step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.01)  # tried first alone, then the rest at once
 
     def __post_init__(self) -> None:
         self.alphas = np.asarray(self.step_lengths, dtype=np.float64)
@@ -142,9 +142,9 @@ class GaussNewtonSolver:
     def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high):  # noqa: ANN001, ANN202
         """Iterate until every problem has converged or max_iter is reached.
 
-        Residuals and Jacobians are evaluated at all candidate step lengths at once, so the
-        accepted candidate's Jacobian is already there for the next iteration: one batched
-        rollout per iteration. A problem stops when the Gauss-Newton model predicts a relative
+        Residuals and Jacobians are evaluated at the candidate step lengths (see _line_search),
+        so the accepted candidate's Jacobian is already there for the next iteration: usually
+        one batch-1 rollout per iteration. A problem stops when the Gauss-Newton model predicts a relative
         decrease below tol_cost (no rollout needed to find that out), when its projected
         gradient vanishes, or when no candidate improves.
         """
@@ -159,8 +159,7 @@ class GaussNewtonSolver:
         cost = (r * r).sum(-1)
         running = np.ones(batch, dtype=bool)
         iterations = np.zeros(batch, dtype=np.int64)
-        alphas = self.alphas
-        k, eye = len(alphas), np.eye(n)
+        eye = np.eye(n)
         for _ in range(self.max_iter):
             idx = np.flatnonzero(running)
             if idx.size == 0:
@@ -182,28 +181,12 @@ class GaussNewtonSolver:
             if not go.any():
                 break
             idx, u_i, f, delta = idx[go], u_i[go], f[go], delta[go]
-            m = idx.size
-            cand = np.clip(
-                u_i[:, None, :] + alphas[None, :, None] * delta[:, None, :], lo[idx][:, None], hi[idx][:, None]
+            best_c, new_u, new_r, new_jac = self._line_search(
+                ocp, x0b[idx], refb[idx], upb[idx], u_i, delta, f, lo[idx], hi[idx]
             )
-            r_c, jac_c = ocp.residuals_and_jacobian(
-                np.repeat(x0b[idx], k, 0),
-                cand.reshape(m * k, *horizon_nu),
-                np.repeat(refb[idx], k, 0),
-                np.repeat(upb[idx], k, 0),
-            )
-            c = (r_c * r_c).sum(-1).reshape(m, k)
-            best = c.argmin(-1)
-            pick = np.arange(m) * k + best
-            best_c = c[np.arange(m), best]
             improved = best_c < f
             acc = idx[improved]
-            U[acc], r[acc], jac[acc], cost[acc] = (
-                cand[improved, best[improved]],
-                r_c[pick[improved]],
-                jac_c[pick[improved]],
-                best_c[improved],
-            )
+            U[acc], r[acc], jac[acc], cost[acc] = new_u[improved], new_r[improved], new_jac[improved], best_c[improved]
             iterations[idx] += 1
             small = (f - best_c) <= self.tol_cost * np.maximum(f, 1e-300)
             running[idx[~improved | small]] = False
@@ -213,6 +196,37 @@ class GaussNewtonSolver:
             cost.reshape(shape[:-2]),
             (~running).reshape(shape[:-2]),
         )
+
+    def _line_search(self, ocp, x0, x_ref, u_prev, u, delta, f, lo, hi):  # noqa: ANN001, ANN202
+        """The first step length alone (usually the full step, which near the optimum always wins), then the
+        others in one batch only for the problems it did not improve; residuals and Jacobians come along."""
+        horizon_nu = (ocp.horizon, ocp.nu)
+
+        def evaluate(rows: np.ndarray, alphas: np.ndarray) -> tuple[np.ndarray, ...]:
+            k, m = alphas.size, rows.size
+            cand = np.clip(
+                u[rows, None, :] + alphas[None, :, None] * delta[rows, None, :], lo[rows, None], hi[rows, None]
+            )
+            r_c, jac_c = ocp.residuals_and_jacobian(
+                np.repeat(x0[rows], k, 0),
+                cand.reshape(m * k, *horizon_nu),
+                np.repeat(x_ref[rows], k, 0),
+                np.repeat(u_prev[rows], k, 0),
+            )
+            c = (r_c * r_c).sum(-1).reshape(m, k)
+            best = c.argmin(-1)
+            pick = np.arange(m) * k + best
+            return c[np.arange(m), best], cand[np.arange(m), best], r_c[pick], jac_c[pick]
+
+        everyone = np.arange(u.shape[0])
+        best_c, best_u, best_r, best_jac = evaluate(everyone, self.alphas[:1])
+        retry = everyone[best_c >= f]
+        if retry.size and self.alphas.size > 1:
+            c, cu, cr, cj = evaluate(retry, self.alphas[1:])
+            better = c < best_c[retry]
+            rows = retry[better]
+            best_c[rows], best_u[rows], best_r[rows], best_jac[rows] = c[better], cu[better], cr[better], cj[better]
+        return best_c, best_u, best_r, best_jac
 
 
 SOLVERS = {"gauss_newton": GaussNewtonSolver, "rmsprop": RMSpropSolver, "lbfgs": LBFGSSolver}
