@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import torch
 from torch import Tensor
 
 Rhs = Callable[[Tensor, Tensor], Tensor]
@@ -39,18 +38,3 @@ def rk4_step(rhs: Rhs, x0: Tensor, u: Tensor, tau: float, h: float) -> Tensor:
         k4 = rhs(x + dt * k3, u)
         x = x + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
     return x
-
-
-def rk4_trajectory(rhs: Rhs, x0: Tensor, u: Tensor, times: Tensor, h: float) -> Tensor:
-    """States at the sorted times (T,) from one zero-hold start, for reference solutions at many t."""
-    out = []
-    x, t_now = x0, 0.0
-    for t in times.tolist():
-        if t > t_now:
-            x = rk4_step(rhs, x, u, t - t_now, h)
-            t_now = t
-        out.append(x)
-    return torch.stack(out, dim=0)
-
-
-INTEGRATORS: dict[str, Callable[..., Tensor]] = {"euler": euler_step, "rk4": rk4_step}
