@@ -33,7 +33,7 @@ from torch import Tensor
 from pinnmpc.closed_loop import metrics, plant_system, simulate
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import NMPC
-from pinnmpc.controller.ocp import HorizonOCP
+from pinnmpc.controller.ocp import Array, HorizonOCP
 from pinnmpc.controller.solvers import SolveInfo, Solver
 from pinnmpc.flow_numpy import NumpyFlow
 from pinnmpc.integrators import euler_step, rk4_step
@@ -304,16 +304,26 @@ class RecordingSolver:
     """Wraps a solver and keeps every problem it solved, so the optimality section re-solves exactly those."""
 
     inner: Solver
-    problems: list[OCPProblem] = field(default_factory=list)
+    raw: list[tuple[np.ndarray, ...]] = field(default_factory=list)  # numpy copies: recording stays off the clock
+
+    @property
+    def problems(self) -> list[OCPProblem]:
+        """The recorded problems as torch tensors."""
+        return [OCPProblem(*(torch.from_numpy(a) for a in parts)) for parts in self.raw]
+
+    @property
+    def array_api(self) -> str:
+        """The wrapped solver's array library, so the controller hands it its own kind of arrays."""
+        return getattr(self.inner, "array_api", "torch")
 
     def solve(
-        self, ocp: HorizonOCP, x0: Tensor, U0: Tensor, x_ref: Tensor, u_prev: Tensor, low: Tensor, high: Tensor
-    ) -> tuple[Tensor, SolveInfo]:
+        self, ocp: HorizonOCP, x0: Array, U0: Array, x_ref: Array, u_prev: Array, low: Array, high: Array
+    ) -> tuple[Array, SolveInfo]:
         """Delegate, then record each problem of the batch with its projected solution."""
         U, info = self.inner.solve(ocp, x0, U0, x_ref, u_prev, low, high)
-        Uc = torch.maximum(torch.minimum(U.detach(), high), low)
+        Uc = np.clip(np.asarray(U, dtype=np.float64), np.asarray(low), np.asarray(high))
         for i in range(x0.shape[0]):
-            self.problems.append(OCPProblem(x0[i].clone(), x_ref[i].clone(), u_prev[i].clone(), Uc[i].clone()))
+            self.raw.append(tuple(np.array(a, dtype=np.float64) for a in (x0[i], x_ref[i], u_prev[i], Uc[i])))
         return U, info
 
 

@@ -13,7 +13,9 @@ from pinnmpc.pinn import PINN
 
 def _tanh(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     y = np.tanh(a)
-    return y, 1.0 - y * y
+    slope = y * y
+    np.subtract(1.0, slope, out=slope)
+    return y, slope
 
 
 def _sin(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -29,23 +31,33 @@ def _softplus(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.logaddexp(0.0, a), 1.0 / (1.0 + np.exp(-a))
 
 
+def _silu_value(a: np.ndarray) -> np.ndarray:
+    return a / (1.0 + np.exp(-a))
+
+
+def _softplus_value(a: np.ndarray) -> np.ndarray:
+    return np.logaddexp(0.0, a)
+
+
 def _np(t: torch.Tensor) -> np.ndarray:
     """A float64 numpy copy, detached from the torch module."""
     return t.detach().double().numpy().copy()
 
 
 NUMPY_ACTIVATIONS = {"tanh": _tanh, "sin": _sin, "silu": _silu, "softplus": _softplus}  # mirrors pinn.ACTIVATIONS
+VALUE_ACTIVATIONS = {"tanh": np.tanh, "sin": np.sin, "silu": _silu_value, "softplus": _softplus_value}  # no slope
 
 
 @dataclass
 class NumpyFlow:
-    """x(tau) and its Jacobian w.r.t. (x0, u) for a fixed tau, with the input normalisation folded into layer 1."""
+    """x(tau) and its Jacobian w.r.t. (x0, u) for a fixed tau: weights stored transposed (z @ W), the input
+    normalisation folded into the first layer, the time gates, output scale and centre into the last."""
 
-    w_first: np.ndarray  # (width, nx + nu): first layer acting on raw (x0, u)
-    b_first: np.ndarray  # (width,): first-layer bias with t = tau and the normalisation folded in
-    hidden: list[tuple[np.ndarray, np.ndarray]]  # remaining layers (W, b), the last one linear
-    gain: np.ndarray  # (nx,): multiplies the network output (hard IC: tau / t_max * scale)
-    offset: np.ndarray  # (nx,): added to it for the soft IC (output centre); 0 for hard IC
+    w_in: np.ndarray  # (nx + nu, width): first layer acting on raw (x0, u)
+    b_in: np.ndarray  # (width,): first-layer bias with t = tau and the normalisation folded in
+    hidden: list[tuple[np.ndarray, np.ndarray]]  # hidden-to-hidden layers (W^T, b)
+    w_out: np.ndarray  # (width, nx): output layer giving x(tau) - x0 (hard IC) or x(tau) (soft IC)
+    b_out: np.ndarray  # (nx,)
     hard_ic: bool
     activation: str
     nx: int
@@ -53,6 +65,8 @@ class NumpyFlow:
 
     def __post_init__(self) -> None:
         self.eye = np.eye(self.nx)  # dx/dx0 of the skip connection x0 + ...
+        self.act = NUMPY_ACTIVATIONS[self.activation]
+        self.value = VALUE_ACTIVATIONS[self.activation]
 
     @classmethod
     def from_pinn(cls, model: PINN, tau: float) -> NumpyFlow:
@@ -60,46 +74,57 @@ class NumpyFlow:
         layers = [(_np(m.weight), _np(m.bias)) for m in model.net.layers]
         center, half = _np(model.in_center), _np(model.in_half)
         w1, b1 = layers[0]
-        w_first = w1[:, 1:] / half[1:]
-        b_first = b1 + w1[:, 0] * (tau - center[0]) / half[0] - w_first @ center[1:]
+        w_in = w1[:, 1:] / half[1:]
+        b_in = b1 + w1[:, 0] * (tau - center[0]) / half[0] - w_in @ center[1:]
+        w, b = layers[-1]
         scale = _np(model.out_scale)
         hard = model.ic == "hard"
-        gain = scale * (tau / model.t_max) if hard else scale
-        offset = np.zeros(model.nx) if hard else _np(model.out_center)
-        return cls(w_first, b_first, layers[1:], gain, offset, hard, model.config["activation"], model.nx, model.nu)
+        if hard:  # the time gates are constants at t = tau: x(tau) - x0 = scale * sum_k g_k N_k
+            g = _np(model.gates(torch.full((1,), float(tau), dtype=model.out_scale.dtype))[0])
+            heads = (model.n_gates, model.nx)
+            w, b = np.einsum("k,kij->ij", g, w.reshape(*heads, -1)), g @ b.reshape(heads)
+            w_out, b_out = (scale[:, None] * w).T, scale * b
+        else:
+            w_out, b_out = (scale[:, None] * w).T, scale * b + _np(model.out_center)
+        hidden = [(np.ascontiguousarray(wh.T), bh) for wh, bh in layers[1:-1]]
+        return cls(
+            np.ascontiguousarray(w_in.T), b_in, hidden, np.ascontiguousarray(w_out), b_out, hard,
+            model.config["activation"], model.nx, model.nu,
+        )  # fmt: skip
 
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """x(tau) for x0 (..., nx), u (..., nu)."""
-        act = NUMPY_ACTIVATIONS[self.activation]
-        z = act(np.concatenate((x0, u), -1) @ self.w_first.T + self.b_first)[0]
-        for w, b in self.hidden[:-1]:
-            z = act(z @ w.T + b)[0]
-        w, b = self.hidden[-1]
-        n = (z @ w.T + b) * self.gain
-        return x0 + n if self.hard_ic else n + self.offset
+        z = self.value(np.concatenate((x0, u), -1) @ self.w_in + self.b_in)
+        for w, b in self.hidden:
+            z = self.value(z @ w + b)
+        n = z @ self.w_out + self.b_out
+        return x0 + n if self.hard_ic else n
 
     def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """x(tau), A = dx/dx0 (..., nx, nx), B = dx/du (..., nx, nu) by forward-mode tangents.
 
-        Tangents are kept tangent-major, (batch * (nx + nu), width), so every layer is one GEMM.
+        Value and the nx + nu tangents ride together as rows of one (batch * (1 + nx + nu), width)
+        matrix, so every layer is a single GEMM: at batch 1 that is ~30% faster than two.
         """
-        act = NUMPY_ACTIVATIONS[self.activation]
-        lead = x0.shape[:-1]
-        n_in = self.nx + self.nu
-        z, slope = act(np.concatenate((x0, u), -1).reshape(-1, n_in) @ self.w_first.T + self.b_first)
-        width = z.shape[-1]
-        dz = (slope[:, None, :] * self.w_first.T).reshape(-1, width)  # (batch * n_in, width)
-        for w, b in self.hidden[:-1]:
-            z, slope = act(z @ w.T + b)
-            dz = (dz @ w.T).reshape(-1, n_in, width)
-            dz = (dz * slope[:, None, :]).reshape(-1, width)
-        w, b = self.hidden[-1]
-        n = (z @ w.T + b) * self.gain
-        jac = ((dz @ w.T) * self.gain).reshape(-1, n_in, self.nx).swapaxes(-1, -2)  # (batch, nx, n_in)
+        lead, nx, n_in = x0.shape[:-1], self.nx, self.nx + self.nu
+        x0 = x0.reshape(-1, nx)
+        y, slope = self.act(np.concatenate((x0, u.reshape(-1, self.nu)), -1) @ self.w_in + self.b_in)
+        batch, width = y.shape
+        z = np.empty((batch, 1 + n_in, width))  # row 0: value, rows 1..: tangents
+        z[:, 0] = y
+        np.multiply(slope[:, None, :], self.w_in, out=z[:, 1:])
+        for w, b in self.hidden:
+            z = (z.reshape(-1, width) @ w).reshape(batch, 1 + n_in, width)
+            value = z[:, 0]
+            value += b
+            y, slope = self.act(value)
+            z[:, 1:] *= slope[:, None, :]
+            z[:, 0] = y
+        out = z @ self.w_out  # (batch, 1 + n_in, nx)
+        x1 = out[:, 0] + self.b_out
+        jac = out[:, 1:].swapaxes(-1, -2)  # (batch, nx, n_in)
         if self.hard_ic:
-            x1 = x0.reshape(-1, self.nx) + n
-            jac[:, :, : self.nx] += self.eye
-        else:
-            x1 = n + self.offset
-        jac = jac.reshape(*lead, self.nx, n_in)
-        return x1.reshape(*lead, self.nx), jac[..., : self.nx], jac[..., self.nx :]
+            x1 += x0
+            jac[:, :, :nx] += self.eye
+        jac = jac.reshape(*lead, nx, n_in)
+        return x1.reshape(*lead, nx), jac[..., :nx], jac[..., nx:]

@@ -8,6 +8,7 @@ for the controller, without extra reverse passes.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import torch
@@ -80,8 +81,10 @@ class TangentMLP(nn.Module):
 class PINN(nn.Module):
     """Flow map (t, x0, u) -> x(t) with inputs normalised to [-1, 1] over the training box.
 
-    ic='hard' builds the initial condition in, x = x0 + (t / t_max) * scale * N(.);
-    ic='soft' is the paper's plain output x = center + halfwidth * N(.), with x(0) = x0
+    ic='hard' builds the initial condition in, x = x0 + scale * sum_k g_k(t) N_k(.), with the time gates
+    g_0 = t / t_max and, for each relaxation time T in time_basis, g = 1 - exp(-t / T): heavily damped
+    velocities relax within a few T, and a gate with that shape spares the network the steep boundary
+    layer at small t. ic='soft' is the paper's plain output x = center + halfwidth * N(.), with x(0) = x0
     learned from data points.
     """
 
@@ -96,10 +99,16 @@ class PINN(nn.Module):
         activation: str = "tanh",
         ic: str = "hard",
         output_scale: Sequence[float] | None = None,
+        time_basis: Sequence[float] = (),
     ) -> None:
         super().__init__()
         if ic not in ("hard", "soft"):
             raise ValueError(f"unknown initial-condition mode {ic!r}; expected 'hard' or 'soft'")
+        time_basis = [float(v) for v in time_basis]
+        if any(not (v > 0 and math.isfinite(v)) for v in time_basis):
+            raise ValueError(f"time_basis must hold positive relaxation times in s, got {time_basis}")
+        if time_basis and ic != "hard":
+            raise ValueError(f"time_basis {time_basis} needs ic='hard' (the gates multiply x - x0); got ic={ic!r}")
         if not t_max > 0:
             raise ValueError(f"t_max must be > 0, got {t_max}")
         self.config = {
@@ -112,6 +121,7 @@ class PINN(nn.Module):
             "activation": activation,
             "ic": ic,
             "output_scale": None if output_scale is None else [float(v) for v in output_scale],
+            "time_basis": time_basis,
         }  # everything needed to rebuild the module from a checkpoint
         self.nx, self.nu = len(state_low), len(input_low)
         self.ic = ic
@@ -134,17 +144,29 @@ class PINN(nn.Module):
         else:
             self.register_buffer("out_scale", self.in_half[1 : 1 + self.nx].clone())
         self.register_buffer("out_center", self.in_center[1 : 1 + self.nx].clone())
-        self.net = TangentMLP(1 + self.nx + self.nu, self.nx, hidden, activation)
+        self.register_buffer("time_basis", torch.tensor(time_basis, dtype=torch.float32), persistent=False)
+        self.n_gates = 1 + len(time_basis)
+        self.net = TangentMLP(1 + self.nx + self.nu, self.nx * self.n_gates, hidden, activation)
 
     def _inputs(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
         """Normalised network input z in [-1, 1]^7 over the training box."""
         t, x0, u = torch.broadcast_tensors(t, x0[..., :1], u[..., :1])[0], x0, u
         return (torch.cat((t, x0, u), dim=-1) - self.in_center) / self.in_half
 
+    def gates(self, t: Tensor) -> tuple[Tensor, Tensor]:
+        """Time gates g(t) (..., n_gates), all zero at t = 0, and dg/dt."""
+        ramp = torch.cat((t / self.t_max, 1.0 - torch.exp(-t / self.time_basis)), dim=-1)
+        slope = torch.cat((torch.full_like(t, 1.0 / self.t_max), torch.exp(-t / self.time_basis) / self.time_basis), -1)
+        return ramp, slope
+
+    def _gated(self, g: Tensor, n: Tensor) -> Tensor:
+        """sum_k g_k N_k: n (..., n_gates * nx) holds one head of nx outputs per gate."""
+        return (g.unsqueeze(-1) * n.unflatten(-1, (self.n_gates, self.nx))).sum(-2)
+
     def _assemble(self, t: Tensor, x0: Tensor, n: Tensor) -> Tensor:
         """Network output to state, enforcing x(0) = x0 when ic='hard'."""
         if self.ic == "hard":
-            return x0 + (t / self.t_max) * self.out_scale * n
+            return x0 + self.out_scale * self._gated(self.gates(t)[0], n)
         return self.out_center + self.out_scale * n
 
     def forward(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
@@ -159,8 +181,9 @@ class PINN(nn.Module):
         n, dn = self.net.forward_tangent(z, dz.unsqueeze(-2))
         dn = dn.squeeze(-2)
         if self.ic == "hard":
-            x = x0 + (t / self.t_max) * self.out_scale * n
-            dxdt = self.out_scale * (n + t * dn) / self.t_max
+            g, dg = self.gates(t)
+            x = x0 + self.out_scale * self._gated(g, n)
+            dxdt = self.out_scale * (self._gated(dg, n) + self._gated(g, dn))
             return x, dxdt
         return self.out_center + self.out_scale * n, self.out_scale * dn
 
@@ -172,11 +195,10 @@ class PINN(nn.Module):
         dz = torch.cat((torch.zeros(n_state_in, 1, dtype=z.dtype, device=z.device), eye), dim=-1)
         dz = dz.expand(*z.shape[:-1], n_state_in, z.shape[-1])
         n, dn = self.net.forward_tangent(z, dz)
-        jac = dn.transpose(-1, -2)  # (..., nx, nx + nu)
         if self.ic == "hard":
-            w = (t / self.t_max) * self.out_scale  # (..., nx)
-            x = x0 + w * n
-            jac = w.unsqueeze(-1) * jac
+            g = self.gates(t)[0]
+            x = x0 + self.out_scale * self._gated(g, n)
+            jac = self.out_scale.unsqueeze(-1) * self._gated(g.unsqueeze(-2), dn).transpose(-1, -2)
             jac = jac + torch.eye(self.nx, n_state_in, dtype=z.dtype, device=z.device)
-            return x, jac
-        return self.out_center + self.out_scale * n, self.out_scale.unsqueeze(-1) * jac
+            return x, jac  # (..., nx, nx + nu)
+        return self.out_center + self.out_scale * n, self.out_scale.unsqueeze(-1) * dn.transpose(-1, -2)

@@ -47,6 +47,7 @@ class NMPC:
             )
         if torch.any(self.low > self.high):
             raise ValueError(f"input lower bound {self.low.tolist()} exceeds upper bound {self.high.tolist()}")
+        self._low, self._high = self.low.numpy(), self.high.numpy()
         self.reset()
 
     @property
@@ -59,11 +60,41 @@ class NMPC:
         """The model the controller predicts with."""
         return self.ocp.surrogate
 
+    @property
+    def U(self) -> Tensor:  # noqa: N802
+        """The plan the next solve starts from (the last solution shifted by one step), (H, nu)."""
+        return torch.from_numpy(self._U)
+
+    @U.setter
+    def U(self, plan: Tensor | np.ndarray) -> None:  # noqa: N802
+        """Seed the next solve's start, e.g. with a plan from elsewhere."""
+        plan = np.array(plan, dtype=np.float64)
+        if plan.shape != (self.horizon, self.ocp.nu):
+            raise ValueError(f"plan must be ({self.horizon}, {self.ocp.nu}) (horizon, nu), got {plan.shape}")
+        self._U = plan
+
+    @property
+    def u_prev(self) -> Tensor:
+        """The input applied last (the rate penalty's u_{-1})."""
+        return torch.from_numpy(self._u_prev)
+
+    @u_prev.setter
+    def u_prev(self, u: Tensor | np.ndarray) -> None:
+        """Set the input treated as applied last."""
+        u = np.array(u, dtype=np.float64)
+        if u.shape != (self.ocp.nu,):
+            raise ValueError(f"u_prev must have {self.ocp.nu} entries, got shape {u.shape}")
+        self._u_prev = u
+
     def reset(self) -> None:
         """Forget the warm start and the last applied input (start of a new run)."""
-        self.U = torch.zeros(self.horizon, self.ocp.nu, dtype=torch.float64).clamp(self.low, self.high)
-        self.u_prev = self.U[0].clone()
+        self._U = self._cold_start()
+        self._u_prev = self._U[0].copy()
         self.stats = []
+
+    def _cold_start(self) -> np.ndarray:
+        """Zero inputs projected onto the box."""
+        return np.clip(np.zeros((self.horizon, self.ocp.nu)), self._low, self._high)
 
     def clip(self, u: Tensor) -> Tensor:
         """Project onto the input box."""
@@ -74,27 +105,39 @@ class NMPC:
         if x_ref.shape[-2] != self.horizon:
             raise ValueError(f"x_ref must cover the horizon: got {x_ref.shape[-2]} steps, expected {self.horizon}")
         U, info = self.solver.solve(self.ocp, x0, self.clip(U0), x_ref, u_prev, self.low, self.high)  # noqa: N806
-        return self.clip(U), info
+        return self.clip(torch.as_tensor(U)), info
+
+    def _solve_one(self, x0: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, SolveInfo]:
+        """One problem in the solver's own array library: batch-1 solves are dominated by per-call overhead."""
+        if x0.shape != (self.ocp.nx,):
+            raise ValueError(f"the state must have {self.ocp.nx} entries, got shape {x0.shape}")
+        if x_ref.shape != (self.horizon, self.ocp.nx):
+            want = (self.horizon, self.ocp.nx)
+            raise ValueError(f"x_ref must cover the horizon: expected {want[0]} x {want[1]}, got {x_ref.shape}")
+        args = (x0[None], self._U[None], x_ref[None], self._u_prev[None], self._low, self._high)
+        if getattr(self.solver, "array_api", "torch") != "numpy":
+            args = tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in args)
+        U, info = self.solver.solve(self.ocp, *args)  # noqa: N806
+        return np.clip(np.asarray(U, dtype=np.float64)[0], self._low, self._high), info
 
     def make_step(self, x: np.ndarray | Tensor, x_ref: np.ndarray | Tensor) -> np.ndarray:
         """Input to apply now, given the measured state and the next H reference states."""
-        x0 = torch.as_tensor(np.asarray(x, dtype=np.float64))
-        ref = torch.as_tensor(np.asarray(x_ref, dtype=np.float64))
+        x0 = np.asarray(x, dtype=np.float64)
+        ref = np.asarray(x_ref, dtype=np.float64)
         start = time.perf_counter()
         fallback = False
         try:
-            U, info = self.solve(x0[None], ref[None], self.U[None], self.u_prev[None])  # noqa: N806
-            U = U[0]  # noqa: N806
-            ok = bool(torch.all(torch.isfinite(U))) and bool(torch.isfinite(info.cost).all())
+            U, info = self._solve_one(x0, ref)  # noqa: N806
+            ok = bool(np.isfinite(U).all()) and bool(np.isfinite(np.asarray(info.cost)).all())
         except (RuntimeError, FloatingPointError, np.linalg.LinAlgError):  # e.g. a singular solve on NaN outputs
             ok, info = False, None
         if not ok:
             fallback = True
-            # self.U is already the previous plan shifted: its first entry is the input planned for now
-            U = self.clip(torch.nan_to_num(self.U, nan=0.0, posinf=0.0, neginf=0.0))  # noqa: N806
+            # self._U is already the previous plan shifted: its first entry is the input planned for now
+            U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self._low, self._high)  # noqa: N806
         elapsed = time.perf_counter() - start
-        self.U = self._shifted(U) if self.warm_start else torch.zeros_like(U).clamp(self.low, self.high)
-        self.u_prev = U[0].clone()
+        self._U = self._shifted(U) if self.warm_start else self._cold_start()
+        self._u_prev = U[0].copy()
         self.stats.append(
             StepStats(
                 time_s=elapsed,
@@ -104,9 +147,9 @@ class NMPC:
                 fallback=fallback,
             )
         )
-        return U[0].numpy().copy()
+        return U[0].copy()
 
     @staticmethod
-    def _shifted(U: Tensor) -> Tensor:  # noqa: N803
+    def _shifted(U: np.ndarray) -> np.ndarray:  # noqa: N803
         """Warm start for the next solve: drop the applied input, repeat the last one."""
-        return torch.cat((U[1:], U[-1:]), dim=0)
+        return np.concatenate((U[1:], U[-1:]), axis=0)

@@ -136,6 +136,8 @@ class HorizonOCP:
 
     def residuals_and_jacobian(self, x0: Array, U: Array, x_ref: Array, u_prev: Array) -> tuple[Array, Array]:
         """Residuals (..., m) and their Jacobian (..., m, H*nu) from step Jacobians chained along the horizon."""
+        if self.flow is not None and isinstance(x0, np.ndarray):
+            return self._residuals_and_jacobian_numpy(x0, U, x_ref, u_prev)
         xp = xp_of(x0)
         w_q = self.weights[xp][0]
         lead, n_var = x0.shape[:-1], self.horizon * self.nu
@@ -151,6 +153,28 @@ class HorizonOCP:
         jac_x = (w_q @ xp.stack(sens_list, -3)).reshape(*lead, self.horizon * self.nx, n_var)
         jac_u = self._input_jacobian(xp)  # constant: the input and input-rate residuals are linear in U
         return r, cat([jac_x, xp.broadcast_to(jac_u, (*lead, *jac_u.shape))], -2)
+
+    def _residuals_and_jacobian_numpy(
+        self, x0: np.ndarray, U: np.ndarray, x_ref: np.ndarray, u_prev: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The same with preallocated arrays and no namespace dispatch: the controller's hot path."""
+        lead, (horizon, nx, nu) = x0.shape[:-1], (self.horizon, self.nx, self.nu)
+        n_var, n_state_res = horizon * nu, horizon * nx
+        x, Ub = x0.reshape(-1, nx), U.reshape(-1, horizon, nu)
+        batch = x.shape[0]
+        X = np.empty((batch, horizon, nx))
+        sens = np.zeros((batch, horizon, nx, n_var))  # d x_i / d U: only inputs before step i act
+        for i in range(horizon):
+            x, a, b = self.flow.step_with_jacobian(x, Ub[:, i])
+            X[:, i] = x
+            if i:
+                np.matmul(a, sens[:, i - 1, :, : i * nu], out=sens[:, i, :, : i * nu])
+            sens[:, i, :, i * nu : (i + 1) * nu] = b
+        r = self.residuals(X, Ub, x_ref.reshape(batch, horizon, nx), u_prev.reshape(batch, nu))
+        jac = np.empty((batch, r.shape[-1], n_var))
+        np.matmul(self.weights[np][0], sens, out=jac[:, :n_state_res].reshape(batch, horizon, nx, n_var))
+        jac[:, n_state_res:] = self._input_jacobian(np)
+        return r.reshape(*lead, -1), jac.reshape(*lead, *jac.shape[1:])
 
     def _input_jacobian(self, xp: ModuleType) -> Array:
         """d(input residuals)/dU, computed once per namespace."""

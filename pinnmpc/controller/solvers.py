@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 import torch
@@ -22,7 +22,13 @@ class SolveInfo:
 
 
 class Solver(Protocol):
-    """Minimise the OCP over U (B, H, nu) within [low, high], starting from U0."""
+    """Minimise the OCP over U (B, H, nu) within [low, high], starting from U0.
+
+    array_api names the array library the solver works in ("torch" or "numpy"): NMPC.make_step
+    hands it arrays of that kind, so batch-1 solves pay no conversions.
+    """
+
+    array_api: str
 
     def solve(
         self,
@@ -45,6 +51,7 @@ class RMSpropSolver:
     lr: float = 0.01  # RMSprop learning rate
     max_iter: int = 1000  # iteration cap (paper: 1000)
     tol: float = 1e-8  # stop when the summed cost changes less than this (paper: 1e-8)
+    array_api: ClassVar[str] = "torch"
 
     def solve(self, ocp, x0, U0, x_ref, u_prev, low, high):  # noqa: ANN001, ANN201, N803
         """Projected first-order descent with autograd gradients."""
@@ -76,6 +83,7 @@ class LBFGSSolver:
     max_iter: int = 20  # L-BFGS iterations per round
     rounds: int = 5  # projection rounds
     tol: float = 1e-12  # stop when a round changes the summed cost less than this
+    array_api: ClassVar[str] = "torch"
 
     def solve(self, ocp, x0, U0, x_ref, u_prev, low, high):  # noqa: ANN001, ANN201, N803
         """Quasi-Newton with strong Wolfe line search and clamping."""
@@ -117,8 +125,10 @@ class GaussNewtonSolver:
     max_iter: int = 30  # iteration cap
     tol_grad: float = 1e-9  # converged when the projected gradient's max-norm is below this
     tol_cost: float = 1e-10  # ... or the relative cost decrease predicted (or achieved) is below this
+    tol_gap: float = 1e-8  # ... or the decrease still to come, extrapolated from the last two, is below this x cost
     damping: float = 1e-9  # Levenberg-Marquardt damping, relative to the mean diagonal of J^T J
     step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.01)  # tried first alone, then the rest at once
+    array_api: ClassVar[str] = "numpy"  # also accepts torch tensors (and then returns them)
 
     def __post_init__(self) -> None:
         self.alphas = np.asarray(self.step_lengths, dtype=np.float64)
@@ -156,40 +166,46 @@ class GaussNewtonSolver:
         lo, hi = np.broadcast_to(low, shape).reshape(-1, n), np.broadcast_to(high, shape).reshape(-1, n)
         batch = U.shape[0]
         r, jac = ocp.residuals_and_jacobian(x0b, U.reshape(-1, *horizon_nu), refb, upb)
-        cost = (r * r).sum(-1)
+        cost = np.einsum("bm,bm->b", r, r)
         running = np.ones(batch, dtype=bool)
         iterations = np.zeros(batch, dtype=np.int64)
-        eye = np.eye(n)
-        for _ in range(self.max_iter):
-            idx = np.flatnonzero(running)
-            if idx.size == 0:
+        last_decrease = np.full(batch, np.inf)
+        for k in range(self.max_iter):
+            # views while every problem runs (the batch-1 case), copies of the running rows otherwise
+            idx = slice(None) if running.all() else np.flatnonzero(running)
+            u_i, f = U[idx], cost[idx].copy()  # f must survive the update of cost below
+            delta, pgrad_max, predicted = self._step(r[idx], jac[idx], u_i, lo[idx], hi[idx])
+            done = (pgrad_max < self.tol_grad) | (predicted <= self.tol_cost * np.maximum(f, 1e-300))
+            rows = np.arange(batch)[idx]
+            running[rows[done]] = False
+            if done.all():
                 break
-            u_i, r_i, jac_i, f = U[idx], r[idx], jac[idx], cost[idx]
-            jt = np.swapaxes(jac_i, -1, -2)
-            grad = 2.0 * (jt @ r_i[..., None])[..., 0]
-            bound = ((u_i <= lo[idx]) & (grad > 0)) | ((u_i >= hi[idx]) & (grad < 0))
-            pgrad = np.where(bound, 0.0, grad)
-            free = (~bound).astype(np.float64)
-            jtj = jt @ jac_i
-            mu = self.damping * np.maximum(np.diagonal(jtj, 0, -2, -1).mean(-1), 1e-30)
-            hess = jtj * free[:, :, None] * free[:, None, :] + (1.0 - free)[:, :, None] * eye + mu[:, None, None] * eye
-            delta = np.linalg.solve(hess, -0.5 * pgrad[..., None])[..., 0]
-            predicted = -0.5 * (pgrad * delta).sum(-1)  # decrease the Gauss-Newton model expects
-            done = (np.abs(pgrad).max(-1) < self.tol_grad) | (predicted <= self.tol_cost * np.maximum(f, 1e-300))
-            running[idx[done]] = False
             go = ~done
-            if not go.any():
-                break
-            idx, u_i, f, delta = idx[go], u_i[go], f[go], delta[go]
+            if not done.any():
+                go = slice(None)
+            rows, u_i, f, delta = rows[go], u_i[go], f[go], delta[go]
+            first = k < 2  # the first two steps rarely stop (no extrapolation yet), so take their Jacobians along
             best_c, new_u, new_r, new_jac = self._line_search(
-                ocp, x0b[idx], refb[idx], upb[idx], u_i, delta, f, lo[idx], hi[idx]
+                ocp, x0b[rows], refb[rows], upb[rows], u_i, delta, f, lo[rows], hi[rows], with_jacobian=first
             )
             improved = best_c < f
-            acc = idx[improved]
-            U[acc], r[acc], jac[acc], cost[acc] = new_u[improved], new_r[improved], new_jac[improved], best_c[improved]
-            iterations[idx] += 1
-            small = (f - best_c) <= self.tol_cost * np.maximum(f, 1e-300)
-            running[idx[~improved | small]] = False
+            acc = rows[improved]
+            U[acc], cost[acc] = new_u[improved], best_c[improved]
+            if first:
+                r[acc], jac[acc] = new_r[improved], new_jac[improved]
+            iterations[rows] += 1
+            decrease = f - best_c
+            stop = ~improved | (decrease <= self.tol_cost * np.maximum(f, 1e-300))
+            stop |= self._remaining(decrease, last_decrease[rows]) <= self.tol_gap * best_c
+            last_decrease[rows] = decrease
+            running[rows[stop]] = False
+            more = rows[~stop]
+            if not first and more.size:
+                r[more], jac[more] = ocp.residuals_and_jacobian(
+                    x0b[more], U[more].reshape(-1, *horizon_nu), refb[more], upb[more]
+                )
+            if not running.any():
+                break
         return (
             U.reshape(shape),
             iterations.reshape(shape[:-2]),
@@ -197,36 +213,75 @@ class GaussNewtonSolver:
             (~running).reshape(shape[:-2]),
         )
 
-    def _line_search(self, ocp, x0, x_ref, u_prev, u, delta, f, lo, hi):  # noqa: ANN001, ANN202
+    @staticmethod
+    def _remaining(decrease: np.ndarray, last: np.ndarray) -> np.ndarray:
+        """Cost decrease still to come, extrapolated geometrically from the last two decreases.
+
+        Gauss-Newton converges at least linearly with the ratio rho of successive decreases, so what
+        remains is at most decrease * rho / (1 - rho); near a zero-residual optimum it converges
+        quadratically and this overestimates. Infinite until two steps were taken.
+        """
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rho = decrease / last
+            return np.where(np.isfinite(last) & (rho < 1.0), decrease * rho / (1.0 - rho), np.inf)
+
+    def _step(self, r, jac, u, lo, hi):  # noqa: ANN001, ANN202
+        """Projected Gauss-Newton step: variables at a bound with the gradient pointing out are frozen.
+
+        Returns the step, the projected gradient's max-norm and the cost decrease the model predicts.
+        """
+        jt = jac.swapaxes(-1, -2)
+        grad = 2.0 * np.matmul(jt, r[..., None])[..., 0]
+        bound = ((u <= lo) & (grad > 0)) | ((u >= hi) & (grad < 0))
+        hess = jt @ jac
+        diag = np.einsum("bii->bi", hess)  # a writable view of the diagonal
+        mu = self.damping * np.maximum(diag.mean(-1), 1e-30)
+        if bound.any():
+            grad = np.where(bound, 0.0, grad)
+            free = ~bound
+            hess *= free[:, :, None] & free[:, None, :]
+            diag += bound
+        diag += mu[:, None]
+        delta = np.linalg.solve(hess, -0.5 * grad[..., None])[..., 0]
+        predicted = -0.5 * np.einsum("bi,bi->b", grad, delta)  # decrease the Gauss-Newton model expects
+        return delta, np.abs(grad).max(-1), predicted
+
+    def _line_search(self, ocp, x0, x_ref, u_prev, u, delta, f, lo, hi, with_jacobian):  # noqa: ANN001, ANN202
         """The first step length alone (usually the full step, which near the optimum always wins), then the
-        others in one batch only for the problems it did not improve; residuals and Jacobians come along."""
+        others in one batch only for the problems it did not improve; with_jacobian: residuals and Jacobians
+        come along (None otherwise)."""
         horizon_nu = (ocp.horizon, ocp.nu)
 
-        def evaluate(rows: np.ndarray, alphas: np.ndarray) -> tuple[np.ndarray, ...]:
-            k, m = alphas.size, rows.size
-            cand = np.clip(
-                u[rows, None, :] + alphas[None, :, None] * delta[rows, None, :], lo[rows, None], hi[rows, None]
-            )
-            r_c, jac_c = ocp.residuals_and_jacobian(
-                np.repeat(x0[rows], k, 0),
-                cand.reshape(m * k, *horizon_nu),
-                np.repeat(x_ref[rows], k, 0),
-                np.repeat(u_prev[rows], k, 0),
-            )
-            c = (r_c * r_c).sum(-1).reshape(m, k)
-            best = c.argmin(-1)
-            pick = np.arange(m) * k + best
-            return c[np.arange(m), best], cand[np.arange(m), best], r_c[pick], jac_c[pick]
+        def evaluate(x0, cand, x_ref, u_prev):  # noqa: ANN001, ANN202
+            cand = cand.reshape(-1, *horizon_nu)
+            if with_jacobian:
+                r, jac = ocp.residuals_and_jacobian(x0, cand, x_ref, u_prev)
+            else:
+                r, jac = ocp.residuals(ocp.rollout(x0, cand), cand, x_ref, u_prev), None
+            return np.einsum("bm,bm->b", r, r), r, jac
 
-        everyone = np.arange(u.shape[0])
-        best_c, best_u, best_r, best_jac = evaluate(everyone, self.alphas[:1])
-        retry = everyone[best_c >= f]
-        if retry.size and self.alphas.size > 1:
-            c, cu, cr, cj = evaluate(retry, self.alphas[1:])
-            better = c < best_c[retry]
-            rows = retry[better]
-            best_c[rows], best_u[rows], best_r[rows], best_jac[rows] = c[better], cu[better], cr[better], cj[better]
-        return best_c, best_u, best_r, best_jac
+        cand = np.clip(u + self.alphas[0] * delta, lo, hi)
+        best_c, best_r, best_jac = evaluate(x0, cand, x_ref, u_prev)
+        retry = np.flatnonzero(best_c >= f)
+        if retry.size == 0 or self.alphas.size == 1:
+            return best_c, cand, best_r, best_jac
+        k, m, alphas = self.alphas.size - 1, retry.size, self.alphas[1:]
+        cands = np.clip(
+            u[retry, None, :] + alphas[None, :, None] * delta[retry, None, :], lo[retry, None], hi[retry, None]
+        )
+        c, r_c, jac_c = evaluate(
+            np.repeat(x0[retry], k, 0), cands, np.repeat(x_ref[retry], k, 0), np.repeat(u_prev[retry], k, 0)
+        )
+        c = c.reshape(m, k)
+        best = c.argmin(-1)
+        pick = np.arange(m) * k + best
+        c_best = c[np.arange(m), best]
+        better = c_best < best_c[retry]
+        rows, pick = retry[better], pick[better]
+        best_c[rows], cand[rows], best_r[rows] = c_best[better], cands[better, best[better]], r_c[pick]
+        if with_jacobian:
+            best_jac[rows] = jac_c[pick]
+        return best_c, cand, best_r, best_jac
 
 
 SOLVERS = {"gauss_newton": GaussNewtonSolver, "rmsprop": RMSpropSolver, "lbfgs": LBFGSSolver}
