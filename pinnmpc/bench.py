@@ -316,11 +316,24 @@ class RecordingSolver:
         """The wrapped solver's array library, so the controller hands it its own kind of arrays."""
         return getattr(self.inner, "array_api", "torch")
 
+    @property
+    def accepts_prior(self) -> bool:
+        """Whether the wrapped solver takes a Jacobian warm start."""
+        return getattr(self.inner, "accepts_prior", False)
+
     def solve(
-        self, ocp: HorizonOCP, x0: Array, U0: Array, x_ref: Array, u_prev: Array, low: Array, high: Array
+        self,
+        ocp: HorizonOCP,
+        x0: Array,
+        U0: Array,
+        x_ref: Array,
+        u_prev: Array,
+        low: Array,
+        high: Array,
+        **options: Any,
     ) -> tuple[Array, SolveInfo]:
         """Delegate, then record each problem of the batch with its projected solution."""
-        U, info = self.inner.solve(ocp, x0, U0, x_ref, u_prev, low, high)
+        U, info = self.inner.solve(ocp, x0, U0, x_ref, u_prev, low, high, **options)
         Uc = np.clip(np.asarray(U, dtype=np.float64), np.asarray(low), np.asarray(high))
         for i in range(x0.shape[0]):
             self.raw.append(tuple(np.array(a, dtype=np.float64) for a in (x0[i], x_ref[i], u_prev[i], Uc[i])))
@@ -371,7 +384,7 @@ def bench_closed_loop(
     rows: dict[str, dict[str, Any]] = {}
     problems: list[OCPProblem] = []
     for solver in cl.solvers:
-        row, recorded = run_controller(cfg, system, surrogate, ref, solver, record=solver == "gauss_newton")
+        row, recorded = run_controller(cfg, system, surrogate, ref, solver, record=solver == cfg.controller.solver)
         rows[f"pinn_{solver}"] = {"label": f"PINN-MPC, {solver}", "model": "pinn", **row}
         problems = recorded or problems
         log.info("closed loop: PINN %s done in %.1f s", solver, row["wall_s"])
@@ -410,11 +423,12 @@ def lbfgsb_solve(
 
 
 def bench_optimality(cfg: DictConfig, surrogate: Surrogate, problems: list[OCPProblem]) -> dict[str, Any]:
-    """How far the Gauss-Newton solutions are from the best of several tight L-BFGS-B solves of the same OCP."""
+    """How far the controller's solutions are from the best of several tight L-BFGS-B solves of the same OCP."""
     oc = cfg.optimality
+    solver = str(cfg.controller.solver)
     if not problems:
-        raise ValueError("optimality needs OCPs from a gauss_newton closed loop; none were recorded")
-    nmpc = build_nmpc(controller_cfg(cfg, solver="gauss_newton"), surrogate)
+        raise ValueError(f"optimality needs OCPs from a {solver} closed loop; none were recorded")
+    nmpc = build_nmpc(cfg.controller, surrogate)
     ocp, low, high = nmpc.ocp, nmpc.low.numpy(), nmpc.high.numpy()
     H = ocp.horizon
     bounds = list(zip(np.tile(low, H).tolist(), np.tile(high, H).tolist()))
@@ -422,7 +436,7 @@ def bench_optimality(cfg: DictConfig, surrogate: Surrogate, problems: list[OCPPr
     picks = np.unique(np.linspace(0, len(problems) - 1, n).round().astype(int))
     rng = np.random.default_rng(int(cfg.seed))
     gn, best, nits, best_start = [], [], [], []
-    start_names = ["zeros", "gauss_newton", *[f"random{i}" for i in range(int(oc.random_starts))]]
+    start_names = ["zeros", solver, *[f"random{i}" for i in range(int(oc.random_starts))]]
     t0 = time.perf_counter()
     for i in picks:
         p = problems[int(i)]
@@ -440,6 +454,7 @@ def bench_optimality(cfg: DictConfig, surrogate: Surrogate, problems: list[OCPPr
     gap = gap_abs / np.maximum(ref_a, float(oc.cost_floor))
     within = (gap <= float(oc.rel_tol)) | (gap_abs <= float(oc.abs_tol))
     return {
+        "solver": solver,
         "n_states": len(picks),
         "starts": start_names,
         "rel_gap": {
@@ -469,9 +484,9 @@ def bench_optimality(cfg: DictConfig, surrogate: Surrogate, problems: list[OCPPr
 
 
 def ocp_scaling_point(cfg: DictConfig, surrogate: Surrogate, horizon: int, batch: int) -> dict[str, float]:
-    """Batched Gauss-Newton solves of random problems (states and references uniform in the box)."""
+    """Batched solves by the configured solver of random problems (states and references uniform in the box)."""
     sc = cfg.scaling
-    nmpc = build_nmpc(controller_cfg(cfg, solver="gauss_newton", horizon=horizon), surrogate)
+    nmpc = build_nmpc(controller_cfg(cfg, horizon=horizon), surrogate)
     box, nx, nu = surrogate.state_box, surrogate.nx, surrogate.nu
     seed = int(cfg.seed)
     x0 = uniform_box(batch, box.low, box.high, seed)
@@ -743,12 +758,12 @@ def md_optimality(op: dict[str, Any]) -> str:
     ]
     return "\n".join(
         [
-            "## 3. OCP optimality of Gauss-Newton",
+            f"## 3. OCP optimality of {op['solver']}",
             "",
-            "States visited by the gauss_newton closed loop; each OCP re-solved on the same surrogate by scipy "
+            f"States visited by the {op['solver']} closed loop; each OCP re-solved on the same surrogate by scipy "
             f"L-BFGS-B (ftol {op['ftol']:g}, gtol {op['gtol']:g}, maxiter {op['maxiter']}, autograd gradient) "
             f"from {', '.join(op['starts'])}. "
-            "rel gap = (GN cost - best cost) / best cost; "
+            "rel gap = (controller cost - best cost) / best cost; "
             f"optimal: rel gap <= {op['rel_tol']:g} or abs gap <= {op['abs_tol']:g}.",
             "",
             md_table(headers, [row]),
@@ -860,8 +875,8 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         elapsed["closed_loop"] = time.perf_counter() - t0
     if cfg.optimality.enabled:
         t0 = time.perf_counter()
-        if not problems:  # the closed-loop section was off or ran no gauss_newton row: record one loop here
-            _, problems = run_controller(cfg, system, pinn64, ref, "gauss_newton", record=True)
+        if not problems:  # the closed-loop section was off or ran no row of the configured solver: record one
+            _, problems = run_controller(cfg, system, pinn64, ref, str(cfg.controller.solver), record=True)
         result["optimality"] = bench_optimality(cfg, pinn64, problems)
         elapsed["optimality"] = time.perf_counter() - t0
     if cfg.scaling.enabled:

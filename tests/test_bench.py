@@ -105,7 +105,12 @@ def test_step_skips_rk45_batch_rows_when_asked(tmp_path: Path) -> None:
 
 def test_closed_loop_rows(bench: tuple[dict[str, Any], Path]) -> None:
     cl = bench[0]["closed_loop"]
-    assert set(cl["rows"]) == {"pinn_gauss_newton", "pinn_rmsprop", "true_rk4_gauss_newton"}
+    assert set(cl["rows"]) == {
+        "pinn_lifted_gauss_newton",
+        "pinn_gauss_newton",
+        "pinn_rmsprop",
+        "true_rk4_gauss_newton",
+    }
     for key, row in cl["rows"].items():
         assert row["status"] == "ok", key
         assert row["steps"] == MAX_STEPS
@@ -121,7 +126,8 @@ def test_optimality(bench: tuple[dict[str, Any], Path]) -> None:
     assert op["n_states"] == MAX_STEPS
     assert 0.0 <= op["fraction_within"] <= 1.0
     assert op["rel_gap"]["min"] <= op["rel_gap"]["median"] <= op["rel_gap"]["p95"] <= op["rel_gap"]["max"]
-    assert op["rel_gap"]["min"] > -1e-9  # the Gauss-Newton start is among the L-BFGS-B starts
+    assert op["solver"] == "lifted_gauss_newton"  # the controller's default solver is the one examined
+    assert op["rel_gap"]["min"] > -1e-9  # the controller's solution is among the L-BFGS-B starts
     assert sum(op["best_start_counts"].values()) == op["n_states"]
 
 
@@ -152,6 +158,7 @@ def test_markdown_has_every_table(bench: tuple[dict[str, Any], Path]) -> None:
         "| PINN float64 (torch) |",
         "RMSE alpha",
         "## 2. Closed loop",
+        "| PINN-MPC, lifted_gauss_newton |",
         "| PINN-MPC, gauss_newton |",
         "true model (RK4",
         "paper (RMSprop",

@@ -18,6 +18,7 @@ from pinnmpc.controller import (
     GaussNewtonSolver,
     HorizonOCP,
     LBFGSSolver,
+    LiftedGaussNewtonSolver,
     RMSpropSolver,
     make_solver,
 )
@@ -39,7 +40,13 @@ FULL_Q = [[1.0, 0.3, 0.0, 0.1], [0.3, 2.0, 0.0, 0.0], [0.0, 0.0, 0.05, 0.0], [0.
 FULL_R = [[1e-3, 2e-4], [2e-4, 5e-4]]
 FULL_R_RATE = [[2e-2, -5e-3], [-5e-3, 1e-2]]
 # cheap settings: the bounds must hold whatever the iteration budget
-SOLVER_OPTIONS = {"gauss_newton": {}, "rmsprop": {"max_iter": 100}, "lbfgs": {"max_iter": 10, "rounds": 3}}
+SOLVER_OPTIONS = {
+    "gauss_newton": {},
+    "lifted_gauss_newton": {},
+    "rmsprop": {"max_iter": 100},
+    "lbfgs": {"max_iter": 10, "rounds": 3},
+}
+NEWTON = [GaussNewtonSolver, LiftedGaussNewtonSolver]  # the fast solvers: exact optima, batched
 
 
 @pytest.fixture(scope="module")
@@ -301,8 +308,9 @@ def _reference_cost(
     return best
 
 
+@pytest.mark.parametrize("solver", NEWTON)
 @pytest.mark.parametrize("seed", range(10))
-def test_gauss_newton_reaches_optimum_feasible(s: Surrogate, seed: int) -> None:
+def test_gauss_newton_reaches_optimum_feasible(s: Surrogate, seed: int, solver: type) -> None:
     H = 5
     ocp = HorizonOCP(s, H, [1.0, 1.0, 0.01, 0.01], [1e-6, 1e-6])
     low, high = _bounds([-0.5, -0.5], [0.5, 0.5])
@@ -311,9 +319,7 @@ def test_gauss_newton_reaches_optimum_feasible(s: Surrogate, seed: int) -> None:
     U_true = _uniform(g, (H, NU), -0.4, 0.4)
     x_ref = ocp.rollout(x0, U_true)  # reachable: only the R-term separates the optimum from zero
     u_prev = torch.zeros(NU, dtype=F64)
-    U, info = GaussNewtonSolver().solve(
-        ocp, x0[None], torch.zeros(1, H, NU, dtype=F64), x_ref[None], u_prev[None], low, high
-    )
+    U, info = solver().solve(ocp, x0[None], torch.zeros(1, H, NU, dtype=F64), x_ref[None], u_prev[None], low, high)
     gn = float(ocp.cost(x0, U[0], x_ref, u_prev))
     assert gn == pytest.approx(float(info.cost[0]), rel=1e-12)
     assert bool(info.converged[0])
@@ -322,8 +328,9 @@ def test_gauss_newton_reaches_optimum_feasible(s: Surrogate, seed: int) -> None:
     assert gn <= ref * (1 + 1e-6) + 1e-10, f"GN {gn:.12e} vs L-BFGS-B {ref:.12e}"
 
 
+@pytest.mark.parametrize("solver", NEWTON)
 @pytest.mark.parametrize("seed", range(5))
-def test_gauss_newton_reaches_optimum_with_active_bounds(s: Surrogate, seed: int) -> None:
+def test_gauss_newton_reaches_optimum_with_active_bounds(s: Surrogate, seed: int, solver: type) -> None:
     H = 5
     ocp = HorizonOCP(s, H, FULL_Q, FULL_R, FULL_R_RATE)
     low, high = _bounds([-0.1, -0.25], [0.15, 0.05])
@@ -333,7 +340,7 @@ def test_gauss_newton_reaches_optimum_with_active_bounds(s: Surrogate, seed: int
     x_ref = ocp.rollout(x0, U_true) + 0.2 * torch.randn(H, NX, generator=g, dtype=F64)
     u_prev = _uniform(g, (NU,), low, high)
     U0 = _uniform(g, (1, H, NU), low, high)
-    U, info = GaussNewtonSolver().solve(ocp, x0[None], U0, x_ref[None], u_prev[None], low, high)
+    U, info = solver().solve(ocp, x0[None], U0, x_ref[None], u_prev[None], low, high)
     assert _within(U, low, high)
     assert bool(_at_bound(U, low, high).any()), "the bounds were meant to be active"
     gn = float(ocp.cost(x0, U[0], x_ref, u_prev))
@@ -343,6 +350,63 @@ def test_gauss_newton_reaches_optimum_with_active_bounds(s: Surrogate, seed: int
 
 # ---------------------------------------------------------------------------------------------------------------
 # The receding-horizon controller
+
+
+def test_lifted_solver_falls_back_to_single_shooting(s: Surrogate) -> None:
+    H = 5
+    ocp = HorizonOCP(s, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
+    low, high = _bounds([-0.5, -0.5], [0.5, 0.5])
+    g = _gen(31)
+    x0 = _states(g, 1)[0]
+    x_ref = ocp.rollout(x0, _uniform(g, (H, NU), -0.4, 0.4))
+    u_prev, U0 = torch.zeros(NU, dtype=F64), torch.zeros(1, H, NU, dtype=F64)
+    args = (ocp, x0[None], U0, x_ref[None], u_prev[None], low, high)
+    U1, info1 = LiftedGaussNewtonSolver(max_iter=1).solve(*args)  # one lifted step cannot converge
+    U_gn, info_gn = GaussNewtonSolver().solve(*args)
+    assert bool(info1.converged[0]) and int(info1.iterations[0]) > 1  # single shooting finished the job
+    assert float(info1.cost[0]) == pytest.approx(float(ocp.cost(x0, U1[0], x_ref, u_prev)), rel=1e-12)
+    assert float(info1.cost[0]) <= float(info_gn.cost[0]) * (1 + 1e-6) + 1e-12
+
+
+def test_jacobian_warm_start_reaches_the_same_optimum(s: Surrogate) -> None:
+    H = 5
+    ocp = HorizonOCP(s, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
+    low, high = _bounds([-0.5, -0.5], [0.5, 0.5])
+    g = _gen(32)
+    x0 = _states(g, 1)[0]
+    x_ref = ocp.rollout(x0, _uniform(g, (H + 1, NU), -0.4, 0.4)[:H])
+    u_prev = torch.zeros(NU, dtype=F64)
+    solver = GaussNewtonSolver()
+    U, info = solver.solve(ocp, x0[None], torch.zeros(1, H, NU, dtype=F64), x_ref[None], u_prev[None], low, high)
+    assert info.sensitivities.shape == (1, H, NX, H * NU)
+    # the receding-horizon successor: one step later, the plan shifted
+    x1 = s.step(x0, U[0, 0])
+    ref1 = torch.cat((x_ref[1:], x_ref[-1:]))
+    U_shift = torch.cat((U[:, 1:], U[:, -1:]), 1)
+    args = (ocp, x1[None], U_shift, ref1[None], U[:, 0], low, high)
+    cold_U, cold = solver.solve(*args)
+    warm_U, warm = solver.solve(*args, prior=info.sensitivities)
+    assert bool(warm.converged[0]) and bool(cold.converged[0])
+    assert float(warm.cost[0]) == pytest.approx(float(cold.cost[0]), rel=1e-6, abs=1e-12)
+    torch.testing.assert_close(warm_U, cold_U, rtol=0, atol=1e-4)
+    with pytest.raises(ValueError, match=r"prior sensitivities must have shape \(1, 5, 4, 10\), got \(1, 4, 4, 10\)"):
+        solver.solve(*args, prior=info.sensitivities[:, :4])
+
+
+@pytest.mark.parametrize(("name", "keeps_prior"), [("gauss_newton", True), ("lifted_gauss_newton", False)])
+def test_make_step_carries_the_jacobian_warm_start(s: Surrogate, name: str, keeps_prior: bool) -> None:
+    H = 5
+    nmpc = NMPC(HorizonOCP(s, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6]), make_solver(name), *ASYMMETRIC)
+    assert nmpc.prior is None
+    g = _gen(33)
+    x = _states(g, 1)[0]
+    ref = _far_reference(g, x[None], H)[0].numpy()
+    nmpc.make_step(x.numpy(), ref)
+    assert (nmpc.prior is not None) == keeps_prior
+    if keeps_prior:
+        assert nmpc.prior.shape == (1, H, NX, H * NU)
+    nmpc.reset()
+    assert nmpc.prior is None
 
 
 def test_warm_start_shifts_solution(s: Surrogate) -> None:
@@ -358,7 +422,7 @@ def test_warm_start_shifts_solution(s: Surrogate) -> None:
     first_u = None
     for _ in range(3):
         U_start, u_prev = nmpc.U.clone(), nmpc.u_prev.clone()
-        expected, _ = nmpc.solve(x[None], x_ref[None], U_start[None], u_prev[None])
+        expected, _ = nmpc.solve(x[None], x_ref[None], U_start[None], u_prev[None], prior=nmpc.prior)
         expected = expected[0]
         u = nmpc.make_step(x.numpy(), x_ref.numpy())
         first_u = u if first_u is None else first_u
@@ -388,9 +452,10 @@ def test_without_warm_start_each_solve_starts_cold(s: Surrogate) -> None:
     assert torch.equal(nmpc.u_prev, torch.from_numpy(u))
 
 
-def test_batched_and_unbatched_solves_agree(s: Surrogate) -> None:
+@pytest.mark.parametrize("solver", NEWTON)
+def test_batched_and_unbatched_solves_agree(s: Surrogate, solver: type) -> None:
     H, B = 5, 4
-    nmpc = NMPC(HorizonOCP(s, H, FULL_Q, FULL_R, FULL_R_RATE), GaussNewtonSolver(), *ASYMMETRIC)
+    nmpc = NMPC(HorizonOCP(s, H, FULL_Q, FULL_R, FULL_R_RATE), solver(), *ASYMMETRIC)
     low, high = _bounds(*ASYMMETRIC)
     g = _gen(6)
     x0 = _states(g, B)
@@ -446,7 +511,7 @@ def test_fallback_applies_the_previous_plan(s: Surrogate, nan_surrogate: Surroga
     bad = NMPC(HorizonOCP(nan_surrogate, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6]), GaussNewtonSolver(), *ASYMMETRIC)
     bad.U, bad.u_prev = plan.clone(), torch.from_numpy(u0)
     u = bad.make_step(x, x_ref)
-    assert bad.stats[-1].fallback is True
+    assert bad.stats[-1].fallback is True and bad.prior is None  # no Jacobian warm start from a failed solve
     np.testing.assert_allclose(u, plan[0].numpy(), rtol=0, atol=1e-12)
     torch.testing.assert_close(bad.U, torch.cat((plan[1:], plan[-1:])), rtol=0, atol=1e-12)
 
@@ -499,8 +564,9 @@ def _config(**overrides: object) -> DictConfig:
 def test_build_nmpc_from_shipped_config(s: Surrogate) -> None:
     nmpc = build_nmpc(_config(), s)
     assert nmpc.horizon == 5
-    assert isinstance(nmpc.solver, GaussNewtonSolver)
+    assert isinstance(nmpc.solver, LiftedGaussNewtonSolver)
     assert (nmpc.solver.max_iter, nmpc.solver.tol_grad, nmpc.solver.damping) == (30, 1e-9, 1e-9)
+    assert nmpc.solver.tol_defect == 1e-10
     assert nmpc.warm_start is True
     torch.testing.assert_close(nmpc.low, torch.tensor(s.input_box.low, dtype=F64))
     torch.testing.assert_close(nmpc.high, torch.tensor(s.input_box.high, dtype=F64))
@@ -536,7 +602,7 @@ def test_build_nmpc_with_overrides(s: Surrogate) -> None:
         ({"u_low": [-0.5], "u_high": [0.5]}, "2 entries"),
         ({"solver": "adam"}, "unknown solver 'adam'"),
         ({"horizon": 0}, "horizon must be >= 1"),
-        ({"solvers.gauss_newton.max_iters": 3}, "max_iters"),
+        ({"solvers.lifted_gauss_newton.max_iters": 3}, "max_iters"),
     ],
 )
 def test_build_nmpc_rejects_bad_config(s: Surrogate, overrides: dict, fragment: str) -> None:

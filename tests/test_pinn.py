@@ -1,12 +1,15 @@
-"""The network: exact initial condition, forward-mode derivatives checked against finite differences."""
+"""The network: exact initial condition, time gates, forward-mode derivatives checked against finite differences,
+and the numpy fast path checked against torch."""
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
+from pinnmpc.flow_numpy import NumpyFlow
 from pinnmpc.pinn import ACTIVATIONS, PINN
 from pinnmpc.systems import PowerCube
 
@@ -18,6 +21,12 @@ BOX = dict(
     t_max=0.25,
 )
 
+VARIANTS = {  # output structures: the paper's soft IC, x0 + t N, and x0 + t N_0 + sum_k (1 - exp(-t/T_k)) N_k
+    "soft": {"ic": "soft"},
+    "hard": {"ic": "hard"},
+    "gated": {"ic": "hard", "time_basis": [0.02, 0.045]},
+}
+
 
 def _points(n: int = 16, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     g = torch.Generator().manual_seed(seed)
@@ -27,11 +36,12 @@ def _points(n: int = 16, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, tor
     return t, x0, u
 
 
-@pytest.mark.parametrize("ic", ["hard", "soft"])
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
 @pytest.mark.parametrize("activation", sorted(ACTIVATIONS))
-def test_time_derivative_matches_finite_difference(ic, activation):
+def test_time_derivative_matches_finite_difference(variant, activation):
     torch.manual_seed(0)
-    model = PINN(**BOX, hidden=[16, 16], activation=activation, ic=ic, output_scale=[0.6, 0.6, 5.0, 5.0]).double()
+    kw = VARIANTS[variant]
+    model = PINN(**BOX, hidden=[16, 16], activation=activation, output_scale=[0.6, 0.6, 5.0, 5.0], **kw).double()
     t, x0, u = _points()
     x, dxdt = model.with_time_derivative(t, x0, u)
     eps = 1e-6
@@ -52,20 +62,51 @@ def test_physics_residual_matches_finite_difference_residual():
         assert torch.allclose(system.residual(x, dxdt, u, form), system.residual(x, fd, u, form), atol=1e-5)
 
 
-@pytest.mark.parametrize("ic", ["hard", "soft"])
-def test_jacobian_matches_autograd(ic):
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_jacobian_matches_autograd(variant):
     torch.manual_seed(2)
-    model = PINN(**BOX, hidden=[16, 16], ic=ic).double()
+    model = PINN(**BOX, hidden=[16, 16], **VARIANTS[variant]).double()
     t, x0, u = _points(5)
     _, jac = model.with_jacobian(t, x0, u)
     ref = torch.func.vmap(torch.func.jacrev(model, argnums=(1, 2)))(t, x0, u)
     assert (jac - torch.cat(ref, dim=-1)).abs().max() < 1e-12
 
 
-def test_hard_initial_condition_is_exact():
-    model = PINN(**BOX, hidden=[8], output_scale=[1.0, 1.0, 1.0, 1.0]).double()
+@pytest.mark.parametrize("time_basis", [[], [0.01, 0.05]])
+def test_hard_initial_condition_is_exact(time_basis):
+    model = PINN(**BOX, hidden=[8], output_scale=[1.0, 1.0, 1.0, 1.0], time_basis=time_basis).double()
     _, x0, u = _points()
     assert torch.equal(model(torch.zeros(len(x0), 1, dtype=torch.float64), x0, u), x0)
+
+
+def test_time_gates_start_at_zero_and_relax():
+    model = PINN(**BOX, hidden=[8], time_basis=[0.02, 0.045]).double()
+    t = torch.tensor([[0.0], [0.02], [0.25]], dtype=torch.float64)
+    g, dg = model.gates(t)
+    assert model.n_gates == 3 and g.shape == (3, 3)
+    assert torch.equal(g[0], torch.zeros(3))  # every gate vanishes at t = 0: x(0) = x0 for any network
+    torch.testing.assert_close(g[:, 0], t[:, 0] / 0.25)  # g_0 = t / t_max
+    torch.testing.assert_close(g[1, 1], torch.tensor(1 - math.exp(-1), dtype=torch.float64))  # 1 - 1/e at t = T
+    torch.testing.assert_close(dg[0], torch.tensor([1 / 0.25, 1 / 0.02, 1 / 0.045], dtype=torch.float64))
+    eps = 1e-7
+    torch.testing.assert_close(dg, (model.gates(t + eps)[0] - model.gates(t - eps)[0]) / (2 * eps), atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+@pytest.mark.parametrize("lead", [(1,), (3, 5)])
+def test_numpy_flow_matches_torch(variant, lead):
+    torch.manual_seed(4)
+    model = PINN(**BOX, hidden=[16, 16, 16], output_scale=[0.3, 0.4, 3.0, 3.5], **VARIANTS[variant]).double()
+    g = torch.Generator().manual_seed(5)
+    x0 = (torch.rand(*lead, 4, generator=g, dtype=torch.float64) * 2 - 1) * 2.5
+    u = torch.rand(*lead, 2, generator=g, dtype=torch.float64) - 0.5
+    tau = 0.2
+    x_ref, jac_ref = model.with_jacobian(torch.full((*lead, 1), tau, dtype=torch.float64), x0, u)
+    flow = NumpyFlow.from_pinn(model, tau)
+    x1, a, b = flow.step_with_jacobian(x0.numpy(), u.numpy())
+    np.testing.assert_allclose(x1, x_ref.detach().numpy(), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.concatenate((a, b), -1), jac_ref.detach().numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(flow.step(x0.numpy(), u.numpy()), x1, rtol=0, atol=1e-14)
 
 
 def test_bad_configuration_is_named():
@@ -79,3 +120,7 @@ def test_bad_configuration_is_named():
         PINN(**BOX, hidden=[])
     with pytest.raises(ValueError, match="t_max must be > 0"):
         PINN(**{**BOX, "t_max": 0.0})
+    with pytest.raises(ValueError, match=r"time_basis must hold positive relaxation times in s, got \[0.02, -1.0\]"):
+        PINN(**BOX, time_basis=[0.02, -1.0])
+    with pytest.raises(ValueError, match="time_basis .* needs ic='hard'"):
+        PINN(**BOX, ic="soft", time_basis=[0.02])

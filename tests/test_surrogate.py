@@ -180,6 +180,16 @@ def test_save_load_round_trip(s: Surrogate, tmp_path: Path) -> None:
     assert all(torch.equal(a, b) for a, b in zip(s2.step_with_jacobian(x0, u), s.step_with_jacobian(x0, u)))
 
 
+def test_save_load_round_trip_with_time_gates(s: Surrogate, tmp_path: Path) -> None:
+    torch.manual_seed(3)
+    model = PINN(**{**s.model.config, "hidden": [16, 16], "time_basis": [0.02, 0.045]}).double()
+    gated = Surrogate(model, s.tau, s.state_names, s.input_names)
+    loaded = load_surrogate(gated.save(tmp_path / "gated.pt"))
+    assert loaded.model.config["time_basis"] == [0.02, 0.045] and loaded.model.n_gates == 3
+    x0, u = _points(10, seed=9)
+    torch.testing.assert_close(loaded.step(x0, u), gated.step(x0, u), rtol=1e-13, atol=1e-13)
+
+
 def test_save_load_round_trip_keeps_float64_weights(s: Surrogate, tmp_path: Path) -> None:
     model = PINN(**s.model.config)
     model.load_state_dict(s.model.state_dict())

@@ -2,7 +2,14 @@
 
 from pinnmpc.controller.nmpc import NMPC, StepStats
 from pinnmpc.controller.ocp import HorizonOCP
-from pinnmpc.controller.solvers import SOLVERS, GaussNewtonSolver, LBFGSSolver, RMSpropSolver, make_solver
+from pinnmpc.controller.solvers import (
+    SOLVERS,
+    GaussNewtonSolver,
+    LBFGSSolver,
+    LiftedGaussNewtonSolver,
+    RMSpropSolver,
+    make_solver,
+)
 
 __all__ = [
     "NMPC",
@@ -10,6 +17,7 @@ __all__ = [
     "GaussNewtonSolver",
     "HorizonOCP",
     "LBFGSSolver",
+    "LiftedGaussNewtonSolver",
     "RMSpropSolver",
     "StepStats",
     "make_solver",

@@ -90,6 +90,7 @@ class NMPC:
         """Forget the warm start and the last applied input (start of a new run)."""
         self._U = self._cold_start()
         self._u_prev = self._U[0].copy()
+        self._prior = None  # the last solve's sensitivities: the solver's Jacobian warm start
         self.stats = []
 
     def _cold_start(self) -> np.ndarray:
@@ -100,12 +101,24 @@ class NMPC:
         """Project onto the input box."""
         return torch.maximum(torch.minimum(u, self.high), self.low)
 
-    def solve(self, x0: Tensor, x_ref: Tensor, U0: Tensor, u_prev: Tensor) -> tuple[Tensor, SolveInfo]:  # noqa: N803
-        """Batched OCP: x0 (B, nx), x_ref (B, H, nx), U0 (B, H, nu), u_prev (B, nu)."""
+    def solve(
+        self, x0: Tensor, x_ref: Tensor, U0: Tensor, u_prev: Tensor, prior: np.ndarray | None = None
+    ) -> tuple[Tensor, SolveInfo]:  # noqa: N803
+        """Batched OCP: x0 (B, nx), x_ref (B, H, nx), U0 (B, H, nu), u_prev (B, nu); prior: see Solver."""
         if x_ref.shape[-2] != self.horizon:
             raise ValueError(f"x_ref must cover the horizon: got {x_ref.shape[-2]} steps, expected {self.horizon}")
-        U, info = self.solver.solve(self.ocp, x0, self.clip(U0), x_ref, u_prev, self.low, self.high)  # noqa: N806
+        args = (self.ocp, x0, self.clip(U0), x_ref, u_prev, self.low, self.high)
+        U, info = self.solver.solve(*args, **self._prior_kwargs(prior))  # noqa: N806
         return self.clip(torch.as_tensor(U)), info
+
+    @property
+    def prior(self) -> np.ndarray | None:
+        """What the next make_step hands the solver as its Jacobian warm start (None: none)."""
+        return self._prior
+
+    def _prior_kwargs(self, prior: np.ndarray | None) -> dict[str, np.ndarray]:
+        """prior= for solvers that take one."""
+        return {"prior": prior} if prior is not None and getattr(self.solver, "accepts_prior", False) else {}
 
     def _solve_one(self, x0: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, SolveInfo]:
         """One problem in the solver's own array library: batch-1 solves are dominated by per-call overhead."""
@@ -117,7 +130,7 @@ class NMPC:
         args = (x0[None], self._U[None], x_ref[None], self._u_prev[None], self._low, self._high)
         if getattr(self.solver, "array_api", "torch") != "numpy":
             args = tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in args)
-        U, info = self.solver.solve(self.ocp, *args)  # noqa: N806
+        U, info = self.solver.solve(self.ocp, *args, **self._prior_kwargs(self._prior))  # noqa: N806
         return np.clip(np.asarray(U, dtype=np.float64)[0], self._low, self._high), info
 
     def make_step(self, x: np.ndarray | Tensor, x_ref: np.ndarray | Tensor) -> np.ndarray:
@@ -137,6 +150,7 @@ class NMPC:
             U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self._low, self._high)  # noqa: N806
         elapsed = time.perf_counter() - start
         self._U = self._shifted(U) if self.warm_start else self._cold_start()
+        self._prior = getattr(info, "sensitivities", None) if self.warm_start and not fallback else None
         self._u_prev = U[0].copy()
         self.stats.append(
             StepStats(

@@ -158,23 +158,56 @@ class HorizonOCP:
         self, x0: np.ndarray, U: np.ndarray, x_ref: np.ndarray, u_prev: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """The same with preallocated arrays and no namespace dispatch: the controller's hot path."""
-        lead, (horizon, nx, nu) = x0.shape[:-1], (self.horizon, self.nx, self.nu)
-        n_var, n_state_res = horizon * nu, horizon * nx
-        x, Ub = x0.reshape(-1, nx), U.reshape(-1, horizon, nu)
-        batch = x.shape[0]
+        lead = x0.shape[:-1]
+        r, jac, _ = self.jacobian_rollout(x0.reshape(-1, self.nx), U, x_ref, u_prev)
+        return r.reshape(*lead, -1), jac.reshape(*lead, *jac.shape[1:])
+
+    def jacobian_rollout(
+        self, x0: np.ndarray, U: np.ndarray, x_ref: np.ndarray, u_prev: np.ndarray, prior: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Residuals (B, m), Jacobian (B, m, H*nu) and state sensitivities d x_i / d U (B, H, nx, H*nu), numpy.
+
+        prior: the sensitivities of the previous receding-horizon solve, whose plan shifted by one step
+        is U. Steps 1..H-1 of the new rollout then repeat steps 2..H of the old one, so their
+        sensitivities are reused (an approximation: the state moved on) and only the last step needs
+        a Jacobian: about half the cost of an exact rollout.
+        """
+        (horizon, nx, nu), batch = (self.horizon, self.nx, self.nu), x0.shape[0]
+        n_var = horizon * nu
+        Ub = U.reshape(batch, horizon, nu)
         X = np.empty((batch, horizon, nx))
-        sens = np.zeros((batch, horizon, nx, n_var))  # d x_i / d U: only inputs before step i act
-        for i in range(horizon):
+        sens = np.zeros((batch, horizon, nx, n_var))  # only inputs before step i act on x_i
+        x = x0
+        if prior is not None:
+            for i in range(horizon - 1):
+                x = X[:, i] = self.flow.step(x, Ub[:, i])
+            sens[:, :-1, :, :-nu] = prior[:, 1:, :, nu:]
+            first = horizon - 1
+        else:
+            first = 0
+        for i in range(first, horizon):
             x, a, b = self.flow.step_with_jacobian(x, Ub[:, i])
             X[:, i] = x
             if i:
                 np.matmul(a, sens[:, i - 1, :, : i * nu], out=sens[:, i, :, : i * nu])
             sens[:, i, :, i * nu : (i + 1) * nu] = b
-        r = self.residuals(X, Ub, x_ref.reshape(batch, horizon, nx), u_prev.reshape(batch, nu))
+        r, jac = self.least_squares(X, sens, Ub, x_ref, u_prev)
+        return r, jac, sens
+
+    def least_squares(
+        self, X: np.ndarray, sens: np.ndarray, U: np.ndarray, x_ref: np.ndarray, u_prev: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (B, m) and Jacobian (B, m, H*nu) from predicted states X (B, H, nx) and their
+        sensitivities d X / d U (B, H, nx, H*nu), numpy."""
+        (horizon, nx, nu), batch = (self.horizon, self.nx, self.nu), X.shape[0]
+        n_var = horizon * nu
+        r = self.residuals(
+            X, U.reshape(batch, horizon, nu), x_ref.reshape(batch, horizon, nx), u_prev.reshape(batch, nu)
+        )
         jac = np.empty((batch, r.shape[-1], n_var))
-        np.matmul(self.weights[np][0], sens, out=jac[:, :n_state_res].reshape(batch, horizon, nx, n_var))
-        jac[:, n_state_res:] = self._input_jacobian(np)
-        return r.reshape(*lead, -1), jac.reshape(*lead, *jac.shape[1:])
+        np.matmul(self.weights[np][0], sens, out=jac[:, : horizon * nx].reshape(batch, horizon, nx, n_var))
+        jac[:, horizon * nx :] = self._input_jacobian(np)
+        return r, jac
 
     def _input_jacobian(self, xp: ModuleType) -> Array:
         """d(input residuals)/dU, computed once per namespace."""

@@ -19,13 +19,15 @@ class SolveInfo:
     iterations: Tensor  # (B,) int
     cost: Tensor  # (B,) float
     converged: Tensor  # (B,) bool
+    sensitivities: np.ndarray | None = None  # (B, H, nx, H*nu) d x_i / d U near the solution, for the next solve
 
 
 class Solver(Protocol):
     """Minimise the OCP over U (B, H, nu) within [low, high], starting from U0.
 
     array_api names the array library the solver works in ("torch" or "numpy"): NMPC.make_step
-    hands it arrays of that kind, so batch-1 solves pay no conversions.
+    hands it arrays of that kind, so batch-1 solves pay no conversions. Solvers with accepts_prior
+    take prior= (the last solve's SolveInfo.sensitivities) to warm-start their Jacobian too.
     """
 
     array_api: str
@@ -128,28 +130,40 @@ class GaussNewtonSolver:
     tol_gap: float = 1e-8  # ... or the decrease still to come, extrapolated from the last two, is below this x cost
     damping: float = 1e-9  # Levenberg-Marquardt damping, relative to the mean diagonal of J^T J
     step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.01)  # tried first alone, then the rest at once
+    reuse_jacobian: bool = True  # receding horizon: the first step reuses the last solve's sensitivities, shifted
     array_api: ClassVar[str] = "numpy"  # also accepts torch tensors (and then returns them)
+    accepts_prior: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         self.alphas = np.asarray(self.step_lengths, dtype=np.float64)
         if self.alphas.ndim != 1 or self.alphas.size == 0 or np.any(self.alphas <= 0):
             raise ValueError(f"step_lengths must be a non-empty list of positive numbers, got {self.step_lengths}")
 
-    def solve(self, ocp, x0, U0, x_ref, u_prev, low, high):  # noqa: ANN001, ANN201
-        """Accepts torch or numpy; returns the same kind."""
+    def solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior=None):  # noqa: ANN001, ANN201
+        """Accepts torch or numpy; returns the same kind.
+
+        prior: SolveInfo.sensitivities of the previous receding-horizon solve when U0 is its plan shifted
+        by one step; the first Gauss-Newton step then reuses them instead of a full Jacobian rollout.
+        """
         as_torch = isinstance(U0, Tensor)
         args = [
             a.detach().numpy() if isinstance(a, Tensor) else np.asarray(a, dtype=np.float64)
             for a in (x0, U0, x_ref, u_prev, low, high)
         ]
-        U, iterations, cost, converged = self._solve(ocp, *args)
+        if prior is not None and (not self.reuse_jacobian or ocp.flow is None or ocp.horizon < 2):
+            prior = None
+        if prior is not None:
+            prior = np.asarray(prior, dtype=np.float64)
+            want = (int(np.prod(U0.shape[:-2])), ocp.horizon, ocp.nx, ocp.horizon * ocp.nu)
+            if prior.shape != want:
+                raise ValueError(f"prior sensitivities must have shape {want}, got {prior.shape}")
+        U, iterations, cost, converged, sens = self._solve(ocp, *args, prior)
         if as_torch:
-            return torch.from_numpy(U), SolveInfo(
-                torch.from_numpy(iterations), torch.from_numpy(cost), torch.from_numpy(converged)
-            )
-        return U, SolveInfo(iterations, cost, converged)
+            info = SolveInfo(torch.from_numpy(iterations), torch.from_numpy(cost), torch.from_numpy(converged), sens)
+            return torch.from_numpy(U), info
+        return U, SolveInfo(iterations, cost, converged, sens)
 
-    def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high):  # noqa: ANN001, ANN202
+    def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):  # noqa: ANN001, ANN202
         """Iterate until every problem has converged or max_iter is reached.
 
         Residuals and Jacobians are evaluated at the candidate step lengths (see _line_search),
@@ -158,14 +172,14 @@ class GaussNewtonSolver:
         decrease below tol_cost (no rollout needed to find that out), when its projected
         gradient vanishes, or when no candidate improves.
         """
-        shape, horizon_nu = U0.shape, U0.shape[-2:]
+        shape = U0.shape
         n = shape[-1] * shape[-2]
         x0b, refb = x0.reshape(-1, x0.shape[-1]), x_ref.reshape(-1, *x_ref.shape[-2:])
         upb = u_prev.reshape(-1, shape[-1])
         U = np.clip(U0, low, high).reshape(-1, n)
         lo, hi = np.broadcast_to(low, shape).reshape(-1, n), np.broadcast_to(high, shape).reshape(-1, n)
         batch = U.shape[0]
-        r, jac = ocp.residuals_and_jacobian(x0b, U.reshape(-1, *horizon_nu), refb, upb)
+        r, jac, sens = self._jacobian(ocp, x0b, U, refb, upb, prior)
         cost = np.einsum("bm,bm->b", r, r)
         running = np.ones(batch, dtype=bool)
         iterations = np.zeros(batch, dtype=np.int64)
@@ -176,6 +190,8 @@ class GaussNewtonSolver:
             u_i, f = U[idx], cost[idx].copy()  # f must survive the update of cost below
             delta, pgrad_max, predicted = self._step(r[idx], jac[idx], u_i, lo[idx], hi[idx])
             done = (pgrad_max < self.tol_grad) | (predicted <= self.tol_cost * np.maximum(f, 1e-300))
+            if k == 0 and prior is not None:
+                done[:] = False  # an approximate Jacobian cannot certify convergence
             rows = np.arange(batch)[idx]
             running[rows[done]] = False
             if done.all():
@@ -185,7 +201,7 @@ class GaussNewtonSolver:
                 go = slice(None)
             rows, u_i, f, delta = rows[go], u_i[go], f[go], delta[go]
             first = k < 2  # the first two steps rarely stop (no extrapolation yet), so take their Jacobians along
-            best_c, new_u, new_r, new_jac = self._line_search(
+            best_c, new_u, new_r, new_jac, new_sens = self._line_search(
                 ocp, x0b[rows], refb[rows], upb[rows], u_i, delta, f, lo[rows], hi[rows], with_jacobian=first
             )
             improved = best_c < f
@@ -193,6 +209,8 @@ class GaussNewtonSolver:
             U[acc], cost[acc] = new_u[improved], best_c[improved]
             if first:
                 r[acc], jac[acc] = new_r[improved], new_jac[improved]
+                if sens is not None:
+                    sens[acc] = new_sens[improved]
             iterations[rows] += 1
             decrease = f - best_c
             stop = ~improved | (decrease <= self.tol_cost * np.maximum(f, 1e-300))
@@ -201,9 +219,9 @@ class GaussNewtonSolver:
             running[rows[stop]] = False
             more = rows[~stop]
             if not first and more.size:
-                r[more], jac[more] = ocp.residuals_and_jacobian(
-                    x0b[more], U[more].reshape(-1, *horizon_nu), refb[more], upb[more]
-                )
+                r[more], jac[more], more_sens = self._jacobian(ocp, x0b[more], U[more], refb[more], upb[more])
+                if sens is not None:
+                    sens[more] = more_sens
             if not running.any():
                 break
         return (
@@ -211,7 +229,15 @@ class GaussNewtonSolver:
             iterations.reshape(shape[:-2]),
             cost.reshape(shape[:-2]),
             (~running).reshape(shape[:-2]),
+            sens,
         )
+
+    def _jacobian(self, ocp, x0, U, x_ref, u_prev, prior=None):  # noqa: ANN001, ANN202
+        """Residuals, Jacobian and (numpy surrogates) the state sensitivities that a later solve may reuse."""
+        if ocp.flow is not None and self.reuse_jacobian:
+            return ocp.jacobian_rollout(x0, U, x_ref, u_prev, prior)
+        r, jac = ocp.residuals_and_jacobian(x0, U.reshape(-1, ocp.horizon, ocp.nu), x_ref, u_prev)
+        return r, jac, None
 
     @staticmethod
     def _remaining(decrease: np.ndarray, last: np.ndarray) -> np.ndarray:
@@ -253,23 +279,23 @@ class GaussNewtonSolver:
         horizon_nu = (ocp.horizon, ocp.nu)
 
         def evaluate(x0, cand, x_ref, u_prev):  # noqa: ANN001, ANN202
-            cand = cand.reshape(-1, *horizon_nu)
             if with_jacobian:
-                r, jac = ocp.residuals_and_jacobian(x0, cand, x_ref, u_prev)
+                r, jac, sens = self._jacobian(ocp, x0, cand.reshape(-1, cand.shape[-1]), x_ref, u_prev)
             else:
-                r, jac = ocp.residuals(ocp.rollout(x0, cand), cand, x_ref, u_prev), None
-            return np.einsum("bm,bm->b", r, r), r, jac
+                cand = cand.reshape(-1, *horizon_nu)
+                r, jac, sens = ocp.residuals(ocp.rollout(x0, cand), cand, x_ref, u_prev), None, None
+            return np.einsum("bm,bm->b", r, r), r, jac, sens
 
         cand = np.clip(u + self.alphas[0] * delta, lo, hi)
-        best_c, best_r, best_jac = evaluate(x0, cand, x_ref, u_prev)
+        best_c, best_r, best_jac, best_sens = evaluate(x0, cand, x_ref, u_prev)
         retry = np.flatnonzero(best_c >= f)
         if retry.size == 0 or self.alphas.size == 1:
-            return best_c, cand, best_r, best_jac
+            return best_c, cand, best_r, best_jac, best_sens
         k, m, alphas = self.alphas.size - 1, retry.size, self.alphas[1:]
         cands = np.clip(
             u[retry, None, :] + alphas[None, :, None] * delta[retry, None, :], lo[retry, None], hi[retry, None]
         )
-        c, r_c, jac_c = evaluate(
+        c, r_c, jac_c, sens_c = evaluate(
             np.repeat(x0[retry], k, 0), cands, np.repeat(x_ref[retry], k, 0), np.repeat(u_prev[retry], k, 0)
         )
         c = c.reshape(m, k)
@@ -281,10 +307,120 @@ class GaussNewtonSolver:
         best_c[rows], cand[rows], best_r[rows] = c_best[better], cands[better, best[better]], r_c[pick]
         if with_jacobian:
             best_jac[rows] = jac_c[pick]
-        return best_c, cand, best_r, best_jac
+            if best_sens is not None:
+                best_sens[rows] = sens_c[pick]
+        return best_c, cand, best_r, best_jac, best_sens
 
 
-SOLVERS = {"gauss_newton": GaussNewtonSolver, "rmsprop": RMSpropSolver, "lbfgs": LBFGSSolver}
+@dataclass
+class LiftedGaussNewtonSolver(GaussNewtonSolver):
+    """Gauss-Newton on the lifted (multiple-shooting) problem, condensed back to the inputs.
+
+    The states at the start of each horizon step are extra unknowns: every iteration evaluates the
+    network and its Jacobians at all H steps in one batched call instead of H sequential ones,
+    condenses the linearised dynamics into a least-squares step on U (the defects ride along as
+    offsets), and moves the states to the linearised prediction. At convergence the defects vanish,
+    so the solution is that of the single-shooting problem; its cost comes from a final rollout.
+    Falls back to single-shooting Gauss-Newton when it does not converge or ends worse than it began.
+    """
+
+    tol_defect: float = 1e-10  # converged also needs every state defect F(s_i, u_i) - s_{i+1} below this
+    accepts_prior: ClassVar[bool] = False
+
+    def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):  # noqa: ANN001, ANN202
+        """Lifted iterations on the numpy surrogate; single shooting when there is none or they fail."""
+        if ocp.flow is None:
+            return super()._solve(ocp, x0, U0, x_ref, u_prev, low, high, None)
+        shape, (horizon, nx, nu) = U0.shape, (ocp.horizon, ocp.nx, ocp.nu)
+        n = horizon * nu
+        x0b, refb = x0.reshape(-1, nx), x_ref.reshape(-1, horizon, nx)
+        upb = u_prev.reshape(-1, nu)
+        U = np.clip(U0, low, high).reshape(-1, n)
+        lo, hi = np.broadcast_to(low, shape).reshape(-1, n), np.broadcast_to(high, shape).reshape(-1, n)
+        batch = U.shape[0]
+        X = ocp.rollout(x0b, U.reshape(-1, horizon, nu))
+        r0 = ocp.residuals(X, U.reshape(-1, horizon, nu), refb, upb)
+        start_cost = np.einsum("bm,bm->b", r0, r0)
+        nodes = np.empty((batch, horizon, nx))  # s_0 = x0 (fixed), s_1..s_{H-1} lifted
+        nodes[:, 0] = x0b
+        nodes[:, 1:] = X[:, :-1]
+        running = np.ones(batch, dtype=bool)
+        iterations = np.zeros(batch, dtype=np.int64)
+        last_predicted = np.full(batch, np.inf)
+        for _ in range(self.max_iter):
+            pred, sens, defect = self._condense(ocp, nodes, U)
+            r, jac = ocp.least_squares(pred, sens, U, refb, upb)
+            delta, pgrad_max, predicted = self._step(r, jac, U, lo, hi)
+            f = np.einsum("bm,bm->b", r, r)
+            small = (pgrad_max < self.tol_grad) | (predicted <= self.tol_cost * np.maximum(f, 1e-300))
+            running &= ~(small & (defect <= self.tol_defect))
+            if not running.any():
+                break
+            # this step is the last when what remains after it, extrapolated from the model's predicted
+            # decreases, is negligible: the final rollout below then measures the cost reached
+            last = running & (self._remaining(predicted, last_predicted) <= self.tol_gap * f)
+            last_predicted = predicted
+            iterations += running
+            step = np.where(running[:, None], np.clip(U + delta, lo, hi) - U, 0.0)
+            U += step
+            running &= ~last
+            if not running.any():
+                break
+            # the states move to the linearised prediction (a no-op for problems that stopped)
+            nodes[:, 1:] = pred[:, :-1] + (sens[:, :-1] @ step[:, None, :, None])[..., 0]
+        U3 = U.reshape(-1, horizon, nu)
+        cost = ocp.cost(x0b, U3, refb, upb)
+        failed = running | ~np.isfinite(cost) | (cost > start_cost)
+        if failed.any():  # rare: redo those problems by single shooting from the better of start and end
+            rows = np.flatnonzero(failed)
+            start = np.where(
+                (cost[rows] < start_cost[rows])[:, None], U[rows], np.clip(U0, low, high).reshape(-1, n)[rows]
+            )
+            sub = super()._solve(
+                ocp,
+                x0b[rows],
+                start.reshape(-1, horizon, nu),
+                refb[rows],
+                upb[rows],
+                lo[rows].reshape(-1, horizon, nu),
+                hi[rows].reshape(-1, horizon, nu),
+                None,
+            )
+            U[rows], iterations[rows], cost[rows] = sub[0].reshape(-1, n), iterations[rows] + sub[1], sub[2]
+            running[rows] = ~sub[3]
+        return (
+            U.reshape(shape),
+            iterations.reshape(shape[:-2]),
+            cost.reshape(shape[:-2]),
+            (~running).reshape(shape[:-2]),
+            None,
+        )
+
+    @staticmethod
+    def _condense(ocp, nodes, U):  # noqa: ANN001, ANN205
+        """One batched network call at all nodes, then the linearised predictions x_1..x_H, their
+        sensitivities to U (chained along the horizon) and the largest defect per problem."""
+        batch, horizon, nx = nodes.shape
+        nu = ocp.nu
+        y, a, b = ocp.flow.step_with_jacobian(nodes, U.reshape(batch, horizon, nu))
+        pred = y.copy()
+        sens = np.zeros((batch, horizon, nx, horizon * nu))
+        for i in range(horizon):
+            if i:
+                offset = pred[:, i - 1] - nodes[:, i]  # the defect, carried through the linearisation
+                pred[:, i] += (a[:, i] @ offset[..., None])[..., 0]
+                np.matmul(a[:, i], sens[:, i - 1, :, : i * nu], out=sens[:, i, :, : i * nu])
+            sens[:, i, :, i * nu : (i + 1) * nu] = b[:, i]
+        defect = np.abs(y[:, :-1] - nodes[:, 1:]).reshape(batch, -1).max(-1, initial=0.0)
+        return pred, sens, defect
+
+
+SOLVERS = {
+    "gauss_newton": GaussNewtonSolver,
+    "lifted_gauss_newton": LiftedGaussNewtonSolver,
+    "rmsprop": RMSpropSolver,
+    "lbfgs": LBFGSSolver,
+}
 
 
 def make_solver(name: str, **options: object) -> Solver:
