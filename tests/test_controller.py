@@ -361,7 +361,7 @@ def test_lifted_solver_falls_back_to_single_shooting(s: Surrogate) -> None:
     x_ref = ocp.rollout(x0, _uniform(g, (H, NU), -0.4, 0.4))
     u_prev, U0 = torch.zeros(NU, dtype=F64), torch.zeros(1, H, NU, dtype=F64)
     args = (ocp, x0[None], U0, x_ref[None], u_prev[None], low, high)
-    U1, info1 = LiftedGaussNewtonSolver(max_iter=1).solve(*args)  # one lifted step cannot converge
+    U1, info1 = LiftedGaussNewtonSolver(lifted_max_iter=1).solve(*args)  # one lifted step cannot converge
     U_gn, info_gn = GaussNewtonSolver().solve(*args)
     assert bool(info1.converged[0]) and int(info1.iterations[0]) > 1  # single shooting finished the job
     assert float(info1.cost[0]) == pytest.approx(float(ocp.cost(x0, U1[0], x_ref, u_prev)), rel=1e-12)

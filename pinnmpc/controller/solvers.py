@@ -325,6 +325,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     """
 
     tol_defect: float = 1e-10  # converged also needs every state defect F(s_i, u_i) - s_{i+1} below this
+    lifted_max_iter: int = 10  # lifted iterations before single shooting (max_iter more) takes over
     accepts_prior: ClassVar[bool] = False
 
     def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):  # noqa: ANN001, ANN202
@@ -347,7 +348,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         running = np.ones(batch, dtype=bool)
         iterations = np.zeros(batch, dtype=np.int64)
         last_predicted = np.full(batch, np.inf)
-        for _ in range(self.max_iter):
+        for _ in range(self.lifted_max_iter):
             pred, sens, defect = self._condense(ocp, nodes, U)
             r, jac = ocp.least_squares(pred, sens, U, refb, upb)
             delta, pgrad_max, predicted = self._step(r, jac, U, lo, hi)
