@@ -78,7 +78,7 @@ class NumpyFlow:
         b_in = b1 + w1[:, 0] * (tau - center[0]) / half[0] - w_in @ center[1:]
         w, b = layers[-1]
         scale = _np(model.out_scale)
-        hard = model.ic == "hard"
+        hard = model.exact_ic
         if hard:  # the time gates are constants at t = tau: x(tau) - x0 = scale * sum_k g_k N_k
             g = _np(model.gates(torch.full((1,), float(tau), dtype=model.out_scale.dtype))[0])
             heads = (model.n_gates, model.nx)

@@ -37,6 +37,7 @@ def _softplus(a: Tensor) -> tuple[Tensor, Tensor]:
     return nn.functional.softplus(a), torch.sigmoid(a)
 
 
+IC_MODES = ("hard", "gated", "soft")  # exact x(0) = x0; exact with relaxation gates; the paper's data loss
 ACTIVATIONS: dict[str, Callable[[Tensor], tuple[Tensor, Tensor]]] = {
     "tanh": _tanh,
     "sin": _sin,
@@ -81,11 +82,11 @@ class TangentMLP(nn.Module):
 class PINN(nn.Module):
     """Flow map (t, x0, u) -> x(t) with inputs normalised to [-1, 1] over the training box.
 
-    ic='hard' builds the initial condition in, x = x0 + scale * sum_k g_k(t) N_k(.), with the time gates
-    g_0 = t / t_max and, for each relaxation time T in time_basis, g = 1 - exp(-t / T): heavily damped
-    velocities relax within a few T, and a gate with that shape spares the network the steep boundary
-    layer at small t. ic='soft' is the paper's plain output x = center + halfwidth * N(.), with x(0) = x0
-    learned from data points.
+    ic='hard' builds the initial condition in, x = x0 + (t / t_max) * scale * N(.). ic='gated' adds a
+    time gate g = 1 - exp(-t / T) per relaxation time T in time_basis, x = x0 + scale * sum_k g_k(t) N_k(.)
+    with g_0 = t / t_max: heavily damped velocities relax within a few T, and a gate of that shape spares
+    the network the steep boundary layer at small t. ic='soft' is the paper's plain output
+    x = center + halfwidth * N(.), with x(0) = x0 learned from data points.
     """
 
     def __init__(
@@ -102,13 +103,16 @@ class PINN(nn.Module):
         time_basis: Sequence[float] = (),
     ) -> None:
         super().__init__()
-        if ic not in ("hard", "soft"):
-            raise ValueError(f"unknown initial-condition mode {ic!r}; expected 'hard' or 'soft'")
+        if ic not in IC_MODES:
+            raise ValueError(f"unknown initial-condition mode {ic!r}; expected one of {list(IC_MODES)}")
         time_basis = [float(v) for v in time_basis]
         if any(not (v > 0 and math.isfinite(v)) for v in time_basis):
             raise ValueError(f"time_basis must hold positive relaxation times in s, got {time_basis}")
-        if time_basis and ic != "hard":
-            raise ValueError(f"time_basis {time_basis} needs ic='hard' (the gates multiply x - x0); got ic={ic!r}")
+        if (ic == "gated") != bool(time_basis):
+            raise ValueError(
+                f"ic='gated' needs a non-empty time_basis and the other modes none; got ic={ic!r}, "
+                f"time_basis={time_basis}"
+            )
         if not t_max > 0:
             raise ValueError(f"t_max must be > 0, got {t_max}")
         self.config = {
@@ -125,6 +129,7 @@ class PINN(nn.Module):
         }  # everything needed to rebuild the module from a checkpoint
         self.nx, self.nu = len(state_low), len(input_low)
         self.ic = ic
+        self.exact_ic = ic != "soft"  # x(0) = x0 by construction
         self.t_max = float(t_max)
         low = torch.tensor([0.0, *state_low, *input_low], dtype=torch.float32)
         high = torch.tensor([t_max, *state_high, *input_high], dtype=torch.float32)
@@ -134,7 +139,7 @@ class PINN(nn.Module):
             )
         self.register_buffer("in_center", (high + low) / 2)
         self.register_buffer("in_half", (high - low) / 2)
-        if ic == "hard":
+        if self.exact_ic:
             scale = (
                 torch.ones(self.nx) if output_scale is None else torch.tensor(list(output_scale), dtype=torch.float32)
             )
@@ -164,8 +169,8 @@ class PINN(nn.Module):
         return (g.unsqueeze(-1) * n.unflatten(-1, (self.n_gates, self.nx))).sum(-2)
 
     def _assemble(self, t: Tensor, x0: Tensor, n: Tensor) -> Tensor:
-        """Network output to state, enforcing x(0) = x0 when ic='hard'."""
-        if self.ic == "hard":
+        """Network output to state, enforcing x(0) = x0 unless ic='soft'."""
+        if self.exact_ic:
             return x0 + self.out_scale * self._gated(self.gates(t)[0], n)
         return self.out_center + self.out_scale * n
 
@@ -180,7 +185,7 @@ class PINN(nn.Module):
         dz[..., 0] = 1.0 / self.in_half[0]
         n, dn = self.net.forward_tangent(z, dz.unsqueeze(-2))
         dn = dn.squeeze(-2)
-        if self.ic == "hard":
+        if self.exact_ic:
             g, dg = self.gates(t)
             x = x0 + self.out_scale * self._gated(g, n)
             dxdt = self.out_scale * (self._gated(dg, n) + self._gated(g, dn))
@@ -195,7 +200,7 @@ class PINN(nn.Module):
         dz = torch.cat((torch.zeros(n_state_in, 1, dtype=z.dtype, device=z.device), eye), dim=-1)
         dz = dz.expand(*z.shape[:-1], n_state_in, z.shape[-1])
         n, dn = self.net.forward_tangent(z, dz)
-        if self.ic == "hard":
+        if self.exact_ic:
             g = self.gates(t)[0]
             x = x0 + self.out_scale * self._gated(g, n)
             jac = self.out_scale.unsqueeze(-1) * self._gated(g.unsqueeze(-2), dn).transpose(-1, -2)

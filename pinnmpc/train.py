@@ -37,7 +37,7 @@ def build_model(cfg: DictConfig, system: System) -> PINN:
         activation=cfg.model.activation,
         ic=cfg.model.ic,
         output_scale=None if scale is None else list(scale),
-        time_basis=list(cfg.model.get("time_basis") or []),
+        time_basis=list(cfg.model.time_basis) if cfg.model.ic == "gated" else [],
     )
 
 

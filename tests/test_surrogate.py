@@ -182,7 +182,7 @@ def test_save_load_round_trip(s: Surrogate, tmp_path: Path) -> None:
 
 def test_save_load_round_trip_with_time_gates(s: Surrogate, tmp_path: Path) -> None:
     torch.manual_seed(3)
-    model = PINN(**{**s.model.config, "hidden": [16, 16], "time_basis": [0.02, 0.045]}).double()
+    model = PINN(**{**s.model.config, "hidden": [16, 16], "ic": "gated", "time_basis": [0.02, 0.045]}).double()
     gated = Surrogate(model, s.tau, s.state_names, s.input_names)
     loaded = load_surrogate(gated.save(tmp_path / "gated.pt"))
     assert loaded.model.config["time_basis"] == [0.02, 0.045] and loaded.model.n_gates == 3
