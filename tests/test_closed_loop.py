@@ -50,6 +50,18 @@ def test_paper_reference_short_run(make_cfg, tmp_path, paper_reference_dir):
     assert m["reference"].endswith("reference") and m["steps"] == 10
 
 
+def test_fast_solvers_drive_the_same_closed_loop(make_cfg, tmp_path):
+    common = ["max_steps=20", "progress=false", "plots=false", "reference.name=reversals"]
+    runs = {}
+    for solver in ("lifted_gauss_newton", "gauss_newton"):
+        m = run_closed_loop(make_cfg("closed_loop", [*common, f"controller.solver={solver}"]), tmp_path / solver)
+        assert m["status"] == "ok" and m["fallbacks"] == 0 and m["converged_fraction"] == 1.0
+        runs[solver] = np.load(tmp_path / solver / "trajectory.npz")
+    # both reach the same optimum of every OCP (to their tolerances), so the plant sees the same inputs
+    np.testing.assert_allclose(runs["lifted_gauss_newton"]["u"], runs["gauss_newton"]["u"], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(runs["lifted_gauss_newton"]["x"], runs["gauss_newton"]["x"], rtol=0, atol=1e-8)
+
+
 def test_input_rate_penalty_smooths_inputs(make_cfg, tmp_path):
     common = ["max_steps=20", "progress=false", "plots=false"]
     base = run_closed_loop(make_cfg("closed_loop", common), tmp_path / "a")
