@@ -183,7 +183,7 @@ class GaussNewtonSolver:
         cost = np.einsum("bm,bm->b", r, r)
         running = np.ones(batch, dtype=bool)
         iterations = np.zeros(batch, dtype=np.int64)
-        last_decrease = np.full(batch, np.inf)
+        decreases = np.full((batch, 2), np.inf)  # the two previous decreases, latest first
         for k in range(self.max_iter):
             # views while every problem runs (the batch-1 case), copies of the running rows otherwise
             idx = slice(None) if running.all() else np.flatnonzero(running)
@@ -214,8 +214,8 @@ class GaussNewtonSolver:
             iterations[rows] += 1
             decrease = f - best_c
             stop = ~improved | (decrease <= self.tol_cost * np.maximum(f, 1e-300))
-            stop |= self._remaining(decrease, last_decrease[rows]) <= self.tol_gap * best_c
-            last_decrease[rows] = decrease
+            stop |= self._remaining(decrease, decreases[rows]) <= self.tol_gap * best_c
+            decreases[rows] = np.stack((decrease, decreases[rows, 0]), -1)
             running[rows[stop]] = False
             more = rows[~stop]
             if not first and more.size:
@@ -240,16 +240,19 @@ class GaussNewtonSolver:
         return r, jac, None
 
     @staticmethod
-    def _remaining(decrease: np.ndarray, last: np.ndarray) -> np.ndarray:
-        """Cost decrease still to come, extrapolated geometrically from the last two decreases.
+    def _remaining(decrease: np.ndarray, previous: np.ndarray) -> np.ndarray:
+        """Cost decrease still to come, extrapolated geometrically from the last three decreases.
 
-        Gauss-Newton converges at least linearly with the ratio rho of successive decreases, so what
-        remains is at most decrease * rho / (1 - rho); near a zero-residual optimum it converges
-        quadratically and this overestimates. Infinite until two steps were taken.
+        Gauss-Newton converges at least linearly, so with rho the larger of the two latest ratios of
+        successive decreases what remains is at most decrease * rho / (1 - rho); near a zero-residual
+        optimum it converges quadratically and this overestimates. Two ratios, not one, because a step
+        cut short by a bound gives one tiny decrease in an otherwise slow sequence. previous (B, 2)
+        holds the two decreases before this one, latest first; infinite until three steps were taken.
         """
         with np.errstate(divide="ignore", invalid="ignore"):
-            rho = decrease / last
-            return np.where(np.isfinite(last) & (rho < 1.0), decrease * rho / (1.0 - rho), np.inf)
+            rho = np.maximum(decrease / previous[:, 0], previous[:, 0] / previous[:, 1])
+            known = np.isfinite(previous).all(-1) & (rho < 1.0)
+            return np.where(known, decrease * rho / (1.0 - rho), np.inf)
 
     def _step(self, r, jac, u, lo, hi):  # noqa: ANN001, ANN202
         """Projected Gauss-Newton step: variables at a bound with the gradient pointing out are frozen.
@@ -325,7 +328,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     """
 
     tol_defect: float = 1e-10  # converged also needs every state defect F(s_i, u_i) - s_{i+1} below this
-    lifted_max_iter: int = 10  # lifted iterations before single shooting (max_iter more) takes over
+    lifted_max_iter: int = 5  # lifted iterations before single shooting (max_iter more) takes over
     accepts_prior: ClassVar[bool] = False
 
     def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):  # noqa: ANN001, ANN202
@@ -347,7 +350,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         nodes[:, 1:] = X[:, :-1]
         running = np.ones(batch, dtype=bool)
         iterations = np.zeros(batch, dtype=np.int64)
-        last_predicted = np.full(batch, np.inf)
+        predictions = np.full((batch, 2), np.inf)  # the two previous predicted decreases, latest first
         for _ in range(self.lifted_max_iter):
             pred, sens, defect = self._condense(ocp, nodes, U)
             r, jac = ocp.least_squares(pred, sens, U, refb, upb)
@@ -359,8 +362,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
                 break
             # this step is the last when what remains after it, extrapolated from the model's predicted
             # decreases, is negligible: the final rollout below then measures the cost reached
-            last = running & (self._remaining(predicted, last_predicted) <= self.tol_gap * f)
-            last_predicted = predicted
+            last = running & (self._remaining(predicted, predictions) <= self.tol_gap * f)
+            predictions = np.stack((predicted, predictions[:, 0]), -1)
             iterations += running
             step = np.where(running[:, None], np.clip(U + delta, lo, hi) - U, 0.0)
             U += step
