@@ -12,6 +12,13 @@ from torch import Tensor
 from pinnmpc.controller.ocp import HorizonOCP
 
 
+def _project(u: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Clip to the box and put values within rounding of a bound exactly on it, so 'at the bound' is exact."""
+    tol = 1e-12 * np.maximum(hi - lo, 1.0)
+    u = np.clip(u, lo, hi)
+    return np.where(u - lo <= tol, lo, np.where(hi - u <= tol, hi, u))
+
+
 @dataclass
 class SolveInfo:
     """Per-problem solver statistics, batched like the problems."""
@@ -255,25 +262,56 @@ class GaussNewtonSolver:
             return np.where(known, decrease * rho / (1.0 - rho), np.inf)
 
     def _step(self, r, jac, u, lo, hi):  # noqa: ANN001, ANN202
-        """Projected Gauss-Newton step: variables at a bound with the gradient pointing out are frozen.
+        """Gauss-Newton step within the box, by a primal active set on the (convex) Gauss-Newton model.
 
-        Returns the step, the projected gradient's max-norm and the cost decrease the model predicts.
+        Variables at a bound with the gradient pointing out start fixed. From there the free variables
+        move along the model's Newton direction until one of them meets a bound; that one is fixed and
+        the path goes on, until a full Newton step stays inside (at most n segments, usually one).
+        The model decreases along every segment. Returns the step, the projected gradient's max-norm and
+        the cost decrease the model predicts for the step.
         """
         jt = jac.swapaxes(-1, -2)
         grad = 2.0 * np.matmul(jt, r[..., None])[..., 0]
-        bound = ((u <= lo) & (grad > 0)) | ((u >= hi) & (grad < 0))
-        hess = jt @ jac
-        diag = np.einsum("bii->bi", hess)  # a writable view of the diagonal
-        mu = self.damping * np.maximum(diag.mean(-1), 1e-30)
-        if bound.any():
-            grad = np.where(bound, 0.0, grad)
-            free = ~bound
-            hess *= free[:, :, None] & free[:, None, :]
-            diag += bound
-        diag += mu[:, None]
-        delta = np.linalg.solve(hess, -0.5 * grad[..., None])[..., 0]
-        predicted = -0.5 * np.einsum("bi,bi->b", grad, delta)  # decrease the Gauss-Newton model expects
-        return delta, np.abs(grad).max(-1), predicted
+        fixed = ((u <= lo) & (grad > 0)) | ((u >= hi) & (grad < 0))
+        pgrad_max = np.abs(np.where(fixed, 0.0, grad)).max(-1)
+        jtj = jt @ jac
+        mu = self.damping * np.maximum(np.einsum("bii->b", jtj) / jtj.shape[-1], 1e-30)
+        hess = jtj + mu[:, None, None] * np.eye(jtj.shape[-1])
+        delta = self._masked_solve(hess, grad, fixed)
+        if np.any(~fixed & ((u + delta > hi) | (u + delta < lo))):
+            delta = self._active_set_path(hess, grad, fixed, u, lo, hi)
+        jd = np.matmul(jac, delta[..., None])[..., 0]
+        predicted = -np.einsum("bm,bm->b", jd, 2.0 * r + jd)  # ||r||^2 - ||r + J delta||^2
+        return delta, pgrad_max, predicted
+
+    def _active_set_path(self, hess, grad, fixed, u, lo, hi):  # noqa: ANN001, ANN202
+        """Piecewise-linear path of the primal active-set method: Newton direction on the free variables,
+        cut at the first bound it meets, which joins the fixed ones."""
+        delta, fixed, done = np.zeros_like(u), fixed.copy(), np.zeros(u.shape[0], dtype=bool)
+        for _ in range(u.shape[-1] + 1):
+            model_grad = grad + 2.0 * np.matmul(hess, delta[..., None])[..., 0]
+            direction = np.where(done[:, None], 0.0, self._masked_solve(hess, model_grad, fixed))
+            room = np.where(direction > 0, hi - u - delta, lo - u - delta)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(~fixed & (direction != 0), np.maximum(room / direction, 0.0), np.inf)
+            first = ratio.min(-1)
+            length = np.minimum(first, 1.0)
+            delta += length[:, None] * direction
+            fixed |= (ratio <= first[:, None]) & (first < 1.0)[:, None]
+            done |= first >= 1.0
+            if done.all():
+                break
+        return delta
+
+    @staticmethod
+    def _masked_solve(hess, grad, fixed):  # noqa: ANN001, ANN205
+        """Newton direction of the model 1/2 d^T (2 hess) d + grad^T d on the free variables (0 on the fixed)."""
+        if not fixed.any():
+            return np.linalg.solve(hess, -0.5 * grad[..., None])[..., 0]
+        free = ~fixed
+        m = hess * (free[:, :, None] & free[:, None, :])
+        np.einsum("bii->bi", m)[...] += fixed
+        return np.linalg.solve(m, np.where(fixed, 0.0, -0.5 * grad)[..., None])[..., 0]
 
     def _line_search(self, ocp, x0, x_ref, u_prev, u, delta, f, lo, hi, with_jacobian):  # noqa: ANN001, ANN202
         """The first step length alone (usually the full step, which near the optimum always wins), then the
@@ -289,13 +327,13 @@ class GaussNewtonSolver:
                 r, jac, sens = ocp.residuals(ocp.rollout(x0, cand), cand, x_ref, u_prev), None, None
             return np.einsum("bm,bm->b", r, r), r, jac, sens
 
-        cand = np.clip(u + self.alphas[0] * delta, lo, hi)
+        cand = _project(u + self.alphas[0] * delta, lo, hi)
         best_c, best_r, best_jac, best_sens = evaluate(x0, cand, x_ref, u_prev)
         retry = np.flatnonzero(best_c >= f)
         if retry.size == 0 or self.alphas.size == 1:
             return best_c, cand, best_r, best_jac, best_sens
         k, m, alphas = self.alphas.size - 1, retry.size, self.alphas[1:]
-        cands = np.clip(
+        cands = _project(
             u[retry, None, :] + alphas[None, :, None] * delta[retry, None, :], lo[retry, None], hi[retry, None]
         )
         c, r_c, jac_c, sens_c = evaluate(
@@ -365,8 +403,9 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             last = running & (self._remaining(predicted, predictions) <= self.tol_gap * f)
             predictions = np.stack((predicted, predictions[:, 0]), -1)
             iterations += running
-            step = np.where(running[:, None], np.clip(U + delta, lo, hi) - U, 0.0)
+            step = np.where(running[:, None], _project(U + delta, lo, hi) - U, 0.0)
             U += step
+            U[:] = _project(U, lo, hi)  # exactly on the bounds the step aimed at
             running &= ~last
             if not running.any():
                 break
