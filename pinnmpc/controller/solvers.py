@@ -11,10 +11,12 @@ from torch import Tensor
 
 from pinnmpc.controller.ocp import HorizonOCP
 
+BOUND_TOL = 1e-12  # relative to the box width: closer than this to a bound counts as on it
+
 
 def _project(u: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Clip to the box and put values within rounding of a bound exactly on it, so 'at the bound' is exact."""
-    tol = 1e-12 * np.maximum(hi - lo, 1.0)
+    """Clip to the box and put values within rounding of a bound exactly on it (the answer a user sees)."""
+    tol = BOUND_TOL * (hi - lo)
     u = np.clip(u, lo, hi)
     return np.where(u - lo <= tol, lo, np.where(hi - u <= tol, hi, u))
 
@@ -232,7 +234,7 @@ class GaussNewtonSolver:
             if not running.any():
                 break
         return (
-            U.reshape(shape),
+            _project(U, lo, hi).reshape(shape),
             iterations.reshape(shape[:-2]),
             cost.reshape(shape[:-2]),
             (~running).reshape(shape[:-2]),
@@ -272,7 +274,8 @@ class GaussNewtonSolver:
         """
         jt = jac.swapaxes(-1, -2)
         grad = 2.0 * np.matmul(jt, r[..., None])[..., 0]
-        fixed = ((u <= lo) & (grad > 0)) | ((u >= hi) & (grad < 0))
+        tol = BOUND_TOL * (hi - lo)  # "at a bound" up to rounding: steps aimed at a bound land within it
+        fixed = ((u - lo <= tol) & (grad > 0)) | ((hi - u <= tol) & (grad < 0))
         pgrad_max = np.abs(np.where(fixed, 0.0, grad)).max(-1)
         jtj = jt @ jac
         mu = self.damping * np.maximum(np.einsum("bii->b", jtj) / jtj.shape[-1], 1e-30)
@@ -327,13 +330,13 @@ class GaussNewtonSolver:
                 r, jac, sens = ocp.residuals(ocp.rollout(x0, cand), cand, x_ref, u_prev), None, None
             return np.einsum("bm,bm->b", r, r), r, jac, sens
 
-        cand = _project(u + self.alphas[0] * delta, lo, hi)
+        cand = np.clip(u + self.alphas[0] * delta, lo, hi)
         best_c, best_r, best_jac, best_sens = evaluate(x0, cand, x_ref, u_prev)
         retry = np.flatnonzero(best_c >= f)
         if retry.size == 0 or self.alphas.size == 1:
             return best_c, cand, best_r, best_jac, best_sens
         k, m, alphas = self.alphas.size - 1, retry.size, self.alphas[1:]
-        cands = _project(
+        cands = np.clip(
             u[retry, None, :] + alphas[None, :, None] * delta[retry, None, :], lo[retry, None], hi[retry, None]
         )
         c, r_c, jac_c, sens_c = evaluate(
@@ -403,9 +406,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             last = running & (self._remaining(predicted, predictions) <= self.tol_gap * f)
             predictions = np.stack((predicted, predictions[:, 0]), -1)
             iterations += running
-            step = np.where(running[:, None], _project(U + delta, lo, hi) - U, 0.0)
+            step = np.where(running[:, None], np.clip(U + delta, lo, hi) - U, 0.0)
             U += step
-            U[:] = _project(U, lo, hi)  # exactly on the bounds the step aimed at
             running &= ~last
             if not running.any():
                 break
@@ -432,7 +434,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             U[rows], iterations[rows], cost[rows] = sub[0].reshape(-1, n), iterations[rows] + sub[1], sub[2]
             running[rows] = ~sub[3]
         return (
-            U.reshape(shape),
+            _project(U, lo, hi).reshape(shape),
             iterations.reshape(shape[:-2]),
             cost.reshape(shape[:-2]),
             (~running).reshape(shape[:-2]),
