@@ -308,24 +308,38 @@ def _reference_cost(
     return best
 
 
+def _assert_optimal(
+    ocp: HorizonOCP, x0: Tensor, U: Tensor, x_ref: Tensor, u_prev: Tensor, low: Tensor, high: Tensor, starts: list
+) -> float:
+    """The solution's cost is within 1e-6 (relative) of the best tight L-BFGS-B solve from these starts."""
+    got = float(ocp.cost(x0, U, x_ref, u_prev))
+    ref = _reference_cost(ocp, x0, x_ref, u_prev, low, high, [U, *starts])
+    assert got <= ref * (1 + 1e-6) + 1e-10, f"solver {got:.12e} vs L-BFGS-B {ref:.12e}"
+    return got
+
+
+def _paper_box_problem(
+    s: Surrogate, seed: int, Q: list[float]
+) -> tuple[int, HorizonOCP, Tensor, Tensor, torch.Generator, Tensor]:
+    """Horizon 5, R = 1e-6 I, |u| <= 0.5 and a random start: what the reference then asks varies per test."""
+    H = 5
+    low, high = _bounds([-0.5, -0.5], [0.5, 0.5])
+    g = _gen(seed)
+    return H, HorizonOCP(s, H, Q, [1e-6, 1e-6]), low, high, g, _states(g, 1)[0]
+
+
 @pytest.mark.parametrize("solver", NEWTON)
 @pytest.mark.parametrize("seed", range(10))
 def test_gauss_newton_reaches_optimum_feasible(s: Surrogate, seed: int, solver: type) -> None:
-    H = 5
-    ocp = HorizonOCP(s, H, [1.0, 1.0, 0.01, 0.01], [1e-6, 1e-6])
-    low, high = _bounds([-0.5, -0.5], [0.5, 0.5])
-    g = _gen(100 + seed)
-    x0 = _states(g, 1)[0]
+    H, ocp, low, high, g, x0 = _paper_box_problem(s, 100 + seed, [1.0, 1.0, 0.01, 0.01])
     U_true = _uniform(g, (H, NU), -0.4, 0.4)
     x_ref = ocp.rollout(x0, U_true)  # reachable: only the R-term separates the optimum from zero
     u_prev = torch.zeros(NU, dtype=F64)
     U, info = solver().solve(ocp, x0[None], torch.zeros(1, H, NU, dtype=F64), x_ref[None], u_prev[None], low, high)
-    gn = float(ocp.cost(x0, U[0], x_ref, u_prev))
+    gn = _assert_optimal(ocp, x0, U[0], x_ref, u_prev, low, high, [torch.zeros(H, NU, dtype=F64), U_true])
     assert gn == pytest.approx(float(info.cost[0]), rel=1e-12)
     assert bool(info.converged[0])
     assert gn <= float(ocp.cost(x0, U_true, x_ref, u_prev)) * (1 + 1e-6)  # at least as good as the inputs used
-    ref = _reference_cost(ocp, x0, x_ref, u_prev, low, high, [U[0], torch.zeros(H, NU, dtype=F64), U_true])
-    assert gn <= ref * (1 + 1e-6) + 1e-10, f"GN {gn:.12e} vs L-BFGS-B {ref:.12e}"
 
 
 @pytest.mark.parametrize("solver", NEWTON)
@@ -343,13 +357,7 @@ def test_gauss_newton_reaches_optimum_with_active_bounds(s: Surrogate, seed: int
     U, info = solver().solve(ocp, x0[None], U0, x_ref[None], u_prev[None], low, high)
     assert _within(U, low, high)
     assert bool(_at_bound(U, low, high).any()), "the bounds were meant to be active"
-    gn = float(ocp.cost(x0, U[0], x_ref, u_prev))
-    ref = _reference_cost(ocp, x0, x_ref, u_prev, low, high, [U[0], torch.zeros(H, NU, dtype=F64), U_true, U0[0]])
-    assert gn <= ref * (1 + 1e-6) + 1e-10, f"GN {gn:.12e} vs L-BFGS-B {ref:.12e}"
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# The receding-horizon controller
+    _assert_optimal(ocp, x0, U[0], x_ref, u_prev, low, high, [torch.zeros(H, NU, dtype=F64), U_true, U0[0]])
 
 
 @pytest.mark.parametrize("solver", NEWTON)
@@ -357,11 +365,7 @@ def test_gauss_newton_reaches_optimum_with_active_bounds(s: Surrogate, seed: int
 def test_fast_solvers_reach_optimum_on_unreachable_references(s: Surrogate, seed: int, solver: type) -> None:
     # a reference racing away at 1.5 rad per step: inputs saturate, residuals stay large and Gauss-Newton
     # converges only linearly, with irregular decreases as the active set settles; no early stop allowed
-    H = 5
-    ocp = HorizonOCP(s, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
-    low, high = _bounds([-0.5, -0.5], [0.5, 0.5])
-    g = _gen(300 + seed)
-    x0 = _states(g, 1)[0]
+    H, ocp, low, high, g, x0 = _paper_box_problem(s, 300 + seed, [1.0, 1.0, 0.0, 0.0])
     direction = torch.where(torch.rand(2, generator=g) < 0.5, -1.0, 1.0).to(F64)
     steps = torch.arange(1, H + 1, dtype=F64)[:, None]
     x_ref = torch.cat(
@@ -371,9 +375,7 @@ def test_fast_solvers_reach_optimum_on_unreachable_references(s: Surrogate, seed
     U0 = _uniform(g, (1, H, NU), low, high)
     U, info = solver().solve(ocp, x0[None], U0, x_ref[None], u_prev[None], low, high)
     assert bool(_at_bound(U, low, high).any()), "the inputs were meant to saturate"
-    got = float(ocp.cost(x0, U[0], x_ref, u_prev))
-    ref = _reference_cost(ocp, x0, x_ref, u_prev, low, high, [U[0], torch.zeros(H, NU, dtype=F64), U0[0]])
-    assert got <= ref * (1 + 1e-6) + 1e-10, f"{solver.__name__} {got:.12e} vs L-BFGS-B {ref:.12e}"
+    _assert_optimal(ocp, x0, U[0], x_ref, u_prev, low, high, [torch.zeros(H, NU, dtype=F64), U0[0]])
 
 
 @pytest.mark.parametrize("solver", NEWTON)
@@ -399,11 +401,7 @@ def test_stopping_rules_are_safe_when_convergence_is_slow(s: Surrogate, solver: 
 
 
 def test_lifted_solver_falls_back_to_single_shooting(s: Surrogate) -> None:
-    H = 5
-    ocp = HorizonOCP(s, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
-    low, high = _bounds([-0.5, -0.5], [0.5, 0.5])
-    g = _gen(31)
-    x0 = _states(g, 1)[0]
+    H, ocp, low, high, g, x0 = _paper_box_problem(s, 31, [1.0, 1.0, 0.0, 0.0])
     x_ref = ocp.rollout(x0, _uniform(g, (H, NU), -0.4, 0.4))
     u_prev, U0 = torch.zeros(NU, dtype=F64), torch.zeros(1, H, NU, dtype=F64)
     args = (ocp, x0[None], U0, x_ref[None], u_prev[None], low, high)
@@ -415,11 +413,7 @@ def test_lifted_solver_falls_back_to_single_shooting(s: Surrogate) -> None:
 
 
 def test_jacobian_warm_start_reaches_the_same_optimum(s: Surrogate) -> None:
-    H = 5
-    ocp = HorizonOCP(s, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
-    low, high = _bounds([-0.5, -0.5], [0.5, 0.5])
-    g = _gen(32)
-    x0 = _states(g, 1)[0]
+    H, ocp, low, high, g, x0 = _paper_box_problem(s, 32, [1.0, 1.0, 0.0, 0.0])
     x_ref = ocp.rollout(x0, _uniform(g, (H + 1, NU), -0.4, 0.4)[:H])
     u_prev = torch.zeros(NU, dtype=F64)
     solver = GaussNewtonSolver()
@@ -453,6 +447,10 @@ def test_make_step_carries_the_jacobian_warm_start(s: Surrogate, name: str, keep
         assert nmpc.prior.shape == (1, H, NX, H * NU)
     nmpc.reset()
     assert nmpc.prior is None
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The receding-horizon controller
 
 
 def test_warm_start_shifts_solution(s: Surrogate) -> None:

@@ -21,6 +21,12 @@ def _project(u: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.where(u - lo <= tol, lo, np.where(hi - u <= tol, hi, u))
 
 
+def _result(shape: tuple[int, ...], U, iterations, cost, converged, sens):  # noqa: ANN001, ANN202
+    """A solve's outputs in the problems' own batch shape."""
+    lead = shape[:-2]
+    return U.reshape(shape), iterations.reshape(lead), cost.reshape(lead), converged.reshape(lead), sens
+
+
 @dataclass
 class SolveInfo:
     """Per-problem solver statistics, batched like the problems."""
@@ -233,13 +239,7 @@ class GaussNewtonSolver:
                     sens[more] = more_sens
             if not running.any():
                 break
-        return (
-            _project(U, lo, hi).reshape(shape),
-            iterations.reshape(shape[:-2]),
-            cost.reshape(shape[:-2]),
-            (~running).reshape(shape[:-2]),
-            sens,
-        )
+        return _result(shape, _project(U, lo, hi), iterations, cost, ~running, sens)
 
     def _jacobian(self, ocp, x0, U, x_ref, u_prev, prior=None):  # noqa: ANN001, ANN202
         """Residuals, Jacobian and (numpy surrogates) the state sensitivities that a later solve may reuse."""
@@ -433,13 +433,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             )
             U[rows], iterations[rows], cost[rows] = sub[0].reshape(-1, n), iterations[rows] + sub[1], sub[2]
             running[rows] = ~sub[3]
-        return (
-            _project(U, lo, hi).reshape(shape),
-            iterations.reshape(shape[:-2]),
-            cost.reshape(shape[:-2]),
-            (~running).reshape(shape[:-2]),
-            None,
-        )
+        return _result(shape, _project(U, lo, hi), iterations, cost, ~running, None)
 
     @staticmethod
     def _condense(ocp, nodes, U):  # noqa: ANN001, ANN205
