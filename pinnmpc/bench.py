@@ -805,7 +805,7 @@ def md_scaling(sc: dict[str, Any]) -> str:
         [
             "## 4. Scaling",
             "",
-            "Batched Gauss-Newton NMPC.solve on random states and references (uniform in the training box), "
+            "Batched NMPC.solve (the configured solver) on random states and references (uniform in the training box), "
             "zero start.",
             "",
             f"### OCP vs horizon (B = {sc['base_batch']})",

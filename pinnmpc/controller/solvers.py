@@ -393,26 +393,27 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         iterations = np.zeros(batch, dtype=np.int64)
         predictions = np.full((batch, 2), np.inf)  # the two previous predicted decreases, latest first
         for _ in range(self.lifted_max_iter):
-            pred, sens, defect = self._condense(ocp, nodes, U)
-            r, jac = ocp.least_squares(pred, sens, U, refb, upb)
-            delta, pgrad_max, predicted = self._step(r, jac, U, lo, hi)
+            # all problems while all run (the batch-1 case), else the running rows only
+            idx = slice(None) if running.all() else np.flatnonzero(running)
+            rows, u = np.arange(batch)[idx], U[idx]
+            pred, sens, defect = self._condense(ocp, nodes[idx], u)
+            r, jac = ocp.least_squares(pred, sens, u, refb[idx], upb[idx])
+            delta, pgrad_max, predicted = self._step(r, jac, u, lo[idx], hi[idx])
             f = np.einsum("bm,bm->b", r, r)
             small = (pgrad_max < self.tol_grad) | (predicted <= self.tol_cost * np.maximum(f, 1e-300))
-            running &= ~(small & (defect <= self.tol_defect))
-            if not running.any():
-                break
+            go = ~(small & (defect <= self.tol_defect))
             # this step is the last when what remains after it, extrapolated from the model's predicted
             # decreases, is negligible: the final rollout below then measures the cost reached
-            last = running & (self._remaining(predicted, predictions) <= self.tol_gap * f)
-            predictions = np.stack((predicted, predictions[:, 0]), -1)
-            iterations += running
-            step = np.where(running[:, None], np.clip(U + delta, lo, hi) - U, 0.0)
-            U += step
-            running &= ~last
+            last = go & (self._remaining(predicted, predictions[idx]) <= self.tol_gap * f)
+            predictions[idx] = np.stack((predicted, predictions[idx, 0]), -1)
+            iterations[rows[go]] += 1
+            step = np.where(go[:, None], np.clip(u + delta, lo[idx], hi[idx]) - u, 0.0)
+            U[idx] = u + step
+            # the states move to the linearised prediction (within the defect tolerance for those that stop)
+            nodes[rows, 1:] = pred[:, :-1] + (sens[:, :-1] @ step[:, None, :, None])[..., 0]
+            running[rows[~go | last]] = False
             if not running.any():
                 break
-            # the states move to the linearised prediction (a no-op for problems that stopped)
-            nodes[:, 1:] = pred[:, :-1] + (sens[:, :-1] @ step[:, None, :, None])[..., 0]
         U3 = U.reshape(-1, horizon, nu)
         cost = ocp.cost(x0b, U3, refb, upb)
         failed = running | ~np.isfinite(cost) | (cost > start_cost)
