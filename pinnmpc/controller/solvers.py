@@ -181,11 +181,11 @@ class GaussNewtonSolver:
     def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):  # noqa: ANN001, ANN202
         """Iterate until every problem has converged or max_iter is reached.
 
-        Residuals and Jacobians are evaluated at the candidate step lengths (see _line_search),
-        so the accepted candidate's Jacobian is already there for the next iteration: usually
-        one batch-1 rollout per iteration. A problem stops when the Gauss-Newton model predicts a relative
-        decrease below tol_cost (no rollout needed to find that out), when its projected
-        gradient vanishes, or when no candidate improves.
+        The first two line searches evaluate their candidates with Jacobians, so the accepted one's is
+        there for the next step; later ones evaluate the cost only and take a Jacobian just for the
+        problems that go on. A problem stops when the Gauss-Newton model predicts a relative decrease
+        below tol_cost, when its projected gradient vanishes, when the decrease still to come (extrapolated
+        from the last three) is below tol_gap, or when no candidate improves.
         """
         shape = U0.shape
         n = shape[-1] * shape[-2]
