@@ -3,7 +3,7 @@
 Sections (each switchable in conf/bench.yaml):
 1. one-step cost x_k -> x_k+1 of the PINN against Euler, RK4 and RK45, with the accuracy each one buys;
 2. closed-loop tracking per solver, plus the same controller on an RK4 model of the true dynamics;
-3. optimality: the gap of the Gauss-Newton solutions to a tight multi-start L-BFGS-B reference solve;
+3. optimality: the gap of each solver's solutions to a tight multi-start L-BFGS-B reference solve;
 4. scaling of OCP and one-step cost with horizon and batch size.
 Writes bench.json, bench.md and PNG plots (all atomically) into the run dir and prints the markdown.
 """
@@ -376,17 +376,27 @@ def run_controller(
     return row, (recorder.problems if recorder is not None else [])
 
 
+def optimality_solvers(cfg: DictConfig) -> list[str]:
+    """The solvers whose OCPs the optimality section re-solves: as configured, or every PINN row of section 2."""
+    chosen = cfg.optimality.solvers
+    if chosen is None:
+        chosen = cfg.closed_loop.solvers if cfg.closed_loop.enabled else [cfg.controller.solver]
+    return [str(s) for s in chosen]
+
+
 def bench_closed_loop(
     cfg: DictConfig, system: System, surrogate: Surrogate, ref: Reference
-) -> tuple[dict[str, Any], list[OCPProblem]]:
+) -> tuple[dict[str, Any], dict[str, list[OCPProblem]]]:
     """PINN-MPC per solver and the true-model baseline on the same reference and plant."""
     cl = cfg.closed_loop
     rows: dict[str, dict[str, Any]] = {}
-    problems: list[OCPProblem] = []
+    problems: dict[str, list[OCPProblem]] = {}
+    examined = set(optimality_solvers(cfg)) if cfg.optimality.enabled else set()
     for solver in cl.solvers:
-        row, recorded = run_controller(cfg, system, surrogate, ref, solver, record=solver == cfg.controller.solver)
+        row, recorded = run_controller(cfg, system, surrogate, ref, solver, record=solver in examined)
         rows[f"pinn_{solver}"] = {"label": f"PINN-MPC, {solver}", "model": "pinn", **row}
-        problems = recorded or problems
+        if recorded:
+            problems[solver] = recorded
         log.info("closed loop: PINN %s done in %.1f s", solver, row["wall_s"])
     if cl.true_model:
         model = RK4Model(system, surrogate.tau, float(cl.true_model_h), str(cl.true_model_jacobian))
@@ -422,13 +432,12 @@ def lbfgsb_solve(
     return final, int(res.nit)
 
 
-def bench_optimality(cfg: DictConfig, surrogate: Surrogate, problems: list[OCPProblem]) -> dict[str, Any]:
-    """How far the controller's solutions are from the best of several tight L-BFGS-B solves of the same OCP."""
+def bench_optimality(cfg: DictConfig, surrogate: Surrogate, solver: str, problems: list[OCPProblem]) -> dict[str, Any]:
+    """How far one solver's solutions are from the best of several tight L-BFGS-B solves of the same OCPs."""
     oc = cfg.optimality
-    solver = str(cfg.controller.solver)
     if not problems:
         raise ValueError(f"optimality needs OCPs from a {solver} closed loop; none were recorded")
-    nmpc = build_nmpc(cfg.controller, surrogate)
+    nmpc = build_nmpc(controller_cfg(cfg, solver=solver), surrogate)
     ocp, low, high = nmpc.ocp, nmpc.low.numpy(), nmpc.high.numpy()
     H = ocp.horizon
     bounds = list(zip(np.tile(low, H).tolist(), np.tile(high, H).tolist()))
@@ -682,8 +691,11 @@ def md_step(step: dict[str, Any], paper: dict[str, Any], names: Sequence[str]) -
     return "\n".join(out)
 
 
-def md_closed_loop(cl: dict[str, Any], paper: dict[str, Any], names: Sequence[str]) -> str:
-    """Section 2 table: tracking error and solve cost per controller, with the paper's row."""
+def md_closed_loop(
+    cl: dict[str, Any], paper: dict[str, Any], names: Sequence[str], optimality: dict[str, Any] | None = None
+) -> str:
+    """Section 2 table: tracking error, solve cost and optimality gap per controller, with the paper's row."""
+    optimality = optimality or {}
     headers = [
         "controller",
         *(f"MAE {n}" for n in names),
@@ -692,6 +704,7 @@ def md_closed_loop(cl: dict[str, Any], paper: dict[str, Any], names: Sequence[st
         "OCP p95 [s]",
         "OCP median / plant step median",
         "iterations mean",
+        "optimality rel gap max",
         "fallbacks",
         "steps",
     ]
@@ -706,6 +719,7 @@ def md_closed_loop(cl: dict[str, Any], paper: dict[str, Any], names: Sequence[st
                 fmt(r["ocp_time_s"]["p95"], ".2e"),
                 fmt(r["ratio_ocp_to_plant"]),
                 fmt(r["iterations_mean"], ".1f"),
+                _gap_cell(r, optimality),
                 fmt(r["fallbacks"]),
                 fmt(r["steps"]),
             ]
@@ -716,7 +730,7 @@ def md_closed_loop(cl: dict[str, Any], paper: dict[str, Any], names: Sequence[st
             "paper (RMSprop, TensorFlow, M1)",
             *(fmt(pc["mae"].get(n), ".2e") for n in names),
             fmt(pc["ocp_mean_s"], ".2e"),
-            *["—"] * 6,
+            *["—"] * 7,
         ]
     )
     return "\n".join(
@@ -725,7 +739,7 @@ def md_closed_loop(cl: dict[str, Any], paper: dict[str, Any], names: Sequence[st
             "",
             f"Reference: {cl['reference']}; horizon {cl['horizon']}; plant RK45; MAE in rad and rad/s. "
             "The true-model rows run the same controller on an RK4 model of the physics "
-            "(exact Jacobians by autodiff through RK4).",
+            "(exact Jacobians by autodiff through RK4). Optimality gap: section 3.",
             "",
             md_table(headers, rows),
             "",
@@ -733,20 +747,18 @@ def md_closed_loop(cl: dict[str, Any], paper: dict[str, Any], names: Sequence[st
     )
 
 
-def md_optimality(op: dict[str, Any]) -> str:
-    """Section 3 table: the gap distribution of Gauss-Newton to the L-BFGS-B reference."""
-    g = op["rel_gap"]
-    row = [
-        fmt(op["n_states"]),
-        fmt(g["median"], ".2e"),
-        fmt(g["p95"], ".2e"),
-        fmt(g["max"], ".2e"),
-        fmt(op["abs_gap_max"], ".2e"),
-        fmt(op["fraction_within"]),
-        ", ".join(f"{k} {v}" for k, v in op["best_start_counts"].items()),
-        fmt(op["lbfgsb_iterations_mean"], ".1f"),
-    ]
+def _gap_cell(row: dict[str, Any], optimality: dict[str, Any]) -> str:
+    """The worst relative optimality gap of a PINN row's solver (section 3), or a dash when not examined."""
+    op = optimality.get(row["solver"]) if row["model"] == "pinn" else None
+    return "—" if op is None else fmt(op["rel_gap"]["max"], ".1e")
+
+
+def md_optimality(per_solver: dict[str, dict[str, Any]]) -> str:
+    """Section 3 table: the gap distribution of each solver to the L-BFGS-B reference."""
+    rows = [_optimality_row(op) for op in per_solver.values()]
+    op = next(iter(per_solver.values()))
     headers = [
+        "solver",
         "OCPs",
         "rel gap median",
         "rel gap p95",
@@ -758,18 +770,34 @@ def md_optimality(op: dict[str, Any]) -> str:
     ]
     return "\n".join(
         [
-            f"## 3. OCP optimality of {op['solver']}",
+            "## 3. OCP optimality",
             "",
-            f"States visited by the {op['solver']} closed loop; each OCP re-solved on the same surrogate by scipy "
-            f"L-BFGS-B (ftol {op['ftol']:g}, gtol {op['gtol']:g}, maxiter {op['maxiter']}, autograd gradient) "
-            f"from {', '.join(op['starts'])}. "
-            "rel gap = (controller cost - best cost) / best cost; "
+            "States visited by each solver's closed loop of section 2; each OCP re-solved on the same surrogate by "
+            f"scipy L-BFGS-B (ftol {op['ftol']:g}, gtol {op['gtol']:g}, maxiter {op['maxiter']}, autograd gradient) "
+            "from zeros, the solver's own solution and random starts. "
+            "rel gap = (solver's cost - best cost) / best cost; "
             f"optimal: rel gap <= {op['rel_tol']:g} or abs gap <= {op['abs_tol']:g}.",
             "",
-            md_table(headers, [row]),
+            md_table(headers, rows),
             "",
         ]
     )
+
+
+def _optimality_row(op: dict[str, Any]) -> list[str]:
+    """One solver's row of the optimality table."""
+    g = op["rel_gap"]
+    return [
+        op["solver"],
+        fmt(op["n_states"]),
+        fmt(g["median"], ".2e"),
+        fmt(g["p95"], ".2e"),
+        fmt(g["max"], ".2e"),
+        fmt(op["abs_gap_max"], ".2e"),
+        fmt(op["fraction_within"]),
+        ", ".join(f"{k} {v}" for k, v in op["best_start_counts"].items()),
+        fmt(op["lbfgsb_iterations_mean"], ".1f"),
+    ]
 
 
 def md_scaling(sc: dict[str, Any]) -> str:
@@ -832,7 +860,7 @@ def render_markdown(result: dict[str, Any], names: Sequence[str]) -> str:
     if "step" in result:
         parts.append(md_step(result["step"], result["paper"], names))
     if "closed_loop" in result:
-        parts.append(md_closed_loop(result["closed_loop"], result["paper"], names))
+        parts.append(md_closed_loop(result["closed_loop"], result["paper"], names, result.get("optimality")))
     if "optimality" in result:
         parts.append(md_optimality(result["optimality"]))
     if "scaling" in result:
@@ -868,16 +896,19 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         pinn32 = load_surrogate(cfg.checkpoint, nx=len(names), nu=len(system.input_names), dtype=torch.float32)
         result["step"] = bench_step(cfg, system, pinn64, pinn32)
         elapsed["step"] = time.perf_counter() - t0
-    problems: list[OCPProblem] = []
+    problems: dict[str, list[OCPProblem]] = {}
     if cfg.closed_loop.enabled:
         t0 = time.perf_counter()
         result["closed_loop"], problems = bench_closed_loop(cfg, system, pinn64, ref)
         elapsed["closed_loop"] = time.perf_counter() - t0
     if cfg.optimality.enabled:
         t0 = time.perf_counter()
-        if not problems:  # the closed-loop section was off or ran no row of the configured solver: record one
-            _, problems = run_controller(cfg, system, pinn64, ref, str(cfg.controller.solver), record=True)
-        result["optimality"] = bench_optimality(cfg, pinn64, problems)
+        result["optimality"] = {}
+        for solver in optimality_solvers(cfg):
+            if solver not in problems:  # no closed-loop row of this solver ran: record one
+                _, problems[solver] = run_controller(cfg, system, pinn64, ref, solver, record=True)
+            result["optimality"][solver] = bench_optimality(cfg, pinn64, solver, problems[solver])
+            log.info("optimality: %s done", solver)
         elapsed["optimality"] = time.perf_counter() - t0
     if cfg.scaling.enabled:
         t0 = time.perf_counter()

@@ -122,13 +122,28 @@ def test_closed_loop_rows(bench: tuple[dict[str, Any], Path]) -> None:
 
 
 def test_optimality(bench: tuple[dict[str, Any], Path]) -> None:
-    op = bench[0]["optimality"]
-    assert op["n_states"] == MAX_STEPS
-    assert 0.0 <= op["fraction_within"] <= 1.0
-    assert op["rel_gap"]["min"] <= op["rel_gap"]["median"] <= op["rel_gap"]["p95"] <= op["rel_gap"]["max"]
-    assert op["solver"] == "lifted_gauss_newton"  # the controller's default solver is the one examined
-    assert op["rel_gap"]["min"] > -1e-9  # the controller's solution is among the L-BFGS-B starts
-    assert sum(op["best_start_counts"].values()) == op["n_states"]
+    per_solver = bench[0]["optimality"]
+    assert list(per_solver) == ["lifted_gauss_newton", "gauss_newton", "rmsprop"]  # every PINN row is examined
+    for solver, op in per_solver.items():
+        assert op["solver"] == solver
+        assert op["n_states"] == MAX_STEPS
+        assert 0.0 <= op["fraction_within"] <= 1.0
+        assert op["rel_gap"]["min"] <= op["rel_gap"]["median"] <= op["rel_gap"]["p95"] <= op["rel_gap"]["max"]
+        assert op["rel_gap"]["min"] > -1e-9  # the solver's own solution is among the L-BFGS-B starts
+        assert sum(op["best_start_counts"].values()) == op["n_states"]
+    assert per_solver["gauss_newton"]["fraction_within"] == 1.0  # the fast solvers reach the optimum ...
+    assert per_solver["lifted_gauss_newton"]["fraction_within"] == 1.0
+    assert (
+        per_solver["rmsprop"]["rel_gap"]["max"] > per_solver["gauss_newton"]["rel_gap"]["max"]
+    )  # ... 30 RMSprop steps not
+
+
+def test_optimality_of_chosen_solver_without_closed_loop(tmp_path: Path) -> None:
+    off = [o for o in SECTIONS_OFF if not o.startswith("optimality")]
+    result = run_bench(_cfg([*TINY, *off, "optimality.solvers=[gauss_newton]"]), tmp_path)
+    assert list(result["optimality"]) == ["gauss_newton"]
+    assert result["optimality"]["gauss_newton"]["n_states"] == MAX_STEPS
+    assert "| gauss_newton |" in (tmp_path / "bench.md").read_text()
 
 
 def test_scaling_and_plots(bench: tuple[dict[str, Any], Path]) -> None:
@@ -164,6 +179,8 @@ def test_markdown_has_every_table(bench: tuple[dict[str, Any], Path]) -> None:
         "paper (RMSprop",
         "7.53e-03",
         "## 3. OCP optimality",
+        "optimality rel gap max",
+        "| rmsprop |",
         "## 4. Scaling",
         "### OCP vs horizon",
     ):
