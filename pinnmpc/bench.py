@@ -405,7 +405,17 @@ def bench_closed_loop(
             label = f"true model (RK4 h={float(cl.true_model_h):g}), {solver}"
             rows[f"true_rk4_{solver}"] = {"label": label, "model": "rk4", **row}
             log.info("closed loop: true model %s done in %.1f s", solver, row["wall_s"])
-    return {"reference": ref.name, "horizon": int(cfg.controller.horizon), "rows": rows}, problems
+    others = {name: other_reference_row(cfg, system, surrogate, name) for name in cl.more_references}
+    result = {"reference": ref.name, "horizon": int(cfg.controller.horizon), "rows": rows, "references": others}
+    return result, problems
+
+
+def other_reference_row(cfg: DictConfig, system: System, surrogate: Surrogate, name: str) -> dict[str, Any]:
+    """The configured controller on a built-in reference: tracking beyond the paper's one trajectory."""
+    ref = load_reference(None, surrogate.tau, name)
+    row, _ = run_controller(cfg, system, surrogate, ref, str(cfg.controller.solver), record=False)
+    log.info("closed loop: built-in reference %s done in %.1f s", name, row["wall_s"])
+    return row
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -747,6 +757,36 @@ def md_closed_loop(
     )
 
 
+def md_other_references(cl: dict[str, Any], names: Sequence[str]) -> str:
+    """Section 2 sub-table: the configured controller on the built-in references."""
+    headers = [
+        "reference",
+        "solver",
+        "steps",
+        *(f"MAE {n}" for n in names),
+        "OCP median [s]",
+        "OCP p95 [s]",
+        "OCP median / plant step median",
+        "iterations mean",
+        "fallbacks",
+    ]
+    rows = [
+        [
+            name + ("" if r["status"] == "ok" else f" ({r['status'][:STATUS_CHARS]})"),
+            r["solver"],
+            fmt(r["steps"]),
+            *(fmt(r["mae"][n], ".2e") for n in names),
+            fmt(r["ocp_time_s"]["median"], ".2e"),
+            fmt(r["ocp_time_s"]["p95"], ".2e"),
+            fmt(r["ratio_ocp_to_plant"]),
+            fmt(r["iterations_mean"], ".1f"),
+            fmt(r["fallbacks"]),
+        ]
+        for name, r in cl["references"].items()
+    ]
+    return "\n".join(["### Built-in references", "", md_table(headers, rows), ""])
+
+
 def _gap_cell(row: dict[str, Any], optimality: dict[str, Any]) -> str:
     """The worst relative optimality gap of a PINN row's solver (section 3), or a dash when not examined."""
     op = optimality.get(row["solver"]) if row["model"] == "pinn" else None
@@ -861,6 +901,8 @@ def render_markdown(result: dict[str, Any], names: Sequence[str]) -> str:
         parts.append(md_step(result["step"], result["paper"], names))
     if "closed_loop" in result:
         parts.append(md_closed_loop(result["closed_loop"], result["paper"], names, result.get("optimality")))
+        if result["closed_loop"].get("references"):
+            parts.append(md_other_references(result["closed_loop"], names))
     if "optimality" in result:
         parts.append(md_optimality(result["optimality"]))
     if "scaling" in result:

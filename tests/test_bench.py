@@ -27,6 +27,7 @@ TINY = [
     "step.warmup=1",
     "step.rk45_loop_repeats=1",
     f"closed_loop.max_steps={MAX_STEPS}",
+    "closed_loop.more_references=[rest,sine]",
     "controller.solvers.rmsprop.max_iter=30",
     "optimality.n_states=5",
     "scaling.horizons=[2,3]",
@@ -121,6 +122,16 @@ def test_closed_loop_rows(bench: tuple[dict[str, Any], Path]) -> None:
         assert row["iterations_mean"] > 0 and row["fallbacks"] >= 0
 
 
+def test_built_in_reference_rows(bench: tuple[dict[str, Any], Path]) -> None:
+    others = bench[0]["closed_loop"]["references"]
+    assert list(others) == ["rest", "sine"]
+    for row in others.values():
+        assert row["status"] == "ok" and row["steps"] == MAX_STEPS
+        assert row["solver"] == "lifted_gauss_newton"  # the configured controller
+        assert all(v > 0 for v in row["mae"].values())
+    assert others["rest"]["mae"] != others["sine"]["mae"]  # two different loops, not one row copied
+
+
 def test_optimality(bench: tuple[dict[str, Any], Path]) -> None:
     per_solver = bench[0]["optimality"]
     assert list(per_solver) == ["lifted_gauss_newton", "gauss_newton", "rmsprop"]  # every PINN row is examined
@@ -178,6 +189,8 @@ def test_markdown_has_every_table(bench: tuple[dict[str, Any], Path]) -> None:
         "true model (RK4",
         "paper (RMSprop",
         "7.53e-03",
+        "### Built-in references",
+        "| rest | lifted_gauss_newton |",
         "## 3. OCP optimality",
         "optimality rel gap max",
         "| rmsprop |",
