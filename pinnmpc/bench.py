@@ -318,8 +318,13 @@ class RecordingSolver:
 
     @property
     def accepts_prior(self) -> bool:
-        """Whether the wrapped solver takes a Jacobian warm start."""
+        """Whether the wrapped solver takes a warm start beyond U0."""
         return getattr(self.inner, "accepts_prior", False)
+
+    @property
+    def prior_kind(self) -> str:
+        """The SolveInfo field the wrapped solver takes as that warm start."""
+        return getattr(self.inner, "prior_kind", "sensitivities")
 
     def solve(
         self,

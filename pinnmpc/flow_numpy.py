@@ -92,9 +92,16 @@ class NumpyFlow:
             model.config["activation"], model.nx, model.nu,
         )  # fmt: skip
 
+    def _first_layer(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Pre-activation of the first layer; two GEMMs instead of a concatenation and one."""
+        a = x0 @ self.w_in[: self.nx]
+        a += u @ self.w_in[self.nx :]
+        a += self.b_in
+        return a
+
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """x(tau) for x0 (..., nx), u (..., nu)."""
-        z = self.value(np.concatenate((x0, u), -1) @ self.w_in + self.b_in)
+        z = self.value(self._first_layer(x0, u))
         for w, b in self.hidden:
             z = self.value(z @ w + b)
         n = z @ self.w_out + self.b_out
@@ -103,26 +110,29 @@ class NumpyFlow:
     def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """x(tau), A = dx/dx0 (..., nx, nx), B = dx/du (..., nx, nu) by forward-mode tangents.
 
-        Value and the nx + nu tangents ride together as rows of one (batch * (1 + nx + nu), width)
-        matrix, so every layer is a single GEMM: at batch 1 that is ~30% faster than two.
+        Values and the nx + nu tangents ride together in one (batch * (1 + nx + nu), width) matrix, the
+        batch's values in its first rows and their tangents below, so every layer is a single GEMM and
+        the values and tangents are contiguous views of it: at batch 1-5 that is ~30% faster than two.
         """
         lead, nx, n_in = x0.shape[:-1], self.nx, self.nx + self.nu
-        x0 = x0.reshape(-1, nx)
-        y, slope = self.act(np.concatenate((x0, u.reshape(-1, self.nu)), -1) @ self.w_in + self.b_in)
-        batch, width = y.shape
-        z = np.empty((batch, 1 + n_in, width))  # row 0: value, rows 1..: tangents
-        z[:, 0] = y
-        np.multiply(slope[:, None, :], self.w_in, out=z[:, 1:])
+        x0, u = x0.reshape(-1, nx), u.reshape(-1, self.nu)
+        batch, width = x0.shape[0], self.b_in.shape[0]
+        z = np.empty((batch * (1 + n_in), width))
+        value, tangent = z[:batch], z[batch:].reshape(batch, n_in, width)
+        y, slope = self.act(self._first_layer(x0, u))
+        value[...] = y
+        np.multiply(slope[:, None, :], self.w_in, out=tangent)
         for w, b in self.hidden:
-            z = (z.reshape(-1, width) @ w).reshape(batch, 1 + n_in, width)
-            value = z[:, 0]
+            z = z @ w
+            value, tangent = z[:batch], z[batch:].reshape(batch, n_in, width)
             value += b
             y, slope = self.act(value)
-            z[:, 1:] *= slope[:, None, :]
-            z[:, 0] = y
-        out = z @ self.w_out  # (batch, 1 + n_in, nx)
-        x1 = out[:, 0] + self.b_out
-        jac = out[:, 1:].swapaxes(-1, -2)  # (batch, nx, n_in)
+            value[...] = y
+            tangent *= slope[:, None, :]
+        out = z @ self.w_out
+        x1 = out[:batch]
+        x1 += self.b_out
+        jac = out[batch:].reshape(batch, n_in, nx).swapaxes(-1, -2)  # (batch, nx, n_in)
         if self.hard_ic:
             x1 += x0
             jac[:, :, :nx] += self.eye

@@ -433,18 +433,61 @@ def test_jacobian_warm_start_reaches_the_same_optimum(s: Surrogate) -> None:
         solver.solve(*args, prior=info.sensitivities[:, :4])
 
 
-@pytest.mark.parametrize(("name", "keeps_prior"), [("gauss_newton", True), ("lifted_gauss_newton", False)])
-def test_make_step_carries_the_jacobian_warm_start(s: Surrogate, name: str, keeps_prior: bool) -> None:
+def test_states_warm_start_reaches_the_same_optimum(s: Surrogate) -> None:
+    H, ocp, low, high, g, x0 = _paper_box_problem(s, 34, [1.0, 1.0, 0.0, 0.0])
+    x_ref = ocp.rollout(x0, _uniform(g, (H + 1, NU), -0.4, 0.4)[:H])
+    u_prev = torch.zeros(NU, dtype=F64)
+    solver = LiftedGaussNewtonSolver()
+    U, info = solver.solve(ocp, x0[None], torch.zeros(1, H, NU, dtype=F64), x_ref[None], u_prev[None], low, high)
+    torch.testing.assert_close(torch.from_numpy(info.states), ocp.rollout(x0[None], U), rtol=0, atol=1e-12)
+    # the receding-horizon successor, measured off the prediction (a plant that differs from the model)
+    x1 = s.step(x0, U[0, 0]) + torch.tensor([3e-3, -2e-3, 1e-2, -1e-2], dtype=F64)
+    ref1 = torch.cat((x_ref[1:], x_ref[-1:]))
+    U_shift = torch.cat((U[:, 1:], U[:, -1:]), 1)
+    args = (ocp, x1[None], U_shift, ref1[None], U[:, 0], low, high)
+    cold_U, cold = solver.solve(*args)
+    warm_U, warm = solver.solve(*args, prior=info.states)
+    assert bool(warm.converged[0]) and bool(cold.converged[0])
+    assert float(warm.cost[0]) == pytest.approx(float(ocp.cost(x1, warm_U[0], ref1, U[0, 0])), rel=1e-10)
+    assert float(warm.cost[0]) == pytest.approx(float(cold.cost[0]), rel=1e-6, abs=1e-12)
+    torch.testing.assert_close(warm_U, cold_U, rtol=0, atol=1e-4)
+    with pytest.raises(ValueError, match=r"prior states must have shape \(1, 5, 4\), got \(1, 4, 4\)"):
+        solver.solve(*args, prior=info.states[:, :4])
+
+
+def test_lifted_linearisation_matches_the_rollout_and_its_jacobian(s: Surrogate) -> None:
+    H, ocp, _, _, g, x0 = _paper_box_problem(s, 35, [1.0, 1.0, 0.0, 0.0])
+    U = _uniform(g, (1, H, NU), -0.4, 0.4).numpy()
+    x0n = x0[None].numpy()
+    X = ocp.rollout(x0n, U)
+    nodes = np.concatenate((x0n[:, None], X[:, :-1]), 1)
+    # off the trajectory by a few defects: the linearised chain must carry them (first order)
+    shaken = nodes + np.concatenate((np.zeros((1, 1, NX)), 1e-6 * _uniform(g, (1, H - 1, NX), -1, 1).numpy()), 1)
+    pred, sens, defect, _ = LiftedGaussNewtonSolver._linearise(ocp, shaken, U.reshape(1, -1))
+    _, _, sens_ref = ocp.jacobian_rollout(x0n, U, ocp.rollout(x0n, U), np.zeros((1, NU)))
+    np.testing.assert_allclose(pred, X, rtol=0, atol=1e-10)  # second order in 1e-6 defects
+    np.testing.assert_allclose(sens.reshape(sens_ref.shape), sens_ref, rtol=0, atol=1e-4)
+    assert 1e-8 < float(defect[0]) < 1e-5
+    pred0, sens0, defect0, _ = LiftedGaussNewtonSolver._linearise(ocp, nodes, U.reshape(1, -1))
+    np.testing.assert_allclose(pred0, X, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(sens0.reshape(sens_ref.shape), sens_ref, rtol=0, atol=1e-12)
+    assert float(defect0[0]) < 1e-13
+
+
+@pytest.mark.parametrize(("name", "kind", "shape"), [("gauss_newton", "sensitivities", (1, 5, NX, 5 * NU)),
+                                                      ("lifted_gauss_newton", "states", (1, 5, NX))])  # fmt: skip
+def test_make_step_carries_the_warm_start(s: Surrogate, name: str, kind: str, shape: tuple) -> None:
     H = 5
     nmpc = NMPC(HorizonOCP(s, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6]), make_solver(name), *ASYMMETRIC)
-    assert nmpc.prior is None
+    assert nmpc.prior is None and nmpc.solver.prior_kind == kind
     g = _gen(33)
     x = _states(g, 1)[0]
     ref = _far_reference(g, x[None], H)[0].numpy()
     nmpc.make_step(x.numpy(), ref)
-    assert (nmpc.prior is not None) == keeps_prior
-    if keeps_prior:
-        assert nmpc.prior.shape == (1, H, NX, H * NU)
+    assert nmpc.prior is not None and nmpc.prior.shape == shape
+    nmpc.U = np.zeros((H, NU))  # a plan from elsewhere: the last solve's warm start no longer belongs to it
+    assert nmpc.prior is None
+    nmpc.make_step(x.numpy(), ref)
     nmpc.reset()
     assert nmpc.prior is None
 

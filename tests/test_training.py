@@ -91,6 +91,48 @@ def test_resampling_changes_points_and_is_reproducible():
     assert a.due(50) is False and CollocationDataModule(system, 0.2, 0.25, resample_every=10).due(20)
 
 
+def test_adaptive_redraw_gathers_points_where_the_residual_is_large(make_cfg, tmp_path):
+    torch.manual_seed(0)
+    module, _ = _tiny_module(make_cfg)
+    system = PowerCube()
+    dm = CollocationDataModule(
+        system, 0.2, 0.25, n_collocation=256, n_data=16, n_val=64, val_h=1e-3, resample_every=1,
+        adaptive_pool=8, adaptive_k=2.0, adaptive_c=0.0,
+    )  # fmt: skip
+    _quiet_trainer(tmp_path, max_epochs=3, reload_dataloaders_every_n_epochs=1).fit(module, datamodule=dm)
+    assert dm.draws == 3  # the first draw plus two adaptive redraws during training
+    dm.draw()  # one more with the trained model frozen, so the score below is the one the draw used
+    b = dm.batch
+    adaptive = module.pointwise_residual(b["t"], b["x0"], b["u"]).mean()
+    plain = CollocationDataModule(system, 0.2, 0.25, n_collocation=256, seed=dm.seed + 7919 * 3)
+    plain.draw()  # the plain LHS draw of the same size and seed
+    p = plain.batch
+    uniform = module.pointwise_residual(p["t"], p["x0"], p["u"]).mean()
+    assert adaptive > 2.0 * uniform
+    low = torch.tensor([0.0, *system.state_box.low, *system.input_box.low], dtype=torch.float64)
+    high = torch.tensor([0.25, *system.state_box.high, *system.input_box.high], dtype=torch.float64)
+    pts = torch.cat([b["t"], b["x0"], b["u"]], dim=1)
+    assert torch.all((pts >= low) & (pts <= high))  # still inside the training box
+    assert torch.unique(pts, dim=0).shape[0] == 256  # drawn without replacement
+
+
+def test_adaptive_without_a_trainer_is_plain_lhs():
+    system = PowerCube()
+    a = CollocationDataModule(system, 0.2, 0.25, n_collocation=64, n_data=8, n_val=8, val_h=1e-2, adaptive_pool=4)
+    b = CollocationDataModule(system, 0.2, 0.25, n_collocation=64, n_data=8, n_val=8, val_h=1e-2)
+    a.draw(), b.draw(), a.draw(), b.draw()
+    assert all(torch.equal(a.batch[k], b.batch[k]) for k in a.batch)
+
+
+@pytest.mark.parametrize(
+    "bad", [{"adaptive_pool": 1}, {"adaptive_pool": -2}, {"adaptive_k": -1.0}, {"adaptive_c": -0.5}]
+)
+def test_bad_adaptive_settings_are_refused(bad):
+    with pytest.raises(ValueError, match="adaptive_pool 0 \\(off\\) or >= 2") as err:
+        CollocationDataModule(PowerCube(), 0.2, 0.25, **bad)
+    assert str(next(iter(bad.values()))) in str(err.value)
+
+
 def test_lhs_is_stratified_in_every_coordinate():
     pts = lhs_box(100, [0.0, -1.0], [1.0, 1.0], seed=0)
     for j, (lo, hi) in enumerate([(0.0, 1.0), (-1.0, 1.0)]):

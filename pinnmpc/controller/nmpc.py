@@ -72,6 +72,7 @@ class NMPC:
         if plan.shape != (self.horizon, self.ocp.nu):
             raise ValueError(f"plan must be ({self.horizon}, {self.ocp.nu}) (horizon, nu), got {plan.shape}")
         self._U = plan
+        self._prior = None  # the last solve's warm start belongs to its own plan, not to this one
 
     @property
     def u_prev(self) -> Tensor:
@@ -90,7 +91,7 @@ class NMPC:
         """Forget the warm start and the last applied input (start of a new run)."""
         self._U = self._cold_start()
         self._u_prev = self._U[0].copy()
-        self._prior = None  # the last solve's sensitivities: the solver's Jacobian warm start
+        self._prior = None  # what the last solve hands the next one beyond U (see Solver.prior_kind)
         self.stats = []
 
     def _cold_start(self) -> np.ndarray:
@@ -150,7 +151,8 @@ class NMPC:
             U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self._low, self._high)  # noqa: N806
         elapsed = time.perf_counter() - start
         self._U = self._shifted(U) if self.warm_start else self._cold_start()
-        self._prior = getattr(info, "sensitivities", None) if self.warm_start and not fallback else None
+        kind = getattr(self.solver, "prior_kind", "sensitivities")
+        self._prior = getattr(info, kind, None) if self.warm_start and not fallback else None
         self._u_prev = U[0].copy()
         self.stats.append(
             StepStats(

@@ -69,6 +69,7 @@ class HorizonOCP:
         self.weights = {torch: (psd_sqrt(Q, nx, "Q"), psd_sqrt(R, nu, "R"), w_d)}
         self.weights[np] = tuple(None if w is None else w.numpy() for w in self.weights[torch])
         self._jac_u: dict[ModuleType, Array] = {}
+        self._normal_u: tuple[np.ndarray, np.ndarray] | None = None
         self.flow = NumpyFlow.from_pinn(surrogate.model, surrogate.tau) if hasattr(surrogate, "model") else None
 
     @property
@@ -122,13 +123,46 @@ class HorizonOCP:
 
     def residuals(self, X: Array, U: Array, x_ref: Array, u_prev: Array) -> Array:
         """Stacked weighted residuals (..., m); the cost is their squared norm."""
-        w_q, w_r, w_d = self.weights[xp_of(U)]
+        w_q = self.weights[xp_of(U)][0]
         lead = U.shape[:-2]
-        parts = [((X - x_ref) @ w_q.T).reshape(*lead, -1), (U @ w_r.T).reshape(*lead, -1)]
+        return cat([((X - x_ref) @ w_q.T).reshape(*lead, -1), self.input_residuals(U, u_prev)], -1)
+
+    def input_residuals(self, U: Array, u_prev: Array) -> Array:
+        """The input (and input-rate) part of the residuals (..., m_u): linear in U, no model involved."""
+        _, w_r, w_d = self.weights[xp_of(U)]
+        lead = U.shape[:-2]
+        parts = [(U @ w_r.T).reshape(*lead, -1)]
         if w_d is not None:
             du = U - cat([u_prev[..., None, :], U[..., :-1, :]], -2)
             parts.append((du @ w_d.T).reshape(*lead, -1))
         return cat(parts, -1)
+
+    def gauss_newton_model(
+        self, X: np.ndarray, sens: np.ndarray, U: np.ndarray, x_ref: np.ndarray, u_prev: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cost (B,), J^T J (B, n, n) and gradient (B, n) at predicted states X (B, H, nx) with sensitivities
+        d X / d U (B, H*nx, n), numpy, without forming J: its input part is constant, so is its J^T J."""
+        batch, (horizon, nx, nu) = X.shape[0], (self.horizon, self.nx, self.nu)
+        w_q = self.weights[np][0]
+        U3 = U.reshape(batch, horizon, nu)
+        rx = ((X.reshape(batch, horizon, nx) - x_ref) @ w_q.T).reshape(batch, -1)
+        ru = self.input_residuals(U3, u_prev.reshape(batch, nu))
+        sq = (w_q @ sens.reshape(batch, horizon, nx, -1)).reshape(batch, horizon * nx, -1)
+        st = sq.swapaxes(-1, -2)
+        jac_u, jtj_u = self._input_normal()
+        jtj = st @ sq
+        jtj += jtj_u
+        grad = (st @ rx[..., None])[..., 0]
+        grad += ru @ jac_u
+        grad *= 2.0
+        return np.einsum("bm,bm->b", rx, rx) + np.einsum("bm,bm->b", ru, ru), jtj, grad
+
+    def _input_normal(self) -> tuple[np.ndarray, np.ndarray]:
+        """The constant input Jacobian and its J^T J (numpy), computed once."""
+        if self._normal_u is None:
+            jac_u = self._input_jacobian(np)
+            self._normal_u = (jac_u, jac_u.T @ jac_u)
+        return self._normal_u
 
     def cost(self, x0: Array, U: Array, x_ref: Array, u_prev: Array) -> Array:
         """Horizon cost per problem (...,)."""

@@ -21,10 +21,10 @@ def _project(u: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.where(u - lo <= tol, lo, np.where(hi - u <= tol, hi, u))
 
 
-def _result(shape: tuple[int, ...], U, iterations, cost, converged, sens):  # noqa: ANN001, ANN202
-    """A solve's outputs in the problems' own batch shape."""
+def _result(shape: tuple[int, ...], U, iterations, cost, converged, warm):  # noqa: ANN001, ANN202
+    """A solve's outputs in the problems' own batch shape (warm: the next solve's prior, flat batch)."""
     lead = shape[:-2]
-    return U.reshape(shape), iterations.reshape(lead), cost.reshape(lead), converged.reshape(lead), sens
+    return U.reshape(shape), iterations.reshape(lead), cost.reshape(lead), converged.reshape(lead), warm
 
 
 @dataclass
@@ -35,6 +35,7 @@ class SolveInfo:
     cost: Tensor  # (B,) float
     converged: Tensor  # (B,) bool
     sensitivities: np.ndarray | None = None  # (B, H, nx, H*nu) d x_i / d U near the solution, for the next solve
+    states: np.ndarray | None = None  # (B, H, nx) the states x_1..x_H the solution reaches on the surrogate
 
 
 class Solver(Protocol):
@@ -42,7 +43,7 @@ class Solver(Protocol):
 
     array_api names the array library the solver works in ("torch" or "numpy"): NMPC.make_step
     hands it arrays of that kind, so batch-1 solves pay no conversions. Solvers with accepts_prior
-    take prior= (the last solve's SolveInfo.sensitivities) to warm-start their Jacobian too.
+    take prior= (the last solve's SolveInfo field named by their prior_kind) as a warm start beyond U0.
     """
 
     array_api: str
@@ -148,6 +149,7 @@ class GaussNewtonSolver:
     reuse_jacobian: bool = True  # receding horizon: the first step reuses the last solve's sensitivities, shifted
     array_api: ClassVar[str] = "numpy"  # also accepts torch tensors (and then returns them)
     accepts_prior: ClassVar[bool] = True
+    prior_kind: ClassVar[str] = "sensitivities"  # the SolveInfo field the next solve takes as prior
 
     def __post_init__(self) -> None:
         self.alphas = np.asarray(self.step_lengths, dtype=np.float64)
@@ -157,26 +159,38 @@ class GaussNewtonSolver:
     def solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior=None):  # noqa: ANN001, ANN201
         """Accepts torch or numpy; returns the same kind.
 
-        prior: SolveInfo.sensitivities of the previous receding-horizon solve when U0 is its plan shifted
-        by one step; the first Gauss-Newton step then reuses them instead of a full Jacobian rollout.
+        prior: the previous receding-horizon solve's SolveInfo field named by prior_kind, when U0 is its
+        plan shifted by one step: a warm start beyond U0 (see the solver's class docstring).
         """
         as_torch = isinstance(U0, Tensor)
         args = [
             a.detach().numpy() if isinstance(a, Tensor) else np.asarray(a, dtype=np.float64)
             for a in (x0, U0, x_ref, u_prev, low, high)
         ]
-        if prior is not None and (not self.reuse_jacobian or ocp.flow is None or ocp.horizon < 2):
+        if prior is not None and not self._uses_prior(ocp):
             prior = None
         if prior is not None:
             prior = np.asarray(prior, dtype=np.float64)
-            want = (int(np.prod(U0.shape[:-2])), ocp.horizon, ocp.nx, ocp.horizon * ocp.nu)
+            want = self._prior_shape(ocp, int(np.prod(U0.shape[:-2])))
             if prior.shape != want:
-                raise ValueError(f"prior sensitivities must have shape {want}, got {prior.shape}")
-        U, iterations, cost, converged, sens = self._solve(ocp, *args, prior)
+                raise ValueError(f"prior {self.prior_kind} must have shape {want}, got {prior.shape}")
+        with np.errstate(divide="ignore", invalid="ignore"):  # ratios of decreases not formed yet are NaN
+            U, iterations, cost, converged, warm = self._solve(ocp, *args, prior)
+        lead = U.shape[:-2]
+        kind = {self.prior_kind: None if warm is None else warm.reshape(*lead, *warm.shape[1:])}
         if as_torch:
-            info = SolveInfo(torch.from_numpy(iterations), torch.from_numpy(cost), torch.from_numpy(converged), sens)
+            info = SolveInfo(torch.from_numpy(iterations), torch.from_numpy(cost), torch.from_numpy(converged), **kind)
             return torch.from_numpy(U), info
-        return U, SolveInfo(iterations, cost, converged, sens)
+        return U, SolveInfo(iterations, cost, converged, **kind)
+
+    def _uses_prior(self, ocp: HorizonOCP) -> bool:
+        """Whether a prior can help here: the Jacobian warm start needs the numpy surrogate and H >= 2."""
+        return self.reuse_jacobian and ocp.flow is not None and ocp.horizon >= 2
+
+    @staticmethod
+    def _prior_shape(ocp: HorizonOCP, batch: int) -> tuple[int, ...]:
+        """Shape of the prior this solver takes: the sensitivities d x_i / d U."""
+        return (batch, ocp.horizon, ocp.nx, ocp.horizon * ocp.nu)
 
     def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):  # noqa: ANN001, ANN202
         """Iterate until every problem has converged or max_iter is reached.
@@ -198,12 +212,12 @@ class GaussNewtonSolver:
         cost = np.einsum("bm,bm->b", r, r)
         running = np.ones(batch, dtype=bool)
         iterations = np.zeros(batch, dtype=np.int64)
-        decreases = np.full((batch, 2), np.inf)  # the two previous decreases, latest first
+        decreases = np.full((batch, 2), np.nan)  # the two previous decreases, latest first
         for k in range(self.max_iter):
             # views while every problem runs (the batch-1 case), copies of the running rows otherwise
             idx = slice(None) if running.all() else np.flatnonzero(running)
             u_i, f = U[idx], cost[idx].copy()  # f must survive the update of cost below
-            delta, pgrad_max, predicted = self._step(r[idx], jac[idx], u_i, lo[idx], hi[idx])
+            delta, pgrad_max, predicted, _ = self._step(r[idx], jac[idx], u_i, lo[idx], hi[idx])
             done = (pgrad_max < self.tol_grad) | (predicted <= self.tol_cost * np.maximum(f, 1e-300))
             if k == 0 and prior is not None:
                 done[:] = False  # an approximate Jacobian cannot certify convergence
@@ -248,44 +262,55 @@ class GaussNewtonSolver:
         r, jac = ocp.residuals_and_jacobian(x0, U.reshape(-1, ocp.horizon, ocp.nu), x_ref, u_prev)
         return r, jac, None
 
-    @staticmethod
-    def _remaining(decrease: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    def _remaining(self, decrease: np.ndarray, previous: np.ndarray, fast: np.ndarray | None = None) -> np.ndarray:
         """Cost decrease still to come, extrapolated geometrically from the last three decreases.
 
         Gauss-Newton converges at least linearly, so with rho the larger of the two latest ratios of
         successive decreases what remains is at most decrease * rho / (1 - rho); near a zero-residual
         optimum it converges quadratically and this overestimates. Two ratios, not one, because a step
-        cut short by a bound gives one tiny decrease in an otherwise slow sequence. previous (B, 2)
-        holds the two decreases before this one, latest first; infinite until three steps were taken.
+        cut short by a bound gives one tiny decrease in an otherwise slow sequence, and after large first
+        steps from a poor start the next ratio is small even where convergence is slow. Where fast (this
+        step and the one before were full Newton steps of the model, neither cut by a bound) and the latest
+        ratio is below fast_ratio, the latest alone counts: the superlinear phase of a nearly zero-residual
+        problem, where the ratio before still carries the first, large steps.
+        previous (B, 2) holds the two decreases before this one, latest first; NaN until taken (a NaN
+        ratio extrapolates to infinity).
         """
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rho = np.maximum(decrease / previous[:, 0], previous[:, 0] / previous[:, 1])
-            known = np.isfinite(previous).all(-1) & (rho < 1.0)
-            return np.where(known, decrease * rho / (1.0 - rho), np.inf)
+        latest, before = decrease / previous[:, 0], previous[:, 0] / previous[:, 1]
+        rho = np.maximum(latest, before)
+        if fast is not None:
+            rho = np.where(fast & (latest <= self.fast_ratio) & (before == before), latest, rho)
+        return np.where(rho < 1.0, decrease * rho / (1.0 - rho), np.inf)
 
     def _step(self, r, jac, u, lo, hi):  # noqa: ANN001, ANN202
-        """Gauss-Newton step within the box, by a primal active set on the (convex) Gauss-Newton model.
+        """Gauss-Newton step within the box for residuals r and their Jacobian: see _newton_step."""
+        jt = jac.swapaxes(-1, -2)
+        return self._newton_step(jt @ jac, 2.0 * np.matmul(jt, r[..., None])[..., 0], u, lo, hi)
+
+    def _newton_step(self, jtj, grad, u, lo, hi):  # noqa: ANN001, ANN202
+        """Gauss-Newton step within the box, by a primal active set on the (convex) Gauss-Newton model
+        1/2 d^T (2 J^T J) d + grad^T d.
 
         Variables at a bound with the gradient pointing out start fixed. From there the free variables
         move along the model's Newton direction until one of them meets a bound; that one is fixed and
         the path goes on, until a full Newton step stays inside (at most n segments, usually one).
-        The model decreases along every segment. Returns the step, the projected gradient's max-norm and
-        the cost decrease the model predicts for the step.
+        The model decreases along every segment. Returns the step, the projected gradient's max-norm,
+        the cost decrease the model predicts for the step and whether a bound cut the Newton step short.
         """
-        jt = jac.swapaxes(-1, -2)
-        grad = 2.0 * np.matmul(jt, r[..., None])[..., 0]
         tol = BOUND_TOL * (hi - lo)  # "at a bound" up to rounding: steps aimed at a bound land within it
         fixed = ((u - lo <= tol) & (grad > 0)) | ((hi - u <= tol) & (grad < 0))
         pgrad_max = np.abs(np.where(fixed, 0.0, grad)).max(-1)
-        jtj = jt @ jac
-        mu = self.damping * np.maximum(np.einsum("bii->b", jtj) / jtj.shape[-1], 1e-30)
-        hess = jtj + mu[:, None, None] * np.eye(jtj.shape[-1])
+        hess = jtj.copy()
+        diagonal = np.einsum("bii->bi", hess)  # a writable view
+        diagonal += self.damping * np.maximum(diagonal.mean(-1, keepdims=True), 1e-30)
         delta = self._masked_solve(hess, grad, fixed)
-        if np.any(~fixed & ((u + delta > hi) | (u + delta < lo))):
+        moved = u + delta
+        cut = (~fixed & ((moved > hi) | (moved < lo))).any(-1)
+        if cut.any():
             delta = self._active_set_path(hess, grad, fixed, u, lo, hi)
-        jd = np.matmul(jac, delta[..., None])[..., 0]
-        predicted = -np.einsum("bm,bm->b", jd, 2.0 * r + jd)  # ||r||^2 - ||r + J delta||^2
-        return delta, pgrad_max, predicted
+        # ||r||^2 - ||r + J delta||^2 = -(grad . delta + delta^T J^T J delta)
+        predicted = -np.einsum("bi,bi->b", delta, grad + np.matmul(jtj, delta[..., None])[..., 0])
+        return delta, pgrad_max, predicted, cut
 
     def _active_set_path(self, hess, grad, fixed, u, lo, hi):  # noqa: ANN001, ANN202
         """Piecewise-linear path of the primal active-set method: Newton direction on the free variables,
@@ -362,20 +387,25 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
 
     The states at the start of each horizon step are extra unknowns: every iteration evaluates the
     network and its Jacobians at all H steps in one batched call instead of H sequential ones,
-    condenses the linearised dynamics into a least-squares step on U (the defects ride along as
-    offsets), and moves the states to the linearised prediction. At convergence the defects vanish,
-    so the solution is that of the single-shooting problem; its cost comes from a final rollout.
-    Falls back to single-shooting Gauss-Newton when it does not converge or ends worse than it began.
+    condenses the linearised dynamics into a Gauss-Newton step on U (the defects ride along as
+    offsets) and moves the states to the linearised prediction. At convergence the defects vanish,
+    so the solution is that of the single-shooting problem. The states start from the last solve's
+    predicted trajectory, one step on, when the controller hands it over as prior (a receding-horizon
+    warm start that costs no rollout); otherwise from a rollout of U0. Falls back to single-shooting
+    Gauss-Newton when it does not converge or ends worse than it began.
     """
 
     tol_defect: float = 1e-10  # converged also needs every state defect F(s_i, u_i) - s_{i+1} below this
+    fast_ratio: float = 1e-3  # a full step whose predicted decrease fell below this x the one before: see _remaining
     lifted_max_iter: int = 5  # lifted iterations before single shooting (max_iter more) takes over
-    accepts_prior: ClassVar[bool] = False
+    tol_final_defect: float = 1e-8  # the cost reached is measured by a full rollout where a defect exceeds this
+    accepts_prior: ClassVar[bool] = True
+    prior_kind: ClassVar[str] = "states"
 
     def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):  # noqa: ANN001, ANN202
         """Lifted iterations on the numpy surrogate; single shooting when there is none or they fail."""
         if ocp.flow is None:
-            return super()._solve(ocp, x0, U0, x_ref, u_prev, low, high, None)
+            return (*super()._solve(ocp, x0, U0, x_ref, u_prev, low, high, None)[:4], None)
         shape, (horizon, nx, nu) = U0.shape, (ocp.horizon, ocp.nx, ocp.nu)
         n = horizon * nu
         x0b, refb = x0.reshape(-1, nx), x_ref.reshape(-1, horizon, nx)
@@ -383,39 +413,45 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         U = np.clip(U0, low, high).reshape(-1, n)
         lo, hi = np.broadcast_to(low, shape).reshape(-1, n), np.broadcast_to(high, shape).reshape(-1, n)
         batch = U.shape[0]
-        X = ocp.rollout(x0b, U.reshape(-1, horizon, nu))
-        r0 = ocp.residuals(X, U.reshape(-1, horizon, nu), refb, upb)
-        start_cost = np.einsum("bm,bm->b", r0, r0)
         nodes = np.empty((batch, horizon, nx))  # s_0 = x0 (fixed), s_1..s_{H-1} lifted
         nodes[:, 0] = x0b
-        nodes[:, 1:] = X[:, :-1]
+        if prior is not None:  # the last plan's states x_2..x_H are this plan's s_1..s_{H-1}
+            nodes[:, 1:] = prior[:, 1:]
+        else:
+            nodes[:, 1:] = ocp.rollout(x0b, U.reshape(-1, horizon, nu))[:, :-1]
+        start_cost = None  # the model's cost of U0 at the first linearisation
         running = np.ones(batch, dtype=bool)
         iterations = np.zeros(batch, dtype=np.int64)
-        predictions = np.full((batch, 2), np.inf)  # the two previous predicted decreases, latest first
+        predictions = np.full((batch, 2), np.nan)  # the two previous predicted decreases, latest first
+        was_cut = np.ones(batch, dtype=bool)  # whether a bound cut the previous step short (none taken yet)
         for _ in range(self.lifted_max_iter):
-            # all problems while all run (the batch-1 case), else the running rows only
-            idx = slice(None) if running.all() else np.flatnonzero(running)
-            rows, u = np.arange(batch)[idx], U[idx]
-            pred, sens, defect = self._condense(ocp, nodes[idx], u)
-            r, jac = ocp.least_squares(pred, sens, u, refb[idx], upb[idx])
-            delta, pgrad_max, predicted = self._step(r, jac, u, lo[idx], hi[idx])
-            f = np.einsum("bm,bm->b", r, r)
-            small = (pgrad_max < self.tol_grad) | (predicted <= self.tol_cost * np.maximum(f, 1e-300))
-            go = ~(small & (defect <= self.tol_defect))
+            # the whole batch every time (no row gathering: batch-1 solves are dominated by per-op overhead);
+            # problems that stopped take no further steps, their states only settle onto the prediction
+            pred, sens, defect, chain = self._linearise(ocp, nodes, U)
+            f, jtj, grad = ocp.gauss_newton_model(pred, sens, U, refb, upb)
+            if start_cost is None:
+                start_cost = f
+            delta, pgrad_max, predicted, cut = self._newton_step(jtj, grad, U, lo, hi)
+            small = (pgrad_max < self.tol_grad) | (predicted <= self.tol_cost * f)
+            go = running & ~(small & (defect <= self.tol_defect))
             # this step is the last when what remains after it, extrapolated from the model's predicted
-            # decreases, is negligible: the final rollout below then measures the cost reached
-            last = go & (self._remaining(predicted, predictions[idx]) <= self.tol_gap * f)
-            predictions[idx] = np.stack((predicted, predictions[idx, 0]), -1)
-            iterations[rows[go]] += 1
-            step = np.where(go[:, None], np.clip(u + delta, lo[idx], hi[idx]) - u, 0.0)
-            U[idx] = u + step
+            # decreases, is negligible: the cost reached is measured below
+            last = self._remaining(predicted, predictions, ~(cut | was_cut)) <= self.tol_gap * f
+            predictions[:, 1] = predictions[:, 0]
+            predictions[:, 0] = predicted
+            was_cut = cut
+            iterations += go
+            step = np.where(go[:, None], np.clip(U + delta, lo, hi) - U, 0.0)
+            U += step
             # the states move to the linearised prediction (within the defect tolerance for those that stop)
-            nodes[rows, 1:] = pred[:, :-1] + (sens[:, :-1] @ step[:, None, :, None])[..., 0]
-            running[rows[~go | last]] = False
+            moved = pred.reshape(batch, -1) + (sens @ step[..., None])[..., 0]
+            nodes[:, 1:] = moved.reshape(batch, horizon, nx)[:, :-1]
+            running &= go & ~last
             if not running.any():
                 break
         U3 = U.reshape(-1, horizon, nu)
-        cost = ocp.cost(x0b, U3, refb, upb)
+        X = self._reached(ocp, x0b, nodes, U3, chain)
+        cost = (ocp.residuals(X, U3, refb, upb) ** 2).sum(-1)
         failed = running | ~np.isfinite(cost) | (cost > start_cost)
         if failed.any():  # rare: redo those problems by single shooting from the better of start and end
             rows = np.flatnonzero(failed)
@@ -434,25 +470,65 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             )
             U[rows], iterations[rows], cost[rows] = sub[0].reshape(-1, n), iterations[rows] + sub[1], sub[2]
             running[rows] = ~sub[3]
-        return _result(shape, _project(U, lo, hi), iterations, cost, ~running, None)
+            X[rows] = ocp.rollout(x0b[rows], U[rows].reshape(-1, horizon, nu))
+        return _result(shape, _project(U, lo, hi), iterations, cost, ~running, X)
+
+    def _uses_prior(self, ocp: HorizonOCP) -> bool:
+        """The states warm start needs the numpy surrogate."""
+        return ocp.flow is not None
 
     @staticmethod
-    def _condense(ocp, nodes, U):  # noqa: ANN001, ANN205
-        """One batched network call at all nodes, then the linearised predictions x_1..x_H, their
-        sensitivities to U (chained along the horizon) and the largest defect per problem."""
+    def _prior_shape(ocp: HorizonOCP, batch: int) -> tuple[int, ...]:
+        """Shape of the prior this solver takes: the last plan's states x_1..x_H."""
+        return (batch, ocp.horizon, ocp.nx)
+
+    @staticmethod
+    def _linearise(ocp, nodes, U):  # noqa: ANN001, ANN205
+        """One batched network call at all nodes, then the linearised predictions x_1..x_H (B, H, nx), their
+        sensitivities to U (B, H*nx, H*nu), the largest defect per problem and the chain matrix.
+
+        The chain x_i = y_i + A_i (x_{i-1} - s_i) over the horizon is one block-triangular solve with the
+        chain matrix I - L (L: the A_i on the block subdiagonal): for the predictions and all H*nu input
+        directions at once.
+        """
         batch, horizon, nx = nodes.shape
         nu = ocp.nu
         y, a, b = ocp.flow.step_with_jacobian(nodes, U.reshape(batch, horizon, nu))
-        pred = y.copy()
-        sens = np.zeros((batch, horizon, nx, horizon * nu))
-        for i in range(horizon):
-            if i:
-                offset = pred[:, i - 1] - nodes[:, i]  # the defect, carried through the linearisation
-                pred[:, i] += (a[:, i] @ offset[..., None])[..., 0]
-                np.matmul(a[:, i], sens[:, i - 1, :, : i * nu], out=sens[:, i, :, : i * nu])
-            sens[:, i, :, i * nu : (i + 1) * nu] = b[:, i]
+        chain = _chain_matrix(a)
+        rhs = np.zeros((batch, horizon, nx, horizon * nu + 1))
+        blocks = rhs[..., :-1].reshape(batch, horizon, nx, horizon, nu)
+        diag = np.arange(horizon)
+        blocks[:, diag, :, diag, :] = b.swapaxes(0, 1)  # x_i depends directly on u_i only through B_i
+        rhs[..., -1] = y
+        rhs[:, 1:, :, -1] -= (a[:, 1:] @ nodes[:, 1:, :, None])[..., 0]
+        sol = np.linalg.solve(chain, rhs.reshape(batch, horizon * nx, -1))
         defect = np.abs(y[:, :-1] - nodes[:, 1:]).reshape(batch, -1).max(-1, initial=0.0)
-        return pred, sens, defect
+        return sol[..., -1].reshape(batch, horizon, nx), sol[..., :-1], defect, chain
+
+    def _reached(self, ocp, x0, nodes, U, chain):  # noqa: ANN001, ANN202
+        """The states U reaches from x0 (B, H, nx): one batched network call at the final nodes, their defects
+        carried through the last linearisation (x_i - y_i = A_i (x_{i-1} - y_{i-1} + gap_{i-1}), exact to
+        second order in the defects, which are tiny at convergence); a full rollout where one is larger
+        than tol_final_defect."""
+        batch, horizon, nx = nodes.shape
+        y = ocp.flow.step(nodes, U)
+        gap = np.zeros((batch, horizon, nx))  # gap_i = F(s_i, u_i) - s_{i+1}: the defect at the end of step i
+        gap[:, :-1] = y[:, :-1] - nodes[:, 1:]
+        X = y + np.linalg.solve(chain, gap.reshape(batch, -1, 1)).reshape(batch, horizon, nx) - gap
+        far = np.flatnonzero(np.abs(gap).reshape(batch, -1).max(-1) > self.tol_final_defect)
+        if far.size:
+            X[far] = ocp.rollout(x0[far], U[far])
+        return X
+
+
+def _chain_matrix(a: np.ndarray) -> np.ndarray:
+    """I - L for step Jacobians a (B, H, nx, nx): L holds A_1..A_{H-1} on the block subdiagonal."""
+    batch, horizon, nx, _ = a.shape
+    chain = np.zeros((batch, horizon, nx, horizon, nx))
+    diag, sub = np.arange(horizon), np.arange(1, horizon)
+    chain[:, diag, :, diag, :] = np.eye(nx)
+    chain[:, sub, :, sub - 1, :] = -a[:, 1:].swapaxes(0, 1)
+    return chain.reshape(batch, horizon * nx, horizon * nx)
 
 
 SOLVERS = {

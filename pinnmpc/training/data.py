@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import lightning as L
 import numpy as np
@@ -13,6 +13,8 @@ from torch.utils.data import DataLoader
 
 from pinnmpc.integrators import rk4_step
 from pinnmpc.systems.base import System
+
+Scorer = Callable[[Tensor, Tensor, Tensor], Tensor]  # (t, x0, u) -> residual per point, as PINNModule provides
 
 
 def lhs_box(n: int, low: Sequence[float], high: Sequence[float], seed: int) -> Tensor:
@@ -56,11 +58,19 @@ class CollocationDataModule(L.LightningDataModule):
         n_val: int = 1000,
         val_h: float = 1e-4,
         seed: int = 0,
+        adaptive_pool: int = 0,
+        adaptive_k: float = 1.0,
+        adaptive_c: float = 1.0,
     ) -> None:
         super().__init__()
         if n_collocation < 1 or n_data < 0 or n_val < 1:
             raise ValueError(
                 f"need n_collocation >= 1, n_data >= 0, n_val >= 1; got {n_collocation}, {n_data}, {n_val}"
+            )
+        if adaptive_pool < 0 or adaptive_k < 0 or adaptive_c < 0 or (adaptive_pool and adaptive_pool < 2):
+            raise ValueError(
+                f"need adaptive_pool 0 (off) or >= 2, adaptive_k >= 0, adaptive_c >= 0; "
+                f"got {adaptive_pool}, {adaptive_k}, {adaptive_c}"
             )
         if not 0 < tau <= t_max:
             raise ValueError(f"need 0 < tau <= t_max, got tau={tau}, t_max={t_max}")
@@ -68,18 +78,42 @@ class CollocationDataModule(L.LightningDataModule):
         self.n_collocation, self.n_data = int(n_collocation), int(n_data)
         self.resample_every, self.resample_epochs = int(resample_every), {int(e) for e in resample_epochs}
         self.n_val, self.val_h, self.seed = int(n_val), float(val_h), int(seed)
+        self.adaptive_pool, self.adaptive_k, self.adaptive_c = int(adaptive_pool), float(adaptive_k), float(adaptive_c)
         self.draws = 0
         self.batch: dict[str, Tensor] = {}
         self.val: dict[str, Tensor] = {}
         self._drawn_for_epoch = -1
 
+    def _scorer(self) -> Scorer | None:
+        """The training module's pointwise residual, once there is a trained model to ask (not for the first draw)."""
+        if not self.adaptive_pool or self.draws == 0 or self.trainer is None:
+            return None
+        return getattr(self.trainer.lightning_module, "pointwise_residual", None)
+
+    def _collocation(self, low: Sequence[float], high: Sequence[float], seed: int) -> Tensor:
+        """LHS points, or with adaptive_pool the RAR-D draw (Wu et al. 2023) from a larger LHS pool.
+
+        Density ~ r^k / mean(r^k) + c over the pool (r: squared residual of the current model), so points
+        gather where the physics is still violated (friction switching at dbeta = 0, small t) while c keeps
+        the whole box covered.
+        """
+        scorer = self._scorer()
+        if scorer is None:
+            return lhs_box(self.n_collocation, low, high, seed)
+        pool = lhs_box(self.adaptive_pool * self.n_collocation, low, high, seed)
+        nx = self.system.state_box.dim
+        r = scorer(pool[:, :1], pool[:, 1 : 1 + nx], pool[:, 1 + nx :]).pow(self.adaptive_k)
+        weights = r / r.mean().clamp_min(torch.finfo(r.dtype).tiny) + self.adaptive_c
+        generator = torch.Generator().manual_seed(seed)
+        return pool[torch.multinomial(weights, self.n_collocation, replacement=False, generator=generator)]
+
     def draw(self) -> None:
-        """Draw a fresh set of collocation and data points; the k-th draw is fixed by (seed, k)."""
+        """Draw a fresh set of collocation and data points; the k-th plain-LHS draw is fixed by (seed, k)."""
         s = self.system
         seed = self.seed + 7919 * self.draws
         low = (0.0, *s.state_box.low, *s.input_box.low)
         high = (self.t_max, *s.state_box.high, *s.input_box.high)
-        pts = lhs_box(self.n_collocation, low, high, seed)
+        pts = self._collocation(low, high, seed)
         nx = s.state_box.dim
         batch = {"t": pts[:, :1], "x0": pts[:, 1 : 1 + nx], "u": pts[:, 1 + nx :]}
         if self.n_data:

@@ -67,12 +67,21 @@ class PINNModule(L.LightningModule):
         """Training dtype (float32 is ~2x faster on CPU; the surrogate runs in float64 later)."""
         return {k: v.to(self.res_scale.dtype) for k, v in batch.items()}
 
+    def _scaled_residual(self, b: dict[str, Tensor]) -> Tensor:
+        """ODE residual per point and state, in the units the physics loss weighs."""
+        x, dxdt = self.model.with_time_derivative(b["t"], b["x0"], b["u"])
+        return self.system.residual(x, dxdt, b["u"], self.hparams.residual_form) / self.res_scale
+
+    @torch.no_grad()
+    def pointwise_residual(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
+        """Squared residual per point: where residual-adaptive sampling puts the next collocation points."""
+        b = self._cast({"t": t, "x0": x0, "u": u})
+        return self._scaled_residual(b).square().sum(dim=-1).double()
+
     def losses(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         """Physics, data and total loss for one full batch."""
         b = self._cast(batch)
-        x, dxdt = self.model.with_time_derivative(b["t"], b["x0"], b["u"])
-        res = self.system.residual(x, dxdt, b["u"], self.hparams.residual_form) / self.res_scale
-        out = {"physics": res.square().mean()}
+        out = {"physics": self._scaled_residual(b).square().mean()}
         total = self.hparams.weight_physics * out["physics"]
         if "data_x0" in b and self.hparams.weight_data > 0:
             x0 = b["data_x0"]
