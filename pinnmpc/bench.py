@@ -297,6 +297,7 @@ class OCPProblem:
     x_ref: Tensor
     u_prev: Tensor
     U: Tensor
+    disturbance: Tensor  # the additive disturbance the controller predicted with (zeros: none)
 
 
 @dataclass
@@ -340,9 +341,13 @@ class RecordingSolver:
         """Delegate, then record each problem of the batch with its projected solution."""
         U, info = self.inner.solve(ocp, x0, U0, x_ref, u_prev, low, high, **options)
         Uc = np.clip(np.asarray(U, dtype=np.float64), np.asarray(low), np.asarray(high))
+        d = np.zeros(ocp.nx) if ocp.disturbance is None else ocp.disturbance
         for i in range(x0.shape[0]):
-            self.raw.append(tuple(np.array(a, dtype=np.float64) for a in (x0[i], x_ref[i], u_prev[i], Uc[i])))
+            self.raw.append(tuple(np.array(a, dtype=np.float64) for a in (x0[i], x_ref[i], u_prev[i], Uc[i], d)))
         return U, info
+
+
+NO_DISTURBANCE = {"gain": 0.0}  # controller.disturbance override: the paper's controller, no offset-free MPC
 
 
 def controller_cfg(cfg: DictConfig, **changes: Any) -> DictConfig:
@@ -351,10 +356,10 @@ def controller_cfg(cfg: DictConfig, **changes: Any) -> DictConfig:
 
 
 def run_controller(
-    cfg: DictConfig, system: System, model: Model, ref: Reference, solver: str, record: bool
+    cfg: DictConfig, system: System, model: Model, ref: Reference, solver: str, record: bool, **changes: Any
 ) -> tuple[dict[str, Any], list[OCPProblem]]:
     """One closed loop on the RK45 plant; the row of the table and, when asked, the OCPs it solved."""
-    nmpc: NMPC = build_nmpc(controller_cfg(cfg, solver=solver), model)
+    nmpc: NMPC = build_nmpc(controller_cfg(cfg, solver=solver, **changes), model)
     recorder = RecordingSolver(nmpc.solver) if record else None
     if recorder is not None:
         nmpc.solver = recorder
@@ -366,6 +371,7 @@ def run_controller(
     ocp = m["ocp_time_s"]
     row = {
         "solver": solver,
+        "disturbance_gain": float(nmpc.disturbance_gain),
         "status": m["status"],
         "steps": int(m["steps"]),
         "mae": m["mae"],
@@ -399,10 +405,15 @@ def bench_closed_loop(
     examined = set(optimality_solvers(cfg)) if cfg.optimality.enabled else set()
     for solver in cl.solvers:
         row, recorded = run_controller(cfg, system, surrogate, ref, solver, record=solver in examined)
-        rows[f"pinn_{solver}"] = {"label": f"PINN-MPC, {solver}", "model": "pinn", **row}
+        rows[f"pinn_{solver}"] = {"label": _label(solver, row), "model": "pinn", **row}
         if recorded:
             problems[solver] = recorded
         log.info("closed loop: PINN %s done in %.1f s", solver, row["wall_s"])
+    if cl.paper_controller and float(cfg.controller.disturbance.gain) > 0:  # the same without offset-free MPC
+        solver = str(cfg.controller.solver)
+        row, _ = run_controller(cfg, system, surrogate, ref, solver, record=False, disturbance=NO_DISTURBANCE)
+        rows[f"pinn_{solver}_paper"] = {"label": _label(solver, row), "model": "pinn", **row}
+        log.info("closed loop: PINN %s without disturbance estimate done in %.1f s", solver, row["wall_s"])
     if cl.true_model:
         model = RK4Model(system, surrogate.tau, float(cl.true_model_h), str(cl.true_model_jacobian))
         for solver in cl.true_model_solvers:
@@ -416,11 +427,22 @@ def bench_closed_loop(
 
 
 def other_reference_row(cfg: DictConfig, system: System, surrogate: Surrogate, name: str) -> dict[str, Any]:
-    """The configured controller on a built-in reference: tracking beyond the paper's one trajectory."""
+    """The configured controller on a built-in reference: tracking beyond the paper's one trajectory; with
+    offset-free MPC on, the MAE of the same controller without it too."""
     ref = load_reference(None, surrogate.tau, name)
-    row, _ = run_controller(cfg, system, surrogate, ref, str(cfg.controller.solver), record=False)
+    solver = str(cfg.controller.solver)
+    row, _ = run_controller(cfg, system, surrogate, ref, solver, record=False)
+    if cfg.closed_loop.paper_controller and row["disturbance_gain"] > 0:
+        plain, _ = run_controller(cfg, system, surrogate, ref, solver, record=False, disturbance=NO_DISTURBANCE)
+        row["mae_without_disturbance"] = plain["mae"]
     log.info("closed loop: built-in reference %s done in %.1f s", name, row["wall_s"])
     return row
+
+
+def _label(solver: str, row: dict[str, Any]) -> str:
+    """Row label: the solver, and whether the controller estimated a disturbance (offset-free MPC)."""
+    gain = row["disturbance_gain"]
+    return f"PINN-MPC, {solver}" + (f", offset-free (gain {gain:g})" if gain > 0 else ", paper's controller")
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -464,6 +486,7 @@ def bench_optimality(cfg: DictConfig, surrogate: Surrogate, solver: str, problem
     t0 = time.perf_counter()
     for i in picks:
         p = problems[int(i)]
+        ocp.disturbance = p.disturbance.numpy()  # the very problem the controller solved
         with torch.no_grad():
             gn.append(float(ocp.cost(p.x0[None], p.U[None], p.x_ref[None], p.u_prev[None]).sum()))
         starts = [np.clip(np.zeros(H * ocp.nu), np.tile(low, H), np.tile(high, H)), p.U.numpy().ravel().copy()]
@@ -775,11 +798,15 @@ def md_other_references(cl: dict[str, Any], names: Sequence[str]) -> str:
         "iterations mean",
         "fallbacks",
     ]
+    plain = any("mae_without_disturbance" in r for r in cl["references"].values())
+    if plain:
+        headers[3:3] = [f"MAE {n} without offset-free" for n in names]
     rows = [
         [
             name + ("" if r["status"] == "ok" else f" ({r['status'][:STATUS_CHARS]})"),
-            r["solver"],
+            r["solver"] + (f", offset-free (gain {r['disturbance_gain']:g})" if r["disturbance_gain"] > 0 else ""),
             fmt(r["steps"]),
+            *((fmt(r.get("mae_without_disturbance", {}).get(n), ".2e") for n in names) if plain else ()),
             *(fmt(r["mae"][n], ".2e") for n in names),
             fmt(r["ocp_time_s"]["median"], ".2e"),
             fmt(r["ocp_time_s"]["p95"], ".2e"),

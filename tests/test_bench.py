@@ -111,7 +111,11 @@ def test_closed_loop_rows(bench: tuple[dict[str, Any], Path]) -> None:
         "pinn_gauss_newton",
         "pinn_rmsprop",
         "true_rk4_gauss_newton",
+        "pinn_lifted_gauss_newton_paper",  # the default controller without offset-free MPC
     }
+    assert cl["rows"]["pinn_lifted_gauss_newton_paper"]["disturbance_gain"] == 0.0
+    assert cl["rows"]["pinn_lifted_gauss_newton"]["disturbance_gain"] == pytest.approx(0.7)  # conf default
+    assert cl["rows"]["pinn_lifted_gauss_newton_paper"]["mae"] != cl["rows"]["pinn_lifted_gauss_newton"]["mae"]
     for key, row in cl["rows"].items():
         assert row["status"] == "ok", key
         assert row["steps"] == MAX_STEPS
@@ -129,6 +133,7 @@ def test_built_in_reference_rows(bench: tuple[dict[str, Any], Path]) -> None:
         assert row["status"] == "ok" and row["steps"] == MAX_STEPS
         assert row["solver"] == "lifted_gauss_newton"  # the configured controller
         assert all(v > 0 for v in row["mae"].values())
+        assert row["mae_without_disturbance"] != row["mae"]  # the same loop without offset-free MPC
     assert others["rest"]["mae"] != others["sine"]["mae"]  # two different loops, not one row copied
 
 
@@ -184,13 +189,15 @@ def test_markdown_has_every_table(bench: tuple[dict[str, Any], Path]) -> None:
         "| PINN float64 (torch) |",
         "RMSE alpha",
         "## 2. Closed loop",
-        "| PINN-MPC, lifted_gauss_newton |",
-        "| PINN-MPC, gauss_newton |",
+        "| PINN-MPC, lifted_gauss_newton, offset-free (gain 0.7) |",
+        "| PINN-MPC, lifted_gauss_newton, paper's controller |",
+        "| PINN-MPC, gauss_newton, offset-free (gain 0.7) |",
+        "without offset-free",
         "true model (RK4",
         "paper (RMSprop",
         "7.53e-03",
         "### Built-in references",
-        "| rest | lifted_gauss_newton |",
+        "| rest | lifted_gauss_newton, offset-free (gain 0.7) |",
         "## 3. OCP optimality",
         "optimality rel gap max",
         "| rmsprop |",

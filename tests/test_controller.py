@@ -492,6 +492,83 @@ def test_make_step_carries_the_warm_start(s: Surrogate, name: str, kind: str, sh
     assert nmpc.prior is None
 
 
+D = np.array([2e-3, -1e-3, 5e-3, -4e-3])  # an additive disturbance on every predicted step
+
+
+def test_disturbance_enters_every_predicted_step(s: Surrogate) -> None:
+    H = 4
+    ocp = HorizonOCP(s, H, FULL_Q, FULL_R, FULL_R_RATE)
+    x0, U, x_ref, u_prev = _ocp_problem(5, 3, H)
+    plain = ocp.rollout(x0, U)
+    ocp.disturbance = D
+    x, expected = x0, []
+    for i in range(H):  # x_{i+1} = F(x_i, u_i) + d, stepped by hand on the surrogate itself
+        x = s.step(x, U[:, i]) + torch.from_numpy(D)
+        expected.append(x)
+    torch.testing.assert_close(ocp.rollout(x0, U), torch.stack(expected, 1), rtol=0, atol=1e-13)
+    assert (ocp.rollout(x0, U) - plain).abs().max() > 1e-3
+    np.testing.assert_allclose(ocp.rollout(x0.numpy(), U.numpy()), torch.stack(expected, 1).numpy(), atol=1e-12)
+
+    def residuals(x0_: Tensor, U_: Tensor, ref_: Tensor, up_: Tensor) -> Tensor:
+        return ocp.residuals(ocp.rollout(x0_, U_), U_, ref_, up_)
+
+    r, J = ocp.residuals_and_jacobian(x0.numpy(), U.numpy(), x_ref.numpy(), u_prev.numpy())
+    np.testing.assert_allclose(r, residuals(x0, U, x_ref, u_prev).numpy(), rtol=0, atol=1e-12)
+    J_ref = vmap(jacrev(residuals, argnums=1))(x0, U, x_ref, u_prev).reshape(J.shape)
+    assert np.abs(J - J_ref.numpy()).max() < 1e-10
+    ocp.disturbance = None
+    torch.testing.assert_close(ocp.rollout(x0, U), plain, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("solver", NEWTON)
+def test_solvers_reach_the_optimum_of_the_disturbed_problem(s: Surrogate, solver: type) -> None:
+    H, ocp, low, high, g, x0 = _paper_box_problem(s, 36, [1.0, 1.0, 0.0, 0.0])
+    x_ref = ocp.rollout(x0, _uniform(g, (H, NU), -0.4, 0.4))
+    u_prev = torch.zeros(NU, dtype=F64)
+    ocp.disturbance = D
+    U, info = solver().solve(ocp, x0[None], torch.zeros(1, H, NU, dtype=F64), x_ref[None], u_prev[None], low, high)
+    assert float(info.cost[0]) == pytest.approx(float(ocp.cost(x0, U[0], x_ref, u_prev)), rel=1e-10)
+    _assert_optimal(ocp, x0, U[0], x_ref, u_prev, low, high, [torch.zeros(H, NU, dtype=F64)])
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "fragment"),
+    [
+        ({"disturbance_gain": 1.5}, "disturbance gain must be in [0, 1], got 1.5"),
+        ({"disturbance_gain": -0.1}, "disturbance gain must be in [0, 1], got -0.1"),
+        ({"disturbance_max": [0.1, 0.1]}, "disturbance max must be 4 non-negative numbers"),
+        ({"disturbance_max": [0.1, -0.1, 0.1, 0.1]}, "disturbance max must be 4 non-negative numbers"),
+    ],
+)
+def test_bad_disturbance_settings_are_refused(s: Surrogate, kwargs: dict, fragment: str) -> None:
+    ocp = HorizonOCP(s, 3, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
+    with pytest.raises(ValueError, match=fragment.replace("[", r"\[").replace("]", r"\]")):
+        NMPC(ocp, make_solver("lifted_gauss_newton"), *ASYMMETRIC, **kwargs)
+    for bad in ([1.0, 2.0], [0.0, float("nan"), 0.0, 0.0]):
+        with pytest.raises(ValueError, match="disturbance must be 4 finite numbers"):
+            ocp.disturbance = bad
+
+
+@pytest.mark.parametrize("gain", [1.0, 0.5])
+def test_make_step_estimates_the_last_prediction_error(s: Surrogate, gain: float) -> None:
+    H = 5
+    ocp = HorizonOCP(s, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
+    d_max = [0.05, 0.05, 0.5, 0.5]
+    nmpc = NMPC(ocp, make_solver("lifted_gauss_newton"), *ASYMMETRIC, disturbance_gain=gain, disturbance_max=d_max)
+    g = _gen(37)
+    x0 = _states(g, 1)[0].numpy()
+    ref = _far_reference(g, torch.from_numpy(x0)[None], H)[0].numpy()
+    u0 = nmpc.make_step(x0, ref)
+    assert nmpc.disturbance is None  # nothing to compare with yet
+    x1 = s.step(torch.from_numpy(x0), torch.from_numpy(u0)).numpy() + np.array([3e-3, -2e-3, 0.2, -0.9])
+    nmpc.make_step(x1, ref)
+    # what the surrogate missed, scaled by the gain and clipped per state (the last velocity error is 0.9 > 0.5)
+    expected = np.clip(gain * np.array([3e-3, -2e-3, 0.2, -0.9]), -np.array(d_max), d_max)
+    np.testing.assert_allclose(nmpc.disturbance, expected, rtol=0, atol=1e-12)
+    nmpc.reset()
+    assert nmpc.disturbance is None and nmpc.ocp.disturbance is None
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # The receding-horizon controller
 

@@ -20,4 +20,13 @@ def build_nmpc(cfg: Any, surrogate: Surrogate) -> NMPC:
     ocp = HorizonOCP(surrogate, cfg["horizon"], cfg["Q"], cfg["R"], cfg["R_rate"])
     low = surrogate.input_box.low if cfg["u_low"] is None else cfg["u_low"]
     high = surrogate.input_box.high if cfg["u_high"] is None else cfg["u_high"]
-    return NMPC(ocp, solver, low, high, warm_start=cfg["warm_start"])
+    d = cfg.get("disturbance") or {}
+    return NMPC(
+        ocp,
+        solver,
+        low,
+        high,
+        warm_start=cfg["warm_start"],
+        disturbance_gain=float(d.get("gain", 0.0)),
+        disturbance_max=d.get("max_abs"),
+    )

@@ -35,6 +35,8 @@ class NMPC:
     u_low: Sequence[float]
     u_high: Sequence[float]
     warm_start: bool = True
+    disturbance_gain: float = 0.0  # offset-free MPC: 0 off; 1 d = the last one-step prediction error; between: filtered
+    disturbance_max: Sequence[float] | None = None  # per-state bound on |d| (None: unbounded)
     stats: list[StepStats] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -48,6 +50,12 @@ class NMPC:
         if torch.any(self.low > self.high):
             raise ValueError(f"input lower bound {self.low.tolist()} exceeds upper bound {self.high.tolist()}")
         self._low, self._high = self.low.numpy(), self.high.numpy()
+        if not 0.0 <= self.disturbance_gain <= 1.0:
+            raise ValueError(f"disturbance gain must be in [0, 1], got {self.disturbance_gain}")
+        self._d_max = None if self.disturbance_max is None else np.array(self.disturbance_max, dtype=np.float64)
+        if self._d_max is not None and (self._d_max.shape != (self.ocp.nx,) or np.any(~(self._d_max >= 0))):
+            got = list(self.disturbance_max)
+            raise ValueError(f"disturbance max must be {self.ocp.nx} non-negative numbers (one per state), got {got}")
         self.reset()
 
     @property
@@ -92,6 +100,8 @@ class NMPC:
         self._U = self._cold_start()
         self._u_prev = self._U[0].copy()
         self._prior = None  # what the last solve hands the next one beyond U (see Solver.prior_kind)
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # the last measured state and the input applied
+        self.ocp.disturbance = None
         self.stats = []
 
     def _cold_start(self) -> np.ndarray:
@@ -141,6 +151,7 @@ class NMPC:
         start = time.perf_counter()
         fallback = False
         try:
+            self._estimate_disturbance(x0)
             U, info = self._solve_one(x0, ref)  # noqa: N806
             ok = bool(np.isfinite(U).all()) and bool(np.isfinite(np.asarray(info.cost)).all())
         except (RuntimeError, FloatingPointError, np.linalg.LinAlgError):  # e.g. a singular solve on NaN outputs
@@ -154,6 +165,7 @@ class NMPC:
         kind = getattr(self.solver, "prior_kind", "sensitivities")
         self._prior = getattr(info, kind, None) if self.warm_start and not fallback else None
         self._u_prev = U[0].copy()
+        self._last = (x0.copy(), self._u_prev)
         self.stats.append(
             StepStats(
                 time_s=elapsed,
@@ -164,6 +176,26 @@ class NMPC:
             )
         )
         return U[0].copy()
+
+    @property
+    def disturbance(self) -> np.ndarray | None:
+        """The disturbance the last solve predicted with (None: off or not estimated yet)."""
+        return self.ocp.disturbance
+
+    def _estimate_disturbance(self, x: np.ndarray) -> None:
+        """Offset-free MPC: what the surrogate missed over the last period, added to every predicted step
+        (filtered by the gain, bounded by disturbance_max), so a smooth model error is not tracked as offset."""
+        if self.disturbance_gain == 0.0 or self._last is None:
+            return
+        error = self.ocp.prediction_error(*self._last, x)
+        if not np.all(np.isfinite(error)):
+            return  # a surrogate fault: keep the last estimate (the solve's own fallback handles the rest)
+        d = self.ocp.disturbance
+        d = np.zeros_like(error) if d is None else d
+        d = d + self.disturbance_gain * (error - d)
+        if self._d_max is not None:
+            d = np.clip(d, -self._d_max, self._d_max)
+        self.ocp.disturbance = d
 
     @staticmethod
     def _shifted(U: np.ndarray) -> np.ndarray:  # noqa: N803

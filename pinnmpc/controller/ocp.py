@@ -71,6 +71,7 @@ class HorizonOCP:
         self._jac_u: dict[ModuleType, Array] = {}
         self._normal_u: tuple[np.ndarray, np.ndarray] | None = None
         self.flow = NumpyFlow.from_pinn(surrogate.model, surrogate.tau) if hasattr(surrogate, "model") else None
+        self.disturbance = None
 
     @property
     def w_q(self) -> Tensor:
@@ -97,27 +98,59 @@ class HorizonOCP:
         """Length of the stacked residual vector per problem."""
         return self.horizon * (self.nx + self.nu + (self.nu if self.has_rate else 0))
 
-    def _step(self, x: Array, u: Array) -> Array:
-        """One surrogate step in the namespace of x."""
+    @property
+    def disturbance(self) -> np.ndarray | None:
+        """Additive disturbance d (nx,) on every predicted step, x_{i+1} = F(x_i, u_i) + d (None: none)."""
+        return self._disturbance[np]
+
+    @disturbance.setter
+    def disturbance(self, d: np.ndarray | Sequence[float] | None) -> None:
+        """Set d, e.g. the last one-step prediction error (offset-free MPC)."""
+        if d is None:
+            self._disturbance = {np: None, torch: None}
+            return
+        d = np.array(d, dtype=np.float64)
+        if d.shape != (self.nx,) or not np.all(np.isfinite(d)):
+            raise ValueError(f"disturbance must be {self.nx} finite numbers (one per state), got {d.tolist()}")
+        self._disturbance = {np: d, torch: torch.from_numpy(d)}
+
+    def _disturbed(self, x: Array) -> Array:
+        """x + d where a disturbance is set."""
+        d = self._disturbance[xp_of(x)]
+        return x if d is None else x + d
+
+    def _model_step(self, x: Array, u: Array) -> Array:
+        """One undisturbed surrogate step in the namespace of x."""
         if isinstance(x, Tensor):
             return self.surrogate.step(x, u)
         if self.flow is not None:
             return self.flow.step(x, u)
         return self.surrogate.step(torch.from_numpy(x), torch.from_numpy(u)).numpy()
 
-    def _step_with_jacobian(self, x: Array, u: Array) -> tuple[Array, Array, Array]:
-        """One surrogate step with its Jacobians, in the namespace of x."""
+    def step(self, x: Array, u: Array) -> Array:
+        """One predicted step (surrogate plus disturbance) in the namespace of x."""
+        return self._disturbed(self._model_step(x, u))
+
+    def step_with_jacobian(self, x: Array, u: Array) -> tuple[Array, Array, Array]:
+        """One predicted step with its Jacobians (d is constant), in the namespace of x."""
         if isinstance(x, Tensor):
-            return self.surrogate.step_with_jacobian(x, u)
-        if self.flow is not None:
-            return self.flow.step_with_jacobian(x, u)
-        return tuple(v.numpy() for v in self.surrogate.step_with_jacobian(torch.from_numpy(x), torch.from_numpy(u)))
+            y, a, b = self.surrogate.step_with_jacobian(x, u)
+        elif self.flow is not None:
+            y, a, b = self.flow.step_with_jacobian(x, u)
+        else:
+            t = self.surrogate.step_with_jacobian(torch.from_numpy(x), torch.from_numpy(u))
+            y, a, b = (v.numpy() for v in t)
+        return self._disturbed(y), a, b
+
+    def prediction_error(self, x_prev: np.ndarray, u_prev: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """What the undisturbed surrogate missed over the last period: x - F(x_prev, u_prev)."""
+        return x - self._model_step(x_prev, u_prev)
 
     def rollout(self, x0: Array, U: Array) -> Array:
         """Predicted states x_1..x_H (..., H, nx) by self-loop of the surrogate."""
         xs, x = [], x0
         for i in range(self.horizon):
-            x = self._step(x, U[..., i, :])
+            x = self.step(x, U[..., i, :])
             xs.append(x)
         return xp_of(x0).stack(xs, -2)
 
@@ -178,7 +211,7 @@ class HorizonOCP:
         sens = xp.zeros((*lead, self.nx, n_var), dtype=xp.float64)  # d x_i / d U
         xs, sens_list, x = [], [], x0
         for i in range(self.horizon):
-            x, a, b = self._step_with_jacobian(x, U[..., i, :])
+            x, a, b = self.step_with_jacobian(x, U[..., i, :])
             sens = a @ sens
             sens[..., :, i * self.nu : (i + 1) * self.nu] += b
             xs.append(x)
@@ -214,13 +247,13 @@ class HorizonOCP:
         x = x0
         if prior is not None:
             for i in range(horizon - 1):
-                x = X[:, i] = self.flow.step(x, Ub[:, i])
+                x = X[:, i] = self.step(x, Ub[:, i])
             sens[:, :-1, :, :-nu] = prior[:, 1:, :, nu:]
             first = horizon - 1
         else:
             first = 0
         for i in range(first, horizon):
-            x, a, b = self.flow.step_with_jacobian(x, Ub[:, i])
+            x, a, b = self.step_with_jacobian(x, Ub[:, i])
             X[:, i] = x
             if i:
                 np.matmul(a, sens[:, i - 1, :, : i * nu], out=sens[:, i, :, : i * nu])

@@ -493,7 +493,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         """
         batch, horizon, nx = nodes.shape
         nu = ocp.nu
-        y, a, b = ocp.flow.step_with_jacobian(nodes, U.reshape(batch, horizon, nu))
+        y, a, b = ocp.step_with_jacobian(nodes, U.reshape(batch, horizon, nu))
         chain = _chain_matrix(a)
         rhs = np.zeros((batch, horizon, nx, horizon * nu + 1))
         blocks = rhs[..., :-1].reshape(batch, horizon, nx, horizon, nu)
@@ -511,7 +511,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         second order in the defects, which are tiny at convergence); a full rollout where one is larger
         than tol_final_defect."""
         batch, horizon, nx = nodes.shape
-        y = ocp.flow.step(nodes, U)
+        y = ocp.step(nodes, U)
         gap = np.zeros((batch, horizon, nx))  # gap_i = F(s_i, u_i) - s_{i+1}: the defect at the end of step i
         gap[:, :-1] = y[:, :-1] - nodes[:, 1:]
         X = y + np.linalg.solve(chain, gap.reshape(batch, -1, 1)).reshape(batch, horizon, nx) - gap
