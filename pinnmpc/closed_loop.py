@@ -115,6 +115,7 @@ def metrics(
         "tau": plant.tau,
         "horizon": nmpc.horizon,
         "solver": type(nmpc.solver).__name__,
+        "disturbance_gain": float(nmpc.disturbance_gain),
         "mae": {n: float(v) for n, v in zip(names, err.mean(0))},
         "rmse": {n: float(v) for n, v in zip(names, np.sqrt((err**2).mean(0)))},
         "max_abs_error": {n: float(v) for n, v in zip(names, err.max(0))},

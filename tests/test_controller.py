@@ -412,47 +412,35 @@ def test_lifted_solver_falls_back_to_single_shooting(s: Surrogate) -> None:
     assert float(info1.cost[0]) <= float(info_gn.cost[0]) * (1 + 1e-6) + 1e-12
 
 
-def test_jacobian_warm_start_reaches_the_same_optimum(s: Surrogate) -> None:
+@pytest.mark.parametrize(
+    ("solver", "kind", "shapes"),
+    [
+        (GaussNewtonSolver, "sensitivities", r"\(1, 5, 4, 10\), got \(1, 4, 4, 10\)"),
+        (LiftedGaussNewtonSolver, "states", r"\(1, 5, 4\), got \(1, 4, 4\)"),
+    ],
+)
+def test_warm_start_prior_reaches_the_same_optimum(s: Surrogate, solver: type, kind: str, shapes: str) -> None:
     H, ocp, low, high, g, x0 = _paper_box_problem(s, 32, [1.0, 1.0, 0.0, 0.0])
     x_ref = ocp.rollout(x0, _uniform(g, (H + 1, NU), -0.4, 0.4)[:H])
     u_prev = torch.zeros(NU, dtype=F64)
-    solver = GaussNewtonSolver()
+    solver = solver()
     U, info = solver.solve(ocp, x0[None], torch.zeros(1, H, NU, dtype=F64), x_ref[None], u_prev[None], low, high)
-    assert info.sensitivities.shape == (1, H, NX, H * NU)
-    # the receding-horizon successor: one step later, the plan shifted
-    x1 = s.step(x0, U[0, 0])
-    ref1 = torch.cat((x_ref[1:], x_ref[-1:]))
-    U_shift = torch.cat((U[:, 1:], U[:, -1:]), 1)
-    args = (ocp, x1[None], U_shift, ref1[None], U[:, 0], low, high)
-    cold_U, cold = solver.solve(*args)
-    warm_U, warm = solver.solve(*args, prior=info.sensitivities)
-    assert bool(warm.converged[0]) and bool(cold.converged[0])
-    assert float(warm.cost[0]) == pytest.approx(float(cold.cost[0]), rel=1e-6, abs=1e-12)
-    torch.testing.assert_close(warm_U, cold_U, rtol=0, atol=1e-4)
-    with pytest.raises(ValueError, match=r"prior sensitivities must have shape \(1, 5, 4, 10\), got \(1, 4, 4, 10\)"):
-        solver.solve(*args, prior=info.sensitivities[:, :4])
-
-
-def test_states_warm_start_reaches_the_same_optimum(s: Surrogate) -> None:
-    H, ocp, low, high, g, x0 = _paper_box_problem(s, 34, [1.0, 1.0, 0.0, 0.0])
-    x_ref = ocp.rollout(x0, _uniform(g, (H + 1, NU), -0.4, 0.4)[:H])
-    u_prev = torch.zeros(NU, dtype=F64)
-    solver = LiftedGaussNewtonSolver()
-    U, info = solver.solve(ocp, x0[None], torch.zeros(1, H, NU, dtype=F64), x_ref[None], u_prev[None], low, high)
-    torch.testing.assert_close(torch.from_numpy(info.states), ocp.rollout(x0[None], U), rtol=0, atol=1e-12)
+    prior = getattr(info, kind)
+    if kind == "states":
+        torch.testing.assert_close(torch.from_numpy(prior), ocp.rollout(x0[None], U), rtol=0, atol=1e-12)
     # the receding-horizon successor, measured off the prediction (a plant that differs from the model)
     x1 = s.step(x0, U[0, 0]) + torch.tensor([3e-3, -2e-3, 1e-2, -1e-2], dtype=F64)
     ref1 = torch.cat((x_ref[1:], x_ref[-1:]))
     U_shift = torch.cat((U[:, 1:], U[:, -1:]), 1)
     args = (ocp, x1[None], U_shift, ref1[None], U[:, 0], low, high)
     cold_U, cold = solver.solve(*args)
-    warm_U, warm = solver.solve(*args, prior=info.states)
+    warm_U, warm = solver.solve(*args, prior=prior)
     assert bool(warm.converged[0]) and bool(cold.converged[0])
     assert float(warm.cost[0]) == pytest.approx(float(ocp.cost(x1, warm_U[0], ref1, U[0, 0])), rel=1e-10)
     assert float(warm.cost[0]) == pytest.approx(float(cold.cost[0]), rel=1e-6, abs=1e-12)
     torch.testing.assert_close(warm_U, cold_U, rtol=0, atol=1e-4)
-    with pytest.raises(ValueError, match=r"prior states must have shape \(1, 5, 4\), got \(1, 4, 4\)"):
-        solver.solve(*args, prior=info.states[:, :4])
+    with pytest.raises(ValueError, match=rf"prior {kind} must have shape {shapes}"):
+        solver.solve(*args, prior=prior[:, :4])
 
 
 def test_lifted_linearisation_matches_the_rollout_and_its_jacobian(s: Surrogate) -> None:
