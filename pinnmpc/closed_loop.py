@@ -191,7 +191,9 @@ def main(cfg: DictConfig) -> None:
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     m = run_cli(lambda: run_closed_loop(cfg, run_dir), "pinnmpc.closed_loop")
     print(
-        f"{m['status']}: {m['steps']} steps on {m['reference']}; MAE alpha {m['mae']['alpha']:.2e} rad, "
+        f"{m['status']}: {m['steps']} steps on {m['reference']}"
+        + (f" (offset-free, gain {m['disturbance_gain']:g})" if m["disturbance_gain"] > 0 else "")
+        + f"; MAE alpha {m['mae']['alpha']:.2e} rad, "
         f"beta {m['mae']['beta']:.2e} rad; OCP median {1e3 * m['ocp_time_s']['median']:.2f} ms "
         f"(plant step {1e3 * m['plant_step_time_s']['median']:.2f} ms); outputs in {run_dir}"
     )
