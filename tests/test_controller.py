@@ -642,9 +642,11 @@ def test_fallback_on_nan_surrogate(s: Surrogate, nan_surrogate: Surrogate, name:
         HorizonOCP(nan_surrogate, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6]),
         make_solver(name, **SOLVER_OPTIONS[name]),
         *ASYMMETRIC,
+        disturbance_gain=0.7,  # a NaN prediction error must not become the disturbance either
     )
     for _ in range(2):
         u = nmpc.make_step(x, x_ref)
+        assert nmpc.disturbance is None
         assert np.all(np.isfinite(u))
         assert _within(torch.from_numpy(u), low, high)
         assert _within(nmpc.U, low, high)
