@@ -439,10 +439,15 @@ def other_reference_row(cfg: DictConfig, system: System, surrogate: Surrogate, n
     return row
 
 
-def _label(solver: str, row: dict[str, Any]) -> str:
-    """Row label: the solver, and whether the controller estimated a disturbance (offset-free MPC)."""
+def _mode(row: dict[str, Any], off: str = "") -> str:
+    """Label suffix: whether the controller estimated a disturbance (offset-free MPC), else off."""
     gain = row["disturbance_gain"]
-    return f"PINN-MPC, {solver}" + (f", offset-free (gain {gain:g})" if gain > 0 else ", paper's controller")
+    return f", offset-free (gain {gain:g})" if gain > 0 else off
+
+
+def _label(solver: str, row: dict[str, Any]) -> str:
+    """Row label: the solver and the controller mode."""
+    return f"PINN-MPC, {solver}" + _mode(row, ", paper's controller")
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -804,7 +809,7 @@ def md_other_references(cl: dict[str, Any], names: Sequence[str]) -> str:
     rows = [
         [
             name + ("" if r["status"] == "ok" else f" ({r['status'][:STATUS_CHARS]})"),
-            r["solver"] + (f", offset-free (gain {r['disturbance_gain']:g})" if r["disturbance_gain"] > 0 else ""),
+            r["solver"] + _mode(r),
             fmt(r["steps"]),
             *((fmt(r.get("mae_without_disturbance", {}).get(n), ".2e") for n in names) if plain else ()),
             *(fmt(r["mae"][n], ".2e") for n in names),
