@@ -39,6 +39,23 @@ def _softplus_value(a: np.ndarray) -> np.ndarray:
     return np.logaddexp(0.0, a)
 
 
+def _tanh_curvature(a: np.ndarray, y: np.ndarray, slope: np.ndarray) -> np.ndarray:
+    return -2.0 * y * slope
+
+
+def _sin_curvature(a: np.ndarray, y: np.ndarray, slope: np.ndarray) -> np.ndarray:
+    return -y
+
+
+def _silu_curvature(a: np.ndarray, y: np.ndarray, slope: np.ndarray) -> np.ndarray:
+    s = 1.0 / (1.0 + np.exp(-a))
+    return s * (1.0 - s) * (2.0 + a * (1.0 - 2.0 * s))
+
+
+def _softplus_curvature(a: np.ndarray, y: np.ndarray, slope: np.ndarray) -> np.ndarray:
+    return slope * (1.0 - slope)
+
+
 def _np(t: torch.Tensor) -> np.ndarray:
     """A float64 numpy copy, detached from the torch module."""
     return t.detach().double().numpy().copy()
@@ -46,6 +63,35 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 NUMPY_ACTIVATIONS = {"tanh": _tanh, "sin": _sin, "silu": _silu, "softplus": _softplus}  # mirrors pinn.ACTIVATIONS
 VALUE_ACTIVATIONS = {"tanh": np.tanh, "sin": np.sin, "silu": _silu_value, "softplus": _softplus_value}  # no slope
+CURVATURES = {  # second derivatives, mirrors pinn.CURVATURES
+    "tanh": _tanh_curvature,
+    "sin": _sin_curvature,
+    "silu": _silu_curvature,
+    "softplus": _softplus_curvature,
+}
+
+
+def _folded_input(model: PINN, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """First layer on raw (x0, u) with t = tau and the input normalisation folded in, and its d/dt."""
+    w1, b1 = _np(model.net.layers[0].weight), _np(model.net.layers[0].bias)
+    center, half = _np(model.in_center), _np(model.in_half)
+    w_in = w1[:, 1:] / half[1:]
+    b_in = b1 + w1[:, 0] * (tau - center[0]) / half[0] - w_in @ center[1:]
+    return np.ascontiguousarray(w_in.T), b_in, w1[:, 0] / half[0]
+
+
+def _hidden(model: PINN) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Hidden-to-hidden layers as (W^T, b)."""
+    return [(np.ascontiguousarray(_np(m.weight).T), _np(m.bias)) for m in model.net.layers[1:-1]]
+
+
+def _gate_sum(model: PINN, g: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Output layer collapsed over the time gates at one time: W^T (width, n_head) and b, times the head scale."""
+    w, b = _np(model.net.layers[-1].weight), _np(model.net.layers[-1].bias)
+    g, heads = _np(g), (model.n_gates, model.n_head)
+    scale = _np(model.head_scale)
+    w, b = np.einsum("k,kij->ij", g, w.reshape(*heads, -1)), g @ b.reshape(heads)
+    return (scale[:, None] * w).T, scale * b
 
 
 @dataclass
@@ -71,25 +117,19 @@ class NumpyFlow:
     @classmethod
     def from_pinn(cls, model: PINN, tau: float) -> NumpyFlow:
         """Copy float64 weights out of the torch module and fold in what is constant at t = tau."""
-        layers = [(_np(m.weight), _np(m.bias)) for m in model.net.layers]
-        center, half = _np(model.in_center), _np(model.in_half)
-        w1, b1 = layers[0]
-        w_in = w1[:, 1:] / half[1:]
-        b_in = b1 + w1[:, 0] * (tau - center[0]) / half[0] - w_in @ center[1:]
-        w, b = layers[-1]
-        scale = _np(model.out_scale)
+        if model.second_order:
+            return SecondOrderNumpyFlow.from_second_order_pinn(model, tau)
+        w_in, b_in, _ = _folded_input(model, tau)
         hard = model.exact_ic
         if hard:  # the time gates are constants at t = tau: x(tau) - x0 = scale * sum_k g_k N_k
-            g = _np(model.gates(torch.full((1,), float(tau), dtype=model.out_scale.dtype))[0])
-            heads = (model.n_gates, model.nx)
-            w, b = np.einsum("k,kij->ij", g, w.reshape(*heads, -1)), g @ b.reshape(heads)
-            w_out, b_out = (scale[:, None] * w).T, scale * b
+            w_out, b_out = _gate_sum(model, model.gates(torch.full((1,), float(tau), dtype=model.out_scale.dtype))[0])
         else:
-            w_out, b_out = (scale[:, None] * w).T, scale * b + _np(model.out_center)
-        hidden = [(np.ascontiguousarray(wh.T), bh) for wh, bh in layers[1:-1]]
+            w, scale = _np(model.net.layers[-1].weight), _np(model.out_scale)
+            w_out = (scale[:, None] * w).T
+            b_out = scale * _np(model.net.layers[-1].bias) + _np(model.out_center)
         return cls(
-            np.ascontiguousarray(w_in.T), b_in, hidden, np.ascontiguousarray(w_out), b_out, hard,
-            model.config["activation"], model.nx, model.nu,
+            w_in, b_in, _hidden(model), np.ascontiguousarray(w_out), b_out, hard, model.config["activation"],
+            model.nx, model.nu,
         )  # fmt: skip
 
     def _first_layer(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -136,5 +176,93 @@ class NumpyFlow:
         if self.hard_ic:
             x1 += x0
             jac[:, :, :nx] += self.eye
+        jac = jac.reshape(*lead, nx, n_in)
+        return x1.reshape(*lead, nx), jac[..., :nx], jac[..., nx:]
+
+
+@dataclass
+class SecondOrderNumpyFlow(NumpyFlow):
+    """NumpyFlow of a second-order PINN: q(tau) = q0 + v0 tau + N_G, v(tau) = v0 + N_g + dN_G/dt (N_G, N_g: the
+    network output summed over the gates with weights G_k(tau), g_k(tau)). Each sample's value rides with its
+    time tangent in a row pair [N, dN/dt], and each (x0, u) tangent with its mixed tangent d2N/dt dx, so the
+    output layer [[W_G, W_g], [0, W_G]] maps every pair straight to a state increment or a Jacobian column."""
+
+    tau: float = 0.0
+    t_in: np.ndarray = None  # (width,): d(first-layer pre-activation)/dt
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.nq = self.nx // 2
+        self.curvature = CURVATURES[self.activation]
+        self.kinematic = np.zeros((self.nx, self.nx + self.nu))  # d(q0 + v0 tau, v0)/d(x0, u)
+        self.kinematic[:, : self.nx] = np.eye(self.nx)
+        self.kinematic[: self.nq, self.nq : self.nx] = self.tau * np.eye(self.nq)
+
+    @classmethod
+    def from_second_order_pinn(cls, model: PINN, tau: float) -> SecondOrderNumpyFlow:
+        """Fold the gate sums at t = tau into the pair output layer [[W_G, W_g], [0, W_G]]."""
+        w_in, b_in, t_in = _folded_input(model, tau)
+        t = torch.full((1,), float(tau), dtype=model.out_scale.dtype)
+        w_big, b_big = _gate_sum(model, model.gate_integrals(t))
+        w_g, b_g = _gate_sum(model, model.gates(t)[0])
+        w_out = np.block([[w_big, w_g], [np.zeros_like(w_big), w_big]])
+        return cls(
+            w_in, b_in, _hidden(model), w_out, np.concatenate((b_big, b_g)), True, model.config["activation"],
+            model.nx, model.nu, tau=float(tau), t_in=t_in,
+        )  # fmt: skip
+
+    def _state(self, x0: np.ndarray, increment: np.ndarray) -> np.ndarray:
+        """(q, v)(tau) = (q0 + v0 tau, v0) + the network's increment."""
+        x1 = x0 + increment
+        x1 += self.b_out
+        x1[:, : self.nq] += self.tau * x0[:, self.nq :]
+        return x1
+
+    def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """x(tau) for x0 (..., nx), u (..., nu)."""
+        lead = x0.shape[:-1]
+        x0, u = x0.reshape(-1, self.nx), u.reshape(-1, self.nu)
+        batch, width = x0.shape[0], self.b_in.shape[0]
+        y, slope = self.act(self._first_layer(x0, u))
+        z = np.stack((y, slope * self.t_in), axis=1)  # (batch, 2, width): [N, dN/dt] per sample
+        for w, b in self.hidden:
+            z = (z.reshape(2 * batch, width) @ w).reshape(batch, 2, width)  # 2-D GEMM: one BLAS call
+            value = z[:, 0]
+            value += b
+            y, slope = self.act(value)
+            value[...] = y
+            z[:, 1] *= slope
+        increment = z.reshape(batch, 2 * width) @ self.w_out
+        return self._state(x0, increment).reshape(*lead, self.nx)
+
+    def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x(tau), A, B: per sample 1 + nx + nu row pairs, [N, dN/dt] then [dN/dx_j, d2N/dt dx_j], one GEMM a layer."""
+        lead, nx, n_in = x0.shape[:-1], self.nx, self.nx + self.nu
+        x0, u = x0.reshape(-1, nx), u.reshape(-1, self.nu)
+        batch, width = x0.shape[0], self.b_in.shape[0]
+        z = np.empty((batch, 2 + 2 * n_in, width))
+        a = self._first_layer(x0, u)
+        y, slope = self.act(a)
+        z[:, 0] = y
+        np.multiply(slope, self.t_in, out=z[:, 1])
+        np.multiply(slope[:, None, :], self.w_in, out=z[:, 2::2])
+        np.multiply((self.curvature(a, y, slope) * self.t_in)[:, None, :], self.w_in, out=z[:, 3::2])
+        rows = batch * (2 + 2 * n_in)
+        for w, b in self.hidden:
+            z = (z.reshape(rows, width) @ w).reshape(batch, 2 + 2 * n_in, width)  # 2-D GEMM: one BLAS call
+            value, tangents = z[:, 0], z[:, 1:]
+            value += b
+            y, slope = self.act(value)
+            bend = self.curvature(value, y, slope)
+            bend *= z[:, 1]
+            cross = bend[:, None, :] * z[:, 2::2]  # sigma'' * d/dt * d/dx_j of the pre-activation
+            tangents *= slope[:, None, :]
+            z[:, 3::2] += cross
+            value[...] = y
+        out = (z.reshape(batch * (1 + n_in), 2 * width) @ self.w_out).reshape(batch, 1 + n_in, nx)
+        # row 0 of each sample: the state increment; rows 1..: Jacobian columns
+        x1 = self._state(x0, out[:, 0])
+        jac = out[:, 1:].swapaxes(-1, -2)
+        jac += self.kinematic
         jac = jac.reshape(*lead, nx, n_in)
         return x1.reshape(*lead, nx), jac[..., :nx], jac[..., nx:]

@@ -37,12 +37,39 @@ def _softplus(a: Tensor) -> tuple[Tensor, Tensor]:
     return nn.functional.softplus(a), torch.sigmoid(a)
 
 
+def _tanh_curvature(a: Tensor, y: Tensor, slope: Tensor) -> Tensor:
+    """tanh'' from its value and slope."""
+    return -2 * y * slope
+
+
+def _sin_curvature(a: Tensor, y: Tensor, slope: Tensor) -> Tensor:
+    """sin'' = -sin."""
+    return -y
+
+
+def _silu_curvature(a: Tensor, y: Tensor, slope: Tensor) -> Tensor:
+    """SiLU'' = s (1 - s) (2 + a (1 - 2 s)), s = sigmoid(a)."""
+    s = torch.sigmoid(a)
+    return s * (1 - s) * (2 + a * (1 - 2 * s))
+
+
+def _softplus_curvature(a: Tensor, y: Tensor, slope: Tensor) -> Tensor:
+    """Softplus'' = s (1 - s), s = sigmoid(a) = the slope."""
+    return slope * (1 - slope)
+
+
 IC_MODES = ("hard", "gated", "soft")  # exact x(0) = x0; exact with relaxation gates; the paper's data loss
 ACTIVATIONS: dict[str, Callable[[Tensor], tuple[Tensor, Tensor]]] = {
     "tanh": _tanh,
     "sin": _sin,
     "silu": _silu,
     "softplus": _softplus,
+}
+CURVATURES: dict[str, Callable[[Tensor, Tensor, Tensor], Tensor]] = {  # second derivatives, for second-order models
+    "tanh": _tanh_curvature,
+    "sin": _sin_curvature,
+    "silu": _silu_curvature,
+    "softplus": _softplus_curvature,
 }
 
 
@@ -58,6 +85,7 @@ class TangentMLP(nn.Module):
         widths = [n_in, *[int(w) for w in hidden], n_out]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
         self.act = ACTIVATIONS[activation]
+        self.curvature = CURVATURES[activation]
         for layer in self.layers:
             nn.init.xavier_normal_(layer.weight)
             nn.init.zeros_(layer.bias)
@@ -78,6 +106,33 @@ class TangentMLP(nn.Module):
         last = self.layers[-1]
         return last(z), dz @ last.weight.T
 
+    def forward_second(self, z: Tensor, dz: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Value, first and second derivative along one direction dz (..., n_in) in which the input is linear."""
+        ddz = None
+        for layer in self.layers[:-1]:
+            a = layer(z)
+            da = dz @ layer.weight.T
+            z, slope = self.act(a)
+            bend = self.curvature(a, z, slope) * da * da
+            dz = slope * da
+            ddz = bend if ddz is None else bend + slope * (ddz @ layer.weight.T)
+        last = self.layers[-1]
+        return last(z), dz @ last.weight.T, ddz @ last.weight.T
+
+    def forward_mixed(self, z: Tensor, dt: Tensor, dd: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Value, derivative along dt (..., n_in), along each of dd (..., k, n_in), and the mixed second ones."""
+        mixed = None
+        for layer in self.layers[:-1]:
+            a = layer(z)
+            at, ad = dt @ layer.weight.T, dd @ layer.weight.T
+            z, slope = self.act(a)
+            bend = (self.curvature(a, z, slope) * at).unsqueeze(-2) * ad
+            slope_k = slope.unsqueeze(-2)
+            mixed = bend if mixed is None else bend + slope_k * (mixed @ layer.weight.T)
+            dt, dd = slope * at, slope_k * ad
+        w = self.layers[-1].weight.T
+        return self.layers[-1](z), dt @ w, dd @ w, mixed @ w
+
 
 class PINN(nn.Module):
     """Flow map (t, x0, u) -> x(t) with inputs normalised to [-1, 1] over the training box.
@@ -87,6 +142,11 @@ class PINN(nn.Module):
     with g_0 = t / t_max: heavily damped velocities relax within a few T, and a gate of that shape spares
     the network the steep boundary layer at small t. ic='soft' is the paper's plain output
     x = center + halfwidth * N(.), with x(0) = x0 learned from data points.
+
+    second_order=True is for mechanical systems x = (q, dq/dt): the network models the positions only,
+    q = q0 + v0 t + scale_v * sum_k G_k(t) N_k(.) with G_k the time integral of gate g_k, and the velocity
+    is its exact time derivative. dq/dt = v then holds by construction (in the first-order form its
+    residual is the largest source of position error at tau), and both q(0) = q0 and v(0) = v0 are exact.
     """
 
     def __init__(
@@ -101,6 +161,7 @@ class PINN(nn.Module):
         ic: str = "hard",
         output_scale: Sequence[float] | None = None,
         time_basis: Sequence[float] = (),
+        second_order: bool = False,
     ) -> None:
         super().__init__()
         if ic not in IC_MODES:
@@ -115,6 +176,11 @@ class PINN(nn.Module):
             )
         if not t_max > 0:
             raise ValueError(f"t_max must be > 0, got {t_max}")
+        if second_order and (ic == "soft" or len(state_low) % 2):
+            raise ValueError(
+                "second_order=True needs an exact initial condition (ic='hard' or 'gated') and a state "
+                f"(positions, velocities) of even dimension; got ic={ic!r}, state dimension {len(state_low)}"
+            )
         self.config = {
             "state_low": [float(v) for v in state_low],
             "state_high": [float(v) for v in state_high],
@@ -126,10 +192,14 @@ class PINN(nn.Module):
             "ic": ic,
             "output_scale": None if output_scale is None else [float(v) for v in output_scale],
             "time_basis": time_basis,
+            "second_order": bool(second_order),
         }  # everything needed to rebuild the module from a checkpoint
         self.nx, self.nu = len(state_low), len(input_low)
         self.ic = ic
         self.exact_ic = ic != "soft"  # x(0) = x0 by construction
+        self.second_order = bool(second_order)
+        self.nq = self.nx // 2
+        self.n_head = self.nq if self.second_order else self.nx  # network outputs per time gate
         self.t_max = float(t_max)
         low = torch.tensor([0.0, *state_low, *input_low], dtype=torch.float32)
         high = torch.tensor([t_max, *state_high, *input_high], dtype=torch.float32)
@@ -151,7 +221,8 @@ class PINN(nn.Module):
         self.register_buffer("out_center", self.in_center[1 : 1 + self.nx].clone())
         self.register_buffer("time_basis", torch.tensor(time_basis, dtype=torch.float32), persistent=False)
         self.n_gates = 1 + len(time_basis)
-        self.net = TangentMLP(1 + self.nx + self.nu, self.nx * self.n_gates, hidden, activation)
+        self.register_buffer("head_scale", self.out_scale[self.nx - self.n_head :].clone(), persistent=False)
+        self.net = TangentMLP(1 + self.nx + self.nu, self.n_head * self.n_gates, hidden, activation)
 
     def _inputs(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
         """Normalised network input z in [-1, 1]^7 over the training box."""
@@ -164,9 +235,28 @@ class PINN(nn.Module):
         slope = torch.cat((torch.full_like(t, 1.0 / self.t_max), torch.exp(-t / self.time_basis) / self.time_basis), -1)
         return ramp, slope
 
+    def gate_integrals(self, t: Tensor) -> Tensor:
+        """G_k(t) = integral of g_k from 0 to t: zero value and slope at t = 0, for second-order models."""
+        decay = 1.0 - torch.exp(-t / self.time_basis)
+        return torch.cat((t * t / (2 * self.t_max), t - self.time_basis * decay), dim=-1)
+
     def _gated(self, g: Tensor, n: Tensor) -> Tensor:
-        """sum_k g_k N_k: n (..., n_gates * nx) holds one head of nx outputs per gate."""
-        return (g.unsqueeze(-1) * n.unflatten(-1, (self.n_gates, self.nx))).sum(-2)
+        """sum_k g_k N_k: n (..., n_gates * n_head) holds one head of n_head outputs per gate."""
+        return (g.unsqueeze(-1) * n.unflatten(-1, (self.n_gates, self.n_head))).sum(-2)
+
+    def _time_tangent(self, z: Tensor) -> Tensor:
+        """dz/dt of the normalised input."""
+        dz = torch.zeros_like(z)
+        dz[..., 0] = 1.0 / self.in_half[0]
+        return dz
+
+    def _kinematic(self, t: Tensor, x0: Tensor, n: Tensor, dn: Tensor) -> Tensor:
+        """Second-order state (q, v) from the network value N and its time derivative dN/dt."""
+        q0, v0 = x0[..., : self.nq], x0[..., self.nq :]
+        g, big_g = self.gates(t)[0], self.gate_integrals(t)
+        q = q0 + v0 * t + self.head_scale * self._gated(big_g, n)
+        v = v0 + self.head_scale * (self._gated(g, n) + self._gated(big_g, dn))
+        return torch.cat((q, v), dim=-1)
 
     def _assemble(self, t: Tensor, x0: Tensor, n: Tensor) -> Tensor:
         """Network output to state, enforcing x(0) = x0 unless ic='soft'."""
@@ -176,13 +266,18 @@ class PINN(nn.Module):
 
     def forward(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
         """x(t) for t (..., 1), x0 (..., nx), u (..., nu)."""
-        return self._assemble(t, x0, self.net(self._inputs(t, x0, u)))
+        z = self._inputs(t, x0, u)
+        if self.second_order:
+            n, dn = self.net.forward_tangent(z, self._time_tangent(z).unsqueeze(-2))
+            return self._kinematic(t, x0, n, dn.squeeze(-2))
+        return self._assemble(t, x0, self.net(z))
 
     def with_time_derivative(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """x(t) and dx/dt in one forward-mode pass, for the physics residual."""
         z = self._inputs(t, x0, u)
-        dz = torch.zeros_like(z)
-        dz[..., 0] = 1.0 / self.in_half[0]
+        dz = self._time_tangent(z)
+        if self.second_order:
+            return self._second_order_time_derivative(t, x0, *self.net.forward_second(z, dz))
         n, dn = self.net.forward_tangent(z, dz.unsqueeze(-2))
         dn = dn.squeeze(-2)
         if self.exact_ic:
@@ -192,18 +287,47 @@ class PINN(nn.Module):
             return x, dxdt
         return self.out_center + self.out_scale * n, self.out_scale * dn
 
-    def with_jacobian(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
-        """x(t) and d x(t) / d(x0, u) as (..., nx, nx + nu), for Gauss-Newton control."""
-        z = self._inputs(t, x0, u)
+    def _second_order_time_derivative(
+        self, t: Tensor, x0: Tensor, n: Tensor, dn: Tensor, ddn: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """(q, v) and (v, dv/dt) of a second-order model from N and its first two time derivatives."""
+        x = self._kinematic(t, x0, n, dn)
+        g, dg = self.gates(t)
+        big_g = self.gate_integrals(t)
+        acc = self.head_scale * (self._gated(dg, n) + 2 * self._gated(g, dn) + self._gated(big_g, ddn))
+        return x, torch.cat((x[..., self.nq :], acc), dim=-1)
+
+    def _state_tangents(self, z: Tensor) -> Tensor:
+        """dz/d(x0, u) of the normalised input, one row per state and input coordinate."""
         n_state_in = self.nx + self.nu
         eye = torch.eye(n_state_in, dtype=z.dtype, device=z.device) / self.in_half[1:]
         dz = torch.cat((torch.zeros(n_state_in, 1, dtype=z.dtype, device=z.device), eye), dim=-1)
-        dz = dz.expand(*z.shape[:-1], n_state_in, z.shape[-1])
+        return dz.expand(*z.shape[:-1], n_state_in, z.shape[-1])
+
+    def _second_order_jacobian(self, t: Tensor, x0: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
+        """(q, v)(t) and its Jacobian for a second-order model: needs the mixed derivatives d2N/dt d(x0, u)."""
+        n, dn, jn, jdn = self.net.forward_mixed(z, self._time_tangent(z), self._state_tangents(z))
+        g, big_g = self.gates(t)[0].unsqueeze(-2), self.gate_integrals(t).unsqueeze(-2)
+        scale = self.head_scale.unsqueeze(-1)
+        jq = scale * self._gated(big_g, jn).transpose(-1, -2)
+        jv = scale * (self._gated(g, jn) + self._gated(big_g, jdn)).transpose(-1, -2)
+        n_state_in = self.nx + self.nu
+        eye = torch.eye(self.nx, n_state_in, dtype=z.dtype, device=z.device)
+        jac = torch.cat((jq, jv), dim=-2) + eye
+        jac[..., : self.nq, self.nq : self.nx] += t.unsqueeze(-1) * torch.eye(self.nq, dtype=z.dtype, device=z.device)
+        return self._kinematic(t, x0, n, dn), jac
+
+    def with_jacobian(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """x(t) and d x(t) / d(x0, u) as (..., nx, nx + nu), for Gauss-Newton control."""
+        z = self._inputs(t, x0, u)
+        if self.second_order:
+            return self._second_order_jacobian(t, x0, z)
+        dz = self._state_tangents(z)
         n, dn = self.net.forward_tangent(z, dz)
         if self.exact_ic:
             g = self.gates(t)[0]
             x = x0 + self.out_scale * self._gated(g, n)
             jac = self.out_scale.unsqueeze(-1) * self._gated(g.unsqueeze(-2), dn).transpose(-1, -2)
-            jac = jac + torch.eye(self.nx, n_state_in, dtype=z.dtype, device=z.device)
+            jac = jac + torch.eye(self.nx, self.nx + self.nu, dtype=z.dtype, device=z.device)
             return x, jac  # (..., nx, nx + nu)
         return self.out_center + self.out_scale * n, self.out_scale.unsqueeze(-1) * dn.transpose(-1, -2)

@@ -38,6 +38,7 @@ def build_model(cfg: DictConfig, system: System) -> PINN:
         ic=cfg.model.ic,
         output_scale=None if scale is None else list(scale),
         time_basis=list(cfg.model.time_basis) if cfg.model.ic == "gated" else [],
+        second_order=cfg.model.get("second_order", False),
     )
 
 
@@ -58,8 +59,12 @@ def train(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnmpc.trai
     torch.set_num_threads(cfg.threads)
     system: System = instantiate(cfg.system)
     model = build_model(cfg, system)
-    datamodule = instantiate(cfg.data, _partial_=True)(system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed)
-    module = instantiate(cfg.module, _partial_=True)(system=system, model=model, tau=cfg.tau)
+    # _convert_="all": plain lists, not OmegaConf ones, reach the hyper-parameters stored in checkpoints,
+    # which load_surrogate reads with torch.load(weights_only=True)
+    datamodule = instantiate(cfg.data, _partial_=True, _convert_="all")(
+        system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed
+    )
+    module = instantiate(cfg.module, _partial_=True, _convert_="all")(system=system, model=model, tau=cfg.tau)
     ckpt_dir = run_dir / "checkpoints"
     best = AtomicCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/rmse_position", mode="min")
     last = AtomicCheckpoint(  # every epoch, so a killed run loses at most one epoch of work

@@ -537,12 +537,13 @@ def test_bad_disturbance_settings_are_refused(s: Surrogate, kwargs: dict, fragme
             ocp.disturbance = bad
 
 
+@pytest.mark.parametrize("solver", ["lifted_gauss_newton", "gauss_newton"])  # with and without planned states
 @pytest.mark.parametrize("gain", [1.0, 0.5])
-def test_make_step_estimates_the_last_prediction_error(s: Surrogate, gain: float) -> None:
+def test_make_step_estimates_the_last_prediction_error(s: Surrogate, gain: float, solver: str) -> None:
     H = 5
     ocp = HorizonOCP(s, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
     d_max = [0.05, 0.05, 0.5, 0.5]
-    nmpc = NMPC(ocp, make_solver("lifted_gauss_newton"), *ASYMMETRIC, disturbance_gain=gain, disturbance_max=d_max)
+    nmpc = NMPC(ocp, make_solver(solver), *ASYMMETRIC, disturbance_gain=gain, disturbance_max=d_max)
     g = _gen(37)
     x0 = _states(g, 1)[0].numpy()
     ref = _far_reference(g, torch.from_numpy(x0)[None], H)[0].numpy()
@@ -553,6 +554,12 @@ def test_make_step_estimates_the_last_prediction_error(s: Surrogate, gain: float
     # what the surrogate missed, scaled by the gain and clipped per state (the last velocity error is 0.9 > 0.5)
     expected = np.clip(gain * np.array([3e-3, -2e-3, 0.2, -0.9]), -np.array(d_max), d_max)
     np.testing.assert_allclose(nmpc.disturbance, expected, rtol=0, atol=1e-12)
+    # the next error comes from the plan's own predicted state (solved with d on): the same undisturbed prediction
+    u1 = nmpc.u_prev
+    e2 = np.array([-1e-3, 1e-3, 0.05, 0.1])
+    nmpc.make_step(s.step(torch.from_numpy(x1), u1).numpy() + e2, ref)
+    second = np.clip(expected + gain * (e2 - expected), -np.array(d_max), d_max)
+    np.testing.assert_allclose(nmpc.disturbance, second, rtol=0, atol=1e-10)
     nmpc.reset()
     assert nmpc.disturbance is None and nmpc.ocp.disturbance is None
 

@@ -25,6 +25,8 @@ VARIANTS = {  # output structures: the paper's soft IC, x0 + t N, and x0 + t N_0
     "soft": {"ic": "soft"},
     "hard": {"ic": "hard"},
     "gated": {"ic": "gated", "time_basis": [0.02, 0.045]},
+    "second-order hard": {"ic": "hard", "second_order": True},  # q = q0 + v0 t + G(t) N, v = dq/dt
+    "second-order gated": {"ic": "gated", "time_basis": [0.02, 0.045], "second_order": True},
 }
 
 
@@ -72,11 +74,29 @@ def test_jacobian_matches_autograd(variant):
     assert (jac - torch.cat(ref, dim=-1)).abs().max() < 1e-12
 
 
+@pytest.mark.parametrize("second_order", [False, True])
 @pytest.mark.parametrize(("ic", "time_basis"), [("hard", []), ("gated", [0.01, 0.05])])
-def test_hard_initial_condition_is_exact(ic, time_basis):
-    model = PINN(**BOX, hidden=[8], output_scale=[1.0, 1.0, 1.0, 1.0], ic=ic, time_basis=time_basis).double()
+def test_hard_initial_condition_is_exact(ic, time_basis, second_order):
+    kw = dict(ic=ic, time_basis=time_basis, second_order=second_order)
+    model = PINN(**BOX, hidden=[8], output_scale=[1.0, 1.0, 1.0, 1.0], **kw).double()
     _, x0, u = _points()
     assert torch.equal(model(torch.zeros(len(x0), 1, dtype=torch.float64), x0, u), x0)
+
+
+@pytest.mark.parametrize("variant", ["second-order hard", "second-order gated"])
+def test_second_order_velocity_is_the_position_derivative(variant):
+    torch.manual_seed(6)
+    model = PINN(**BOX, hidden=[16, 16], output_scale=[0.3, 0.4, 3.0, 3.5], **VARIANTS[variant]).double()
+    t, x0, u = _points(seed=8)
+    x, dxdt = model.with_time_derivative(t, x0, u)
+    assert torch.equal(dxdt[:, :2], x[:, 2:])  # dq/dt = v by construction, not by training
+    residual = PowerCube().residual(x, dxdt, u, "explicit")
+    assert torch.equal(residual[:, :2], torch.zeros_like(residual[:, :2]))  # only the dynamics are left to learn
+    assert residual[:, 2:].abs().min() > 0
+    eps = 1e-6
+    fd = (model(t + eps, x0, u)[:, :2] - model(t - eps, x0, u)[:, :2]) / (2 * eps)
+    assert (fd - x[:, 2:]).abs().max() < 1e-7
+    assert model.net.layers[-1].out_features == 2 * model.n_gates  # one head per gate for the 2 positions only
 
 
 def test_time_gates_start_at_zero_and_relax():
@@ -118,6 +138,11 @@ def test_bad_configuration_is_named():
         PINN(**BOX, output_scale=[1.0, -1.0, 1.0, 1.0])
     with pytest.raises(ValueError, match="hidden layer widths"):
         PINN(**BOX, hidden=[])
+    with pytest.raises(ValueError, match="second_order=True needs an exact initial condition.*ic='soft'"):
+        PINN(**BOX, ic="soft", second_order=True)
+    odd = {**BOX, "state_low": [-1.0, -1.0, -1.0], "state_high": [1.0, 1.0, 1.0]}
+    with pytest.raises(ValueError, match="state dimension 3"):
+        PINN(**odd, second_order=True)
     with pytest.raises(ValueError, match="t_max must be > 0"):
         PINN(**{**BOX, "t_max": 0.0})
     with pytest.raises(ValueError, match=r"time_basis must hold positive relaxation times in s, got \[0.02, -1.0\]"):

@@ -190,6 +190,18 @@ def test_save_load_round_trip_with_time_gates(s: Surrogate, tmp_path: Path) -> N
     torch.testing.assert_close(loaded.step(x0, u), gated.step(x0, u), rtol=1e-13, atol=1e-13)
 
 
+def test_save_load_round_trip_of_a_second_order_model(s: Surrogate, tmp_path: Path) -> None:
+    torch.manual_seed(4)
+    config = {**s.model.config, "hidden": [16, 16], "ic": "gated", "time_basis": [0.02], "second_order": True}
+    model = PINN(**config).double()
+    second = Surrogate(model, s.tau, s.state_names, s.input_names)
+    loaded = load_surrogate(second.save(tmp_path / "second.pt"))
+    assert loaded.model.second_order and loaded.model.config == config
+    x0, u = _points(10, seed=9)
+    for a, b in zip(loaded.step_with_jacobian(x0, u), second.step_with_jacobian(x0, u)):
+        torch.testing.assert_close(a, b, rtol=1e-13, atol=1e-13)
+
+
 def test_save_load_round_trip_keeps_float64_weights(s: Surrogate, tmp_path: Path) -> None:
     model = PINN(**s.model.config)
     model.load_state_dict(s.model.state_dict())

@@ -101,6 +101,7 @@ class NMPC:
         self._u_prev = self._U[0].copy()
         self._prior = None  # what the last solve hands the next one beyond U (see Solver.prior_kind)
         self._last: tuple[np.ndarray, np.ndarray] | None = None  # the last measured state and the input applied
+        self._predicted: np.ndarray | None = None  # the undisturbed surrogate's x after that input, if the plan had it
         self.ocp.disturbance = None
         self.stats = []
 
@@ -166,6 +167,7 @@ class NMPC:
         self._prior = getattr(info, kind, None) if self.warm_start and not fallback else None
         self._u_prev = U[0].copy()
         self._last = (x0.copy(), self._u_prev)
+        self._predicted = self._planned_next(info) if not fallback else None
         self.stats.append(
             StepStats(
                 time_s=elapsed,
@@ -187,7 +189,8 @@ class NMPC:
         (filtered by the gain, bounded by disturbance_max), so a smooth model error is not tracked as offset."""
         if self.disturbance_gain == 0.0 or self._last is None:
             return
-        error = self.ocp.prediction_error(*self._last, x)
+        predicted = self._predicted
+        error = self.ocp.prediction_error(*self._last, x) if predicted is None else x - predicted
         if not np.all(np.isfinite(error)):
             return  # a surrogate fault: keep the last estimate (the solve's own fallback handles the rest)
         d = self.ocp.disturbance
@@ -196,6 +199,15 @@ class NMPC:
         if self._d_max is not None:
             d = np.clip(d, -self._d_max, self._d_max)
         self.ocp.disturbance = d
+
+    def _planned_next(self, info: SolveInfo) -> np.ndarray | None:
+        """The undisturbed prediction of the next state from the plan's own states (saves a network call)."""
+        states = getattr(info, "states", None)
+        if states is None:
+            return None
+        d = self.ocp.disturbance
+        nxt = np.asarray(states, dtype=np.float64).reshape(-1, self.horizon, self.ocp.nx)[0, 0]
+        return nxt - d if d is not None else nxt.copy()
 
     @staticmethod
     def _shifted(U: np.ndarray) -> np.ndarray:  # noqa: N803

@@ -25,6 +25,7 @@ class PINNModule(L.LightningModule):
         tau: float,
         residual_form: str = "explicit",
         residual_scale: Sequence[float] | str = "auto",
+        kinematic_weight: float = 1.0,
         weight_physics: float = 1.0,
         weight_data: float = 1.0,
         dtype: str = "float32",
@@ -47,7 +48,7 @@ class PINNModule(L.LightningModule):
         self.system = system
         self.model = model.to(DTYPES[dtype])
         self.tau = float(tau)
-        scale = self._residual_scale(residual_scale)
+        scale = self._residual_scale(residual_scale) / self._kinematic_weights(kinematic_weight)
         self.register_buffer("res_scale", scale.to(DTYPES[dtype]))
         self.stalls = 0
 
@@ -62,6 +63,22 @@ class PINNModule(L.LightningModule):
         if scale.shape != (nx,) or torch.any(scale <= 0):
             raise ValueError(f"residual_scale must be 'auto' or {nx} positive numbers, got {list(residual_scale)}")
         return scale
+
+    def _kinematic_weights(self, weight: float) -> Tensor:
+        """Per-component weight: `weight` on the kinematic rows dq/dt - v of an x = (q, v) state, 1 elsewhere.
+
+        A kinematic residual r over the period moves q(tau) by ~tau r, a dynamics residual moves v by only
+        ~T r (the damping forgets it within its time constant T), so with both scaled alike the positions
+        drift from the integral of the network's own velocities: weight > 1 holds them to it.
+        """
+        nx = self.model.nx
+        if isinstance(weight, bool) or not isinstance(weight, int | float) or not (0 < weight < math.inf):
+            raise ValueError(f"kinematic_weight must be a positive number, got {weight!r}")
+        if weight != 1.0 and nx % 2:
+            raise ValueError(f"kinematic_weight needs a state (positions, velocities) of even dimension, got {nx}")
+        w = torch.ones(nx, dtype=torch.float64)
+        w[: nx // 2] = float(weight)
+        return w
 
     def _cast(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         """Training dtype (float32 is ~2x faster on CPU; the surrogate runs in float64 later)."""
@@ -134,9 +151,10 @@ class PINNModule(L.LightningModule):
         return parts["total"]
 
     def _stalled(self, start_loss: float, end_loss: float, evals: int) -> bool:
-        """Too few evaluations (a tolerance was hit) or too little progress (float32 line searches stall)."""
+        """Too few evaluations (a tolerance was hit), or no progress at all (float32 line searches that find
+        no decrease spend a whole epoch of evaluations on it, over and over), or less than stall_rel_tol."""
         progress = (start_loss - end_loss) / max(abs(start_loss), 1e-30)
-        return evals < self.hparams.stall_min_evals or progress < self.hparams.stall_rel_tol
+        return evals < self.hparams.stall_min_evals or progress <= 0.0 or progress < self.hparams.stall_rel_tol
 
     @staticmethod
     def _lbfgs_evals(opt: torch.optim.Optimizer) -> int:
