@@ -931,6 +931,40 @@ def md_scaling(sc: dict[str, Any]) -> str:
     )
 
 
+# ---------------------------------------------------------------------------------------------------------------
+# 5. Targets
+
+
+def _target(what: str, value: float, limit: float) -> dict[str, Any]:
+    """One target: met when the measured value is at most the limit."""
+    return {"what": what, "value": float(value), "limit": float(limit), "met": bool(value <= limit)}
+
+
+def check_targets(cfg: DictConfig, result: dict[str, Any], names: Sequence[str]) -> list[dict[str, Any]]:
+    """The project's targets next to this run's numbers, for the sections that ran."""
+    t = cfg.targets
+    rows = []
+    if "step" in result:
+        rmse = result["step"]["rmse"]["pinn_numpy"]
+        rows += [_target(f"one-step RMSE {n}", rmse[n], lim) for n, lim in zip(names, t.one_step_rmse) if lim]
+    row = result.get("closed_loop", {}).get("rows", {}).get(f"pinn_{cfg.controller.solver}")
+    if row is not None:
+        where = f"closed loop on {result['closed_loop']['reference']}"
+        rows += [_target(f"{where}: MAE {n}", row["mae"][n], lim) for n, lim in zip(names, t.closed_loop_mae) if lim]
+        plant = row["plant_step_median_s"]
+        rows.append(_target("OCP median / plant step median", row["ocp_time_s"]["median"] / plant, t.ocp_median_ratio))
+        rows.append(_target("OCP p95 / plant step median", row["ocp_time_s"]["p95"] / plant, t.ocp_p95_ratio))
+    return rows
+
+
+def md_targets(targets: list[dict[str, Any]]) -> str:
+    """Section 5 table: target, limit, this run, met or not."""
+    rows = [
+        [r["what"], fmt(r["limit"], ".3g"), fmt(r["value"], ".3g"), "yes" if r["met"] else "**no**"] for r in targets
+    ]
+    return "\n".join(["## 5. Targets", "", md_table(["target", "limit", "this run", "met"], rows), ""])
+
+
 def render_markdown(result: dict[str, Any], names: Sequence[str]) -> str:
     """bench.md: readable tables with the paper's numbers side by side."""
     parts = ["# pinnmpc benchmark", "", machine_line(result["machine"]), ""]
@@ -944,6 +978,8 @@ def render_markdown(result: dict[str, Any], names: Sequence[str]) -> str:
         parts.append(md_optimality(result["optimality"]))
     if "scaling" in result:
         parts.append(md_scaling(result["scaling"]))
+    if result.get("targets"):
+        parts.append(md_targets(result["targets"]))
     elapsed = ", ".join(f"{k} {v:.1f} s" for k, v in result["elapsed_s"].items())
     parts += [f"Wall time per section: {elapsed}.", ""]
     return "\n".join(parts)
@@ -993,6 +1029,7 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         t0 = time.perf_counter()
         result["scaling"] = bench_scaling(cfg, system, pinn64, run_dir)
         elapsed["scaling"] = time.perf_counter() - t0
+    result["targets"] = check_targets(cfg, result, names)
     result["elapsed_s"] = {k: float(v) for k, v in elapsed.items()}
     save_json(run_dir / "bench.json", result)
     markdown = render_markdown(result, names)

@@ -203,14 +203,30 @@ def test_markdown_has_every_table(bench: tuple[dict[str, Any], Path]) -> None:
         "| rmsprop |",
         "## 4. Scaling",
         "### OCP vs horizon",
+        "## 5. Targets",
+        "| one-step RMSE alpha | 0.001 |",
+        "| OCP median / plant step median | 1 |",
     ):
         assert text in md, text
     assert "4.14e-04" in md and "1.77e-03" in md  # the paper's one-step numbers sit next to ours
 
 
+def test_targets_sit_next_to_the_measured_numbers(bench: tuple[dict[str, Any], Path]) -> None:
+    result = bench[0]
+    targets = {t["what"]: t for t in result["targets"]}
+    rmse = result["step"]["rmse"]["pinn_numpy"]
+    assert targets["one-step RMSE dbeta"]["value"] == rmse["dbeta"] and targets["one-step RMSE dbeta"]["limit"] == 1e-2
+    row = result["closed_loop"]["rows"]["pinn_lifted_gauss_newton"]
+    mae = next(t for w, t in targets.items() if w.endswith("MAE alpha"))
+    assert mae["value"] == row["mae"]["alpha"] and mae["met"] == (row["mae"]["alpha"] <= 5e-4)
+    assert not any(w.endswith("MAE dalpha") for w in targets)  # null: no target for velocities
+    ratio = targets["OCP median / plant step median"]
+    assert ratio["value"] == pytest.approx(row["ratio_ocp_to_plant"]) and ratio["met"] == (ratio["value"] <= 1.0)
+
+
 def test_all_sections_off_still_writes_reports(tmp_path: Path) -> None:
     result = run_bench(_cfg(SECTIONS_OFF), tmp_path)
-    assert {"step", "closed_loop", "optimality", "scaling"}.isdisjoint(result)
+    assert {"step", "closed_loop", "optimality", "scaling"}.isdisjoint(result) and result["targets"] == []
     assert "Machine:" in (tmp_path / "bench.md").read_text()
     assert json.loads((tmp_path / "bench.json").read_text())["elapsed_s"] == {}
 
