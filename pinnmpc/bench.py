@@ -343,7 +343,7 @@ class RecordingSolver:
         Uc = np.clip(np.asarray(U, dtype=np.float64), np.asarray(low), np.asarray(high))
         d = np.zeros(ocp.nx) if ocp.disturbance is None else ocp.disturbance
         for i in range(x0.shape[0]):
-            self.raw.append(tuple(np.array(a, dtype=np.float64) for a in (x0[i], x_ref[i], u_prev[i], Uc[i], d)))
+            self.raw.append(tuple(as_numpy(a).copy() for a in (x0[i], x_ref[i], u_prev[i], Uc[i], d)))
         return U, info
 
 

@@ -10,8 +10,11 @@ import pytest
 import torch
 from torch.func import jacrev, vmap
 
+from pinnmpc.flow_numpy import NumpyFlow
+from pinnmpc.integrators import rk4_step
 from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import FORMAT, FORMAT_VERSION, SHIPPED, CheckpointError, Surrogate, load_surrogate
+from pinnmpc.systems import PowerCube
 
 torch.set_num_threads(1)  # a training job shares this 2-core machine
 
@@ -60,6 +63,17 @@ def test_shipped_facts(s: Surrogate) -> None:
     assert (s.nx, s.nu) == (NX, NU)
     assert s.dtype == torch.float64
     assert next(s.model.parameters()).dtype == torch.float64
+
+
+def test_shipped_second_order_network_is_accurate_and_consistent() -> None:
+    second = load_surrogate(SHIPPED.parent / "powercube-second-order.pt", nx=NX, nu=NU)
+    assert second.model.second_order and second.tau == 0.2
+    x0, u = _points(64, seed=11)
+    ref = rk4_step(PowerCube().rhs, x0, u, 0.2, 1e-3)
+    rmse = (second.step(x0, u) - ref).square().mean(0).sqrt()
+    assert torch.all(rmse < torch.tensor([5e-3, 8e-3, 3e-2, 6e-2], dtype=torch.float64))  # trained: ~2e-3 / 4e-3 rad
+    x1, a, b = NumpyFlow.from_pinn(second.model, second.tau).step_with_jacobian(x0.numpy(), u.numpy())
+    np.testing.assert_allclose(x1, second.step(x0, u).numpy(), rtol=0, atol=1e-12)  # the controller's fast path
 
 
 def test_call_shapes_and_dtype(s: Surrogate) -> None:
