@@ -221,8 +221,12 @@ class PINN(nn.Module):
         self.register_buffer("out_center", self.in_center[1 : 1 + self.nx].clone())
         self.register_buffer("time_basis", torch.tensor(time_basis, dtype=torch.float32), persistent=False)
         self.n_gates = 1 + len(time_basis)
-        self.register_buffer("head_scale", self.out_scale[self.nx - self.n_head :].clone(), persistent=False)
         self.net = TangentMLP(1 + self.nx + self.nu, self.n_head * self.n_gates, hidden, activation)
+
+    @property
+    def head_scale(self) -> Tensor:
+        """Output scale of the network heads: the velocity part of out_scale for second-order models."""
+        return self.out_scale[self.nx - self.n_head :]
 
     def _inputs(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
         """Normalised network input z in [-1, 1]^7 over the training box."""
