@@ -254,10 +254,14 @@ class PINN(nn.Module):
         dz[..., 0] = 1.0 / self.in_half[0]
         return dz
 
-    def _kinematic(self, t: Tensor, x0: Tensor, n: Tensor, dn: Tensor) -> Tensor:
+    def _second_order_gates(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Gates g_k, their slopes and their integrals G_k at t, computed once per call of the network."""
+        g, dg = self.gates(t)
+        return g, dg, self.gate_integrals(t)
+
+    def _kinematic(self, t: Tensor, x0: Tensor, g: Tensor, big_g: Tensor, n: Tensor, dn: Tensor) -> Tensor:
         """Second-order state (q, v) from the network value N and its time derivative dN/dt."""
         q0, v0 = x0[..., : self.nq], x0[..., self.nq :]
-        g, big_g = self.gates(t)[0], self.gate_integrals(t)
         q = q0 + v0 * t + self.head_scale * self._gated(big_g, n)
         v = v0 + self.head_scale * (self._gated(g, n) + self._gated(big_g, dn))
         return torch.cat((q, v), dim=-1)
@@ -273,7 +277,8 @@ class PINN(nn.Module):
         z = self._inputs(t, x0, u)
         if self.second_order:
             n, dn = self.net.forward_tangent(z, self._time_tangent(z).unsqueeze(-2))
-            return self._kinematic(t, x0, n, dn.squeeze(-2))
+            g, _, big_g = self._second_order_gates(t)
+            return self._kinematic(t, x0, g, big_g, n, dn.squeeze(-2))
         return self._assemble(t, x0, self.net(z))
 
     def with_time_derivative(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
@@ -295,9 +300,8 @@ class PINN(nn.Module):
         self, t: Tensor, x0: Tensor, n: Tensor, dn: Tensor, ddn: Tensor
     ) -> tuple[Tensor, Tensor]:
         """(q, v) and (v, dv/dt) of a second-order model from N and its first two time derivatives."""
-        x = self._kinematic(t, x0, n, dn)
-        g, dg = self.gates(t)
-        big_g = self.gate_integrals(t)
+        g, dg, big_g = self._second_order_gates(t)
+        x = self._kinematic(t, x0, g, big_g, n, dn)
         acc = self.head_scale * (self._gated(dg, n) + 2 * self._gated(g, dn) + self._gated(big_g, ddn))
         return x, torch.cat((x[..., self.nq :], acc), dim=-1)
 
@@ -311,15 +315,16 @@ class PINN(nn.Module):
     def _second_order_jacobian(self, t: Tensor, x0: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
         """(q, v)(t) and its Jacobian for a second-order model: needs the mixed derivatives d2N/dt d(x0, u)."""
         n, dn, jn, jdn = self.net.forward_mixed(z, self._time_tangent(z), self._state_tangents(z))
-        g, big_g = self.gates(t)[0].unsqueeze(-2), self.gate_integrals(t).unsqueeze(-2)
+        g, _, big_g = self._second_order_gates(t)
+        gk, big_gk = g.unsqueeze(-2), big_g.unsqueeze(-2)  # one gate row for all k tangent directions
         scale = self.head_scale.unsqueeze(-1)
-        jq = scale * self._gated(big_g, jn).transpose(-1, -2)
-        jv = scale * (self._gated(g, jn) + self._gated(big_g, jdn)).transpose(-1, -2)
+        jq = scale * self._gated(big_gk, jn).transpose(-1, -2)
+        jv = scale * (self._gated(gk, jn) + self._gated(big_gk, jdn)).transpose(-1, -2)
         n_state_in = self.nx + self.nu
         eye = torch.eye(self.nx, n_state_in, dtype=z.dtype, device=z.device)
         jac = torch.cat((jq, jv), dim=-2) + eye
         jac[..., : self.nq, self.nq : self.nx] += t.unsqueeze(-1) * torch.eye(self.nq, dtype=z.dtype, device=z.device)
-        return self._kinematic(t, x0, n, dn), jac
+        return self._kinematic(t, x0, g, big_g, n, dn), jac
 
     def with_jacobian(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """x(t) and d x(t) / d(x0, u) as (..., nx, nx + nu), for Gauss-Newton control."""
