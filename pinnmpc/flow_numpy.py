@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.special import expit
 
 from pinnmpc.pinn import PINN
 
@@ -23,8 +24,12 @@ def _sin(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _silu(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    s = 1.0 / (1.0 + np.exp(-a))
-    return a * s, s * (1.0 + a * (1.0 - s))
+    s = expit(a)
+    y = a * s
+    slope = 1.0 - s  # silu' = s + silu (1 - s), in place
+    slope *= y
+    slope += s
+    return y, slope
 
 
 def _softplus(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -32,7 +37,9 @@ def _softplus(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _silu_value(a: np.ndarray) -> np.ndarray:
-    return a / (1.0 + np.exp(-a))
+    y = expit(a)
+    y *= a
+    return y
 
 
 def _softplus_value(a: np.ndarray) -> np.ndarray:
@@ -48,7 +55,7 @@ def _sin_curvature(a: np.ndarray, y: np.ndarray, slope: np.ndarray) -> np.ndarra
 
 
 def _silu_curvature(a: np.ndarray, y: np.ndarray, slope: np.ndarray) -> np.ndarray:
-    s = 1.0 / (1.0 + np.exp(-a))
+    s = expit(a)
     return s * (1.0 - s) * (2.0 + a * (1.0 - 2.0 * s))
 
 
@@ -71,13 +78,23 @@ CURVATURES = {  # second derivatives, mirrors pinn.CURVATURES
 }
 
 
-def _folded_input(model: PINN, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """First layer on raw (x0, u) with t = tau and the input normalisation folded in, and its d/dt."""
+def _folded_input(model: PINN, tau: float) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """First layer on raw (x0, u) with t = tau and the input normalisation folded in (periodic states through
+    their sine and cosine weights), and its d/dt."""
     w1, b1 = _np(model.net.layers[0].weight), _np(model.net.layers[0].bias)
     center, half = _np(model.in_center), _np(model.in_half)
-    w_in = w1[:, 1:] / half[1:]
+    n_raw, periodic = model.nx + model.nu, np.asarray(model.periodic, dtype=np.intp)
+    w_in = w1[:, 1 : 1 + n_raw] / half[1:]
+    w_in[:, periodic] = 0.0  # periodic states enter through w_sin, w_cos only
     b_in = b1 + w1[:, 0] * (tau - center[0]) / half[0] - w_in @ center[1:]
-    return np.ascontiguousarray(w_in.T), b_in, w1[:, 0] / half[0]
+    first = {
+        "w_in": np.ascontiguousarray(w_in.T),
+        "b_in": b_in,
+        "periodic": periodic,
+        "w_sin": np.ascontiguousarray(w1[:, 1 + periodic].T),
+        "w_cos": np.ascontiguousarray(w1[:, 1 + n_raw :].T),
+    }
+    return first, w1[:, 0] / half[0]
 
 
 def _hidden(model: PINN) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -108,8 +125,14 @@ class NumpyFlow:
     activation: str
     nx: int
     nu: int
+    periodic: np.ndarray = None  # indices of the states entering as (sin, cos); their rows of w_in are zero
+    w_sin: np.ndarray = None  # (n_periodic, width): first layer acting on sin of the periodic states
+    w_cos: np.ndarray = None  # (n_periodic, width): ... and on their cosines
 
     def __post_init__(self) -> None:
+        if self.periodic is None:
+            self.periodic = np.empty(0, dtype=np.intp)
+        self.w_trig = np.concatenate((self.w_sin, self.w_cos)) if self.periodic.size else None  # (sin, cos) @ w_trig
         self.eye = np.eye(self.nx)  # dx/dx0 of the skip connection x0 + ...
         self.act = NUMPY_ACTIVATIONS[self.activation]
         self.value = VALUE_ACTIVATIONS[self.activation]
@@ -119,7 +142,7 @@ class NumpyFlow:
         """Copy float64 weights out of the torch module and fold in what is constant at t = tau."""
         if model.second_order:
             return SecondOrderNumpyFlow.from_second_order_pinn(model, tau)
-        w_in, b_in, _ = _folded_input(model, tau)
+        first, _ = _folded_input(model, tau)
         hard = model.exact_ic
         if hard:  # the time gates are constants at t = tau: x(tau) - x0 = scale * sum_k g_k N_k
             w_out, b_out = _gate_sum(model, model.gates(torch.full((1,), float(tau), dtype=model.out_scale.dtype))[0])
@@ -128,20 +151,39 @@ class NumpyFlow:
             w_out = (scale[:, None] * w).T
             b_out = scale * _np(model.net.layers[-1].bias) + _np(model.out_center)
         return cls(
-            w_in, b_in, _hidden(model), np.ascontiguousarray(w_out), b_out, hard, model.config["activation"],
-            model.nx, model.nu,
+            hidden=_hidden(model), w_out=np.ascontiguousarray(w_out), b_out=b_out, hard_ic=hard,
+            activation=model.config["activation"], nx=model.nx, nu=model.nu, **first,
         )  # fmt: skip
 
-    def _first_layer(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Pre-activation of the first layer; two GEMMs instead of a concatenation and one."""
+    def _first_layer(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """Pre-activation of the first layer (GEMMs on x0 and u, no concatenation), and (sin, cos) of the
+        periodic states, (..., n_periodic) each, or None without periodic states."""
         a = x0 @ self.w_in[: self.nx]
         a += u @ self.w_in[self.nx :]
         a += self.b_in
-        return a
+        if not self.periodic.size:
+            return a, None
+        angle = x0[..., self.periodic]
+        trig = np.sin(angle), np.cos(angle)
+        a += np.concatenate(trig, axis=-1) @ self.w_trig
+        return a, trig
+
+    def _angle_rows(self, trig: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray | None:
+        """d(first-layer pre-activation)/d(periodic state), (batch, n_periodic, width): cos w_sin - sin w_cos."""
+        if trig is None:
+            return None
+        sin, cos = trig
+        return cos[..., None] * self.w_sin - sin[..., None] * self.w_cos
+
+    def _input_tangents(self, factor: np.ndarray, angle_rows: np.ndarray | None, out: np.ndarray) -> None:
+        """factor * d(first-layer pre-activation)/d(x0, u) into out (batch, nx + nu, width)."""
+        np.multiply(factor[:, None, :], self.w_in, out=out)
+        if angle_rows is not None:
+            out[:, self.periodic] = factor[:, None, :] * angle_rows
 
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """x(tau) for x0 (..., nx), u (..., nu)."""
-        z = self.value(self._first_layer(x0, u))
+        z = self.value(self._first_layer(x0, u)[0])
         for w, b in self.hidden:
             z = self.value(z @ w + b)
         n = z @ self.w_out + self.b_out
@@ -159,9 +201,10 @@ class NumpyFlow:
         batch, width = x0.shape[0], self.b_in.shape[0]
         z = np.empty((batch * (1 + n_in), width))
         value, tangent = z[:batch], z[batch:].reshape(batch, n_in, width)
-        y, slope = self.act(self._first_layer(x0, u))
+        a, trig = self._first_layer(x0, u)
+        y, slope = self.act(a)
         value[...] = y
-        np.multiply(slope[:, None, :], self.w_in, out=tangent)
+        self._input_tangents(slope, self._angle_rows(trig), tangent)
         for w, b in self.hidden:
             z = z @ w
             value, tangent = z[:batch], z[batch:].reshape(batch, n_in, width)
@@ -201,14 +244,14 @@ class SecondOrderNumpyFlow(NumpyFlow):
     @classmethod
     def from_second_order_pinn(cls, model: PINN, tau: float) -> SecondOrderNumpyFlow:
         """Fold the gate sums at t = tau into the pair output layer [[W_G, W_g], [0, W_G]]."""
-        w_in, b_in, t_in = _folded_input(model, tau)
+        first, t_in = _folded_input(model, tau)
         t = torch.full((1,), float(tau), dtype=model.out_scale.dtype)
         w_big, b_big = _gate_sum(model, model.gate_integrals(t))
         w_g, b_g = _gate_sum(model, model.gates(t)[0])
         w_out = np.block([[w_big, w_g], [np.zeros_like(w_big), w_big]])
         return cls(
-            w_in, b_in, _hidden(model), w_out, np.concatenate((b_big, b_g)), True, model.config["activation"],
-            model.nx, model.nu, tau=float(tau), t_in=t_in,
+            hidden=_hidden(model), w_out=w_out, b_out=np.concatenate((b_big, b_g)), hard_ic=True,
+            activation=model.config["activation"], nx=model.nx, nu=model.nu, tau=float(tau), t_in=t_in, **first,
         )  # fmt: skip
 
     def _state(self, x0: np.ndarray, increment: np.ndarray) -> np.ndarray:
@@ -223,7 +266,7 @@ class SecondOrderNumpyFlow(NumpyFlow):
         lead = x0.shape[:-1]
         x0, u = x0.reshape(-1, self.nx), u.reshape(-1, self.nu)
         batch, width = x0.shape[0], self.b_in.shape[0]
-        y, slope = self.act(self._first_layer(x0, u))
+        y, slope = self.act(self._first_layer(x0, u)[0])
         z = np.stack((y, slope * self.t_in), axis=1)  # (batch, 2, width): [N, dN/dt] per sample
         for w, b in self.hidden:
             z = (z.reshape(2 * batch, width) @ w).reshape(batch, 2, width)  # 2-D GEMM: one BLAS call
@@ -241,12 +284,13 @@ class SecondOrderNumpyFlow(NumpyFlow):
         x0, u = x0.reshape(-1, nx), u.reshape(-1, self.nu)
         batch, width = x0.shape[0], self.b_in.shape[0]
         z = np.empty((batch, 2 + 2 * n_in, width))
-        a = self._first_layer(x0, u)
+        a, trig = self._first_layer(x0, u)
+        angle_rows = self._angle_rows(trig)
         y, slope = self.act(a)
         z[:, 0] = y
         np.multiply(slope, self.t_in, out=z[:, 1])
-        np.multiply(slope[:, None, :], self.w_in, out=z[:, 2::2])
-        np.multiply((self.curvature(a, y, slope) * self.t_in)[:, None, :], self.w_in, out=z[:, 3::2])
+        self._input_tangents(slope, angle_rows, z[:, 2::2])
+        self._input_tangents(self.curvature(a, y, slope) * self.t_in, angle_rows, z[:, 3::2])
         rows = batch * (2 + 2 * n_in)
         for w, b in self.hidden:
             z = (z.reshape(rows, width) @ w).reshape(batch, 2 + 2 * n_in, width)  # 2-D GEMM: one BLAS call

@@ -29,7 +29,8 @@ def _sin(a: Tensor) -> tuple[Tensor, Tensor]:
 def _silu(a: Tensor) -> tuple[Tensor, Tensor]:
     """SiLU (swish) and its derivative: smooth, non-saturating."""
     s = torch.sigmoid(a)
-    return a * s, s * (1 + a * (1 - s))
+    y = a * s
+    return y, s + y * (1 - s)
 
 
 def _softplus(a: Tensor) -> tuple[Tensor, Tensor]:
@@ -143,6 +144,10 @@ class PINN(nn.Module):
     the network the steep boundary layer at small t. ic='soft' is the paper's plain output
     x = center + halfwidth * N(.), with x(0) = x0 learned from data points.
 
+    periodic lists state coordinates the dynamics see only through sin and cos (joint angles): the network
+    gets sin and cos of them instead of the normalised value, so the flow increment it has to represent is
+    smooth on the circle (no seam at the box edge, no sine to build from tanh) and holds beyond the box.
+
     second_order=True is for mechanical systems x = (q, dq/dt): the network models the positions only,
     q = q0 + v0 t + scale_v * sum_k G_k(t) N_k(.) with G_k the time integral of gate g_k, and the velocity
     is its exact time derivative. dq/dt = v then holds by construction (in the first-order form its
@@ -162,6 +167,7 @@ class PINN(nn.Module):
         output_scale: Sequence[float] | None = None,
         time_basis: Sequence[float] = (),
         second_order: bool = False,
+        periodic: Sequence[int] = (),
     ) -> None:
         super().__init__()
         if ic not in IC_MODES:
@@ -181,6 +187,9 @@ class PINN(nn.Module):
                 "second_order=True needs an exact initial condition (ic='hard' or 'gated') and a state "
                 f"(positions, velocities) of even dimension; got ic={ic!r}, state dimension {len(state_low)}"
             )
+        periodic = [int(i) for i in periodic]
+        if len(set(periodic)) != len(periodic) or any(not 0 <= i < len(state_low) for i in periodic):
+            raise ValueError(f"periodic must list distinct state indices in [0, {len(state_low)}), got {periodic}")
         self.config = {
             "state_low": [float(v) for v in state_low],
             "state_high": [float(v) for v in state_high],
@@ -193,6 +202,7 @@ class PINN(nn.Module):
             "output_scale": None if output_scale is None else [float(v) for v in output_scale],
             "time_basis": time_basis,
             "second_order": bool(second_order),
+            "periodic": periodic,
         }  # everything needed to rebuild the module from a checkpoint
         self.nx, self.nu = len(state_low), len(input_low)
         self.ic = ic
@@ -221,7 +231,11 @@ class PINN(nn.Module):
         self.register_buffer("out_center", self.in_center[1 : 1 + self.nx].clone())
         self.register_buffer("time_basis", torch.tensor(time_basis, dtype=torch.float32), persistent=False)
         self.n_gates = 1 + len(time_basis)
-        self.net = TangentMLP(1 + self.nx + self.nu, self.n_head * self.n_gates, hidden, activation)
+        self.periodic = periodic
+        self.register_buffer("sin_cols", torch.tensor(periodic, dtype=torch.long) + 1, persistent=False)
+        n_lin = 1 + self.nx + self.nu  # t, x0, u; periodic x0 columns hold the sine, their cosines follow
+        self.register_buffer("cos_cols", torch.arange(len(periodic), dtype=torch.long) + n_lin, persistent=False)
+        self.net = TangentMLP(n_lin + len(periodic), self.n_head * self.n_gates, hidden, activation)
 
     @property
     def head_scale(self) -> Tensor:
@@ -229,9 +243,13 @@ class PINN(nn.Module):
         return self.out_scale[self.nx - self.n_head :]
 
     def _inputs(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
-        """Normalised network input z in [-1, 1]^7 over the training box."""
+        """Normalised network input z in [-1, 1] over the training box, periodic states as (sin, cos)."""
         t, x0, u = torch.broadcast_tensors(t, x0[..., :1], u[..., :1])[0], x0, u
-        return (torch.cat((t, x0, u), dim=-1) - self.in_center) / self.in_half
+        z = (torch.cat((t, x0, u), dim=-1) - self.in_center) / self.in_half
+        if not self.periodic:
+            return z
+        angle = x0[..., self.sin_cols - 1]
+        return torch.cat((z.index_copy(-1, self.sin_cols, torch.sin(angle)), torch.cos(angle)), dim=-1)
 
     def gates(self, t: Tensor) -> tuple[Tensor, Tensor]:
         """Time gates g(t) (..., n_gates), all zero at t = 0, and dg/dt."""
@@ -306,11 +324,18 @@ class PINN(nn.Module):
         return x, torch.cat((x[..., self.nq :], acc), dim=-1)
 
     def _state_tangents(self, z: Tensor) -> Tensor:
-        """dz/d(x0, u) of the normalised input, one row per state and input coordinate."""
+        """dz/d(x0, u) of the network input, one row per state and input coordinate."""
         n_state_in = self.nx + self.nu
         eye = torch.eye(n_state_in, dtype=z.dtype, device=z.device) / self.in_half[1:]
-        dz = torch.cat((torch.zeros(n_state_in, 1, dtype=z.dtype, device=z.device), eye), dim=-1)
-        return dz.expand(*z.shape[:-1], n_state_in, z.shape[-1])
+        dz = torch.zeros(n_state_in, z.shape[-1], dtype=z.dtype, device=z.device)
+        dz[:, 1 : 1 + n_state_in] = eye
+        dz = dz.expand(*z.shape[:-1], n_state_in, z.shape[-1])
+        if not self.periodic:
+            return dz
+        dz, rows = dz.clone(), self.sin_cols - 1
+        dz[..., rows, self.sin_cols] = z[..., self.cos_cols]  # d sin(q) / dq = cos(q), read off the input
+        dz[..., rows, self.cos_cols] = -z[..., self.sin_cols]
+        return dz
 
     def _second_order_jacobian(self, t: Tensor, x0: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
         """(q, v)(t) and its Jacobian for a second-order model: needs the mixed derivatives d2N/dt d(x0, u)."""

@@ -39,6 +39,7 @@ def build_model(cfg: DictConfig, system: System) -> PINN:
         output_scale=None if scale is None else list(scale),
         time_basis=list(cfg.model.time_basis) if cfg.model.ic == "gated" else [],
         second_order=cfg.model.get("second_order", False),
+        periodic=list(cfg.model.get("periodic", [])),
     )
 
 

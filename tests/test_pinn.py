@@ -27,6 +27,9 @@ VARIANTS = {  # output structures: the paper's soft IC, x0 + t N, and x0 + t N_0
     "gated": {"ic": "gated", "time_basis": [0.02, 0.045]},
     "second-order hard": {"ic": "hard", "second_order": True},  # q = q0 + v0 t + G(t) N, v = dq/dt
     "second-order gated": {"ic": "gated", "time_basis": [0.02, 0.045], "second_order": True},
+    "periodic gated": {"ic": "gated", "time_basis": [0.02, 0.045], "periodic": [0, 1]},  # angles as (sin, cos)
+    "periodic second-order": {"ic": "gated", "time_basis": [0.02], "second_order": True, "periodic": [1]},
+    "periodic soft": {"ic": "soft", "periodic": [0]},
 }
 
 
@@ -99,6 +102,20 @@ def test_second_order_velocity_is_the_position_derivative(variant):
     assert model.net.layers[-1].out_features == 2 * model.n_gates  # one head per gate for the 2 positions only
 
 
+@pytest.mark.parametrize("variant", ["periodic gated", "periodic second-order"])
+def test_periodic_states_give_a_periodic_flow(variant):
+    torch.manual_seed(9)
+    model = PINN(**BOX, hidden=[16, 16], output_scale=[0.3, 0.4, 3.0, 3.5], **VARIANTS[variant]).double()
+    t, x0, u = _points(seed=10)
+    turn = torch.zeros(4, dtype=torch.float64)
+    turn[model.periodic] = 2 * math.pi  # a full turn of every periodic joint, leaving the box
+    torch.testing.assert_close(model(t, x0 + turn, u) - turn, model(t, x0, u), rtol=0, atol=1e-12)
+    other = torch.tensor([0.0, 0.0, 0.1, 0.0], dtype=torch.float64)  # velocities are not periodic
+    assert (model(t, x0 + other, u) - model(t, x0, u) - other).abs().max() > 1e-6
+    n_in = model.net.layers[0].in_features
+    assert n_in == 7 + len(model.periodic)  # one extra cosine input per periodic state
+
+
 def test_time_gates_start_at_zero_and_relax():
     model = PINN(**BOX, hidden=[8], ic="gated", time_basis=[0.02, 0.045]).double()
     t = torch.tensor([[0.0], [0.02], [0.25]], dtype=torch.float64)
@@ -143,6 +160,10 @@ def test_bad_configuration_is_named():
     odd = {**BOX, "state_low": [-1.0, -1.0, -1.0], "state_high": [1.0, 1.0, 1.0]}
     with pytest.raises(ValueError, match="state dimension 3"):
         PINN(**odd, second_order=True)
+    with pytest.raises(ValueError, match=r"periodic must list distinct state indices in \[0, 4\), got \[0, 4\]"):
+        PINN(**BOX, periodic=[0, 4])
+    with pytest.raises(ValueError, match=r"distinct state indices.*got \[1, 1\]"):
+        PINN(**BOX, periodic=[1, 1])
     with pytest.raises(ValueError, match="t_max must be > 0"):
         PINN(**{**BOX, "t_max": 0.0})
     with pytest.raises(ValueError, match=r"time_basis must hold positive relaxation times in s, got \[0.02, -1.0\]"):

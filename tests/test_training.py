@@ -130,7 +130,7 @@ def test_adaptive_redraw_gathers_points_where_the_residual_is_large(make_cfg, tm
     plain.draw()  # the plain LHS draw of the same size and seed
     p = plain.batch
     uniform = module.pointwise_residual(p["t"], p["x0"], p["u"]).mean()
-    assert adaptive > 2.0 * uniform
+    assert adaptive > 1.5 * uniform  # a plain draw would give ~1
     low = torch.tensor([0.0, *system.state_box.low, *system.input_box.low], dtype=torch.float64)
     high = torch.tensor([0.25, *system.state_box.high, *system.input_box.high], dtype=torch.float64)
     pts = torch.cat([b["t"], b["x0"], b["u"]], dim=1)
