@@ -30,6 +30,7 @@ from scipy.optimize import minimize
 from threadpoolctl import threadpool_info
 from torch import Tensor
 
+from pinnmpc.cli import run_cli
 from pinnmpc.closed_loop import metrics, plant_system, simulate
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import NMPC
@@ -1041,7 +1042,7 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 def main(cfg: DictConfig) -> None:
     """CLI: run the benchmark and print its markdown."""
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    run_bench(cfg, run_dir)
+    run_cli(lambda: run_bench(cfg, run_dir), "pinnmpc.bench", run_dir)
     print((run_dir / "bench.md").read_text())
     print(f"outputs in {run_dir}")
 

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import TypeVar
 
 from omegaconf.errors import OmegaConfBaseException
@@ -22,11 +24,22 @@ def verbose() -> bool:
     return os.environ.get("HYDRA_FULL_ERROR") == "1" or os.environ.get("PINNMPC_VERBOSE") == "1"
 
 
-def run_cli(body: Callable[[], T], prog: str) -> T:
-    """Call body; a user error or failed run becomes `prog: error: message` on stderr and exit code 2 or 1."""
+def discard_bookkeeping_only(run_dir: Path | None) -> None:
+    """Remove a run dir holding nothing but Hydra's .hydra/ and logs: bad input leaves no half-written run."""
+    if run_dir is None or not run_dir.is_dir():
+        return
+    if all(e.name == ".hydra" or (e.is_file() and e.suffix == ".log") for e in run_dir.iterdir()):
+        shutil.rmtree(run_dir, ignore_errors=True)
+
+
+def run_cli(body: Callable[[], T], prog: str, run_dir: Path | None = None) -> T:
+    """Call body; a user error or failed run becomes `prog: error: message` on stderr and exit code 2 or 1;
+    after bad input, a run_dir that Hydra filled with its bookkeeping only is removed."""
     try:
         return body()
     except (*USER_ERRORS, *RUN_FAILURES) as e:
+        if isinstance(e, USER_ERRORS):
+            discard_bookkeeping_only(run_dir)
         if verbose():
             raise
         message = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__

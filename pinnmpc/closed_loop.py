@@ -67,7 +67,7 @@ def simulate(
     if max_steps is not None:
         steps = min(steps, int(max_steps))
     rng = np.random.default_rng(seed)
-    box = nmpc.surrogate.state_box
+    box = nmpc.surrogate.domain
     lo, hi = np.array(box.low), np.array(box.high)
     nmpc.reset()
     x = np.array(ref.x[0], dtype=np.float64)
@@ -144,7 +144,7 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             f"tau={cfg.tau} differs from the surrogate's tau={surrogate.tau} (a PINN predicts one period of its tau)"
         )
     ref = load_reference(resolve_reference_path(cfg.reference.path), surrogate.tau, cfg.reference.name)
-    dist = out_of_box(ref, surrogate.state_box.low, surrogate.state_box.high)
+    dist = out_of_box(ref, surrogate.domain.low, surrogate.domain.high)
     if dist > 0:
         log.warning(
             "reference leaves the surrogate's training box by up to %.3g; tracking there is extrapolation", dist
@@ -189,7 +189,7 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 def main(cfg: DictConfig) -> None:
     """CLI: print the headline numbers and where the outputs went."""
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    m = run_cli(lambda: run_closed_loop(cfg, run_dir), "pinnmpc.closed_loop")
+    m = run_cli(lambda: run_closed_loop(cfg, run_dir), "pinnmpc.closed_loop", run_dir)
     print(
         f"{m['status']}: {m['steps']} steps on {m['reference']}"
         + (f" (offset-free, gain {m['disturbance_gain']:g})" if m["disturbance_gain"] > 0 else "")

@@ -68,7 +68,7 @@ def run_robustness(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
 def main(cfg: DictConfig) -> None:
     """CLI: print the table."""
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    rows = run_cli(lambda: run_robustness(cfg, run_dir), "pinnmpc.robustness")
+    rows = run_cli(lambda: run_robustness(cfg, run_dir), "pinnmpc.robustness", run_dir)
     print(markdown(rows, cfg.robustness.bound))
 
 

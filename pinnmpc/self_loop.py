@@ -77,7 +77,7 @@ def run_self_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 def main(cfg: DictConfig) -> None:
     """CLI: headline numbers and where the outputs went."""
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    m = run_cli(lambda: run_self_loop(cfg, run_dir), "pinnmpc.self_loop")
+    m = run_cli(lambda: run_self_loop(cfg, run_dir), "pinnmpc.self_loop", run_dir)
     mae = ", ".join(f"{k} {v:.2e}" for k, v in m["mae"].items())
     print(f"self-loop {m['steps']} steps, MAE vs plant: {mae}; outputs in {run_dir}")
 

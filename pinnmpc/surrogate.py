@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +61,11 @@ class Surrogate(Dimensions):
         self.input_box = Box(cfg["input_low"], cfg["input_high"])
         self.t_max = cfg["t_max"]
         self.meta = meta or {}
+        periodic = set(cfg.get("periodic", ()))
+        self.domain = Box(  # where predictions are trained: unbounded in periodic states, exact there by design
+            [-math.inf if i in periodic else v for i, v in enumerate(cfg["state_low"])],
+            [math.inf if i in periodic else v for i, v in enumerate(cfg["state_high"])],
+        )
 
     def _check(self, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """Readable shape errors and the surrogate's dtype."""

@@ -104,7 +104,7 @@ def main(cfg: DictConfig) -> float:
     hydra_cfg = hydra.core.hydra_config.HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)
     command = " ".join(["python -m pinnmpc.train", *hydra_cfg.overrides.task])
-    summary = run_cli(lambda: train(cfg, run_dir, command), "pinnmpc.train")
+    summary = run_cli(lambda: train(cfg, run_dir, command), "pinnmpc.train", run_dir)
     score = summary["best_val_rmse_position"]
     if score is None:  # the run ended before its first validation epoch
         every = cfg.trainer.check_val_every_n_epoch

@@ -98,6 +98,18 @@ def test_cli_writes_metrics(tmp_path):
     _check_metrics(json.loads((tmp_path / "metrics.json").read_text()))
 
 
+def test_cli_bad_input_is_one_line_and_leaves_no_run_dir(tmp_path):
+    run_dir = tmp_path / "bad"
+    r = subprocess.run(
+        [sys.executable, "-m", "pinnmpc.closed_loop", "tau=0.1", "progress=false", f"hydra.run.dir={run_dir}"],
+        capture_output=True, text=True, cwd=ROOT, timeout=300,
+    )  # fmt: skip
+    assert r.returncode == 2
+    assert "pinnmpc.closed_loop: error:" in r.stderr and "tau=0.1 differs" in r.stderr
+    assert "Traceback" not in r.stderr
+    assert not run_dir.exists()  # Hydra's .hydra/ bookkeeping went with it: nothing half-written is left
+
+
 def test_plant_failure_stops_cleanly_and_keeps_what_was_reached(make_cfg, tmp_path):
     cfg = make_cfg("closed_loop", ["max_steps=5", "progress=false", "plots=false", "plant.mass_scale=1e-300"])
     m = run_closed_loop(cfg, tmp_path)  # a near-massless plant: RK45 cannot resolve it and gives up

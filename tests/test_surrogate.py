@@ -216,6 +216,21 @@ def test_save_load_round_trip_of_a_second_order_model(s: Surrogate, tmp_path: Pa
         torch.testing.assert_close(a, b, rtol=1e-13, atol=1e-13)
 
 
+def test_periodic_model_round_trip_and_domain(s: Surrogate, tmp_path: Path) -> None:
+    torch.manual_seed(5)
+    config = {**s.model.config, "hidden": [16, 16], "activation": "silu", "periodic": [0, 1]}
+    periodic = Surrogate(PINN(**config).double(), s.tau, s.state_names, s.input_names)
+    loaded = load_surrogate(periodic.save(tmp_path / "periodic.pt"))
+    assert loaded.model.config == config
+    x0, u = _points(10, seed=12)
+    turn = torch.tensor([2 * torch.pi, -4 * torch.pi, 0.0, 0.0], dtype=torch.float64)
+    torch.testing.assert_close(loaded.step(x0 + turn, u) - turn, periodic.step(x0, u), rtol=0, atol=1e-12)
+    # the closed loop warns when leaving the domain: the angles are unbounded there, the velocities are not
+    assert loaded.domain.low[:2] == (-float("inf"),) * 2 and loaded.domain.high[2:] == s.state_box.high[2:]
+    linear = Surrogate(PINN(**{**config, "periodic": []}), s.tau, s.state_names, s.input_names)
+    assert linear.domain == linear.state_box  # with linear angle inputs the domain is the training box
+
+
 def test_save_load_round_trip_keeps_float64_weights(s: Surrogate, tmp_path: Path) -> None:
     model = PINN(**s.model.config)
     model.load_state_dict(s.model.state_dict())
