@@ -11,6 +11,7 @@ Writes bench.json, bench.md and PNG plots (all atomically) into the run dir and 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import platform
 import time
@@ -127,6 +128,8 @@ class RK4Model(Dimensions):
         self.state_names, self.input_names = tuple(system.state_names), tuple(system.input_names)
         self.state_box: Box = system.state_box
         self.input_box: Box = system.input_box
+        nx = len(self.state_names)
+        self.domain = Box([-math.inf] * nx, [math.inf] * nx)  # the physics holds for every state
         self._jacfwd = torch.func.vmap(torch.func.jacfwd(self._flow_with_aux, argnums=(0, 1), has_aux=True))
 
     def _flow(self, x0: Tensor, u: Tensor) -> Tensor:

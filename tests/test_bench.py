@@ -13,7 +13,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
-from pinnmpc.bench import RK4Model, run_bench
+from pinnmpc.bench import RK4Model, run_bench, run_controller
+from pinnmpc.references import load_reference
 from pinnmpc.systems import PowerCube
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -245,3 +246,11 @@ def test_rk4_model_jacobians_agree() -> None:
     du = torch.tensor([eps, 0.0], dtype=torch.float64)
     fd = (rev.step(x0[1], u[1] + du) - rev.step(x0[1], u[1] - du)) / (2 * eps)
     torch.testing.assert_close(Br[1, :, 0], fd, rtol=1e-5, atol=1e-7)
+
+
+def test_true_model_baseline_runs_a_closed_loop() -> None:
+    cfg = _cfg(["closed_loop.max_steps=2", "progress=false"])
+    system = PowerCube()
+    ref = load_reference(None, 0.2, "default")
+    row, _ = run_controller(cfg, system, RK4Model(system, 0.2, 0.02), ref, "lifted_gauss_newton", record=False)
+    assert row["status"] == "ok" and row["steps"] == 2  # the controller takes the true model like a surrogate
