@@ -125,9 +125,9 @@ class NumpyFlow:
     activation: str
     nx: int
     nu: int
-    periodic: np.ndarray = None  # indices of the states entering as (sin, cos); their rows of w_in are zero
-    w_sin: np.ndarray = None  # (n_periodic, width): first layer acting on sin of the periodic states
-    w_cos: np.ndarray = None  # (n_periodic, width): ... and on their cosines
+    periodic: np.ndarray | None = None  # indices of the states entering as (sin, cos); their rows of w_in are zero
+    w_sin: np.ndarray | None = None  # (n_periodic, width): first layer acting on sin of the periodic states
+    w_cos: np.ndarray | None = None  # (n_periodic, width): ... and on their cosines
 
     def __post_init__(self) -> None:
         if self.periodic is None:

@@ -116,18 +116,21 @@ class LBFGSSolver:
             evals[0] += 1
             return cost
 
+        with torch.no_grad():  # per problem the best feasible point so far: L-BFGS lowers the summed cost, and
+            best_u = torch.maximum(torch.minimum(U0, high), low)  # a projection can undo a round's gain
+            best = ocp.cost(x0, best_u, x_ref, u_prev)
         prev = float("inf")
         for _ in range(self.rounds):
             cost = float(opt.step(closure).detach())
             with torch.no_grad():
                 U.copy_(torch.maximum(torch.minimum(U, high), low))
+                reached = ocp.cost(x0, U, x_ref, u_prev)
+                better = reached < best
+                best_u[better], best = U[better], torch.where(better, reached, best)
             if abs(prev - cost) < self.tol * max(1.0, abs(cost)):
                 break
             prev = cost
-        U = U.detach()  # noqa: N806
-        with torch.no_grad():
-            final = ocp.cost(x0, U, x_ref, u_prev)
-        return U, SolveInfo(torch.full(final.shape, evals[0]), final, torch.ones(final.shape, dtype=torch.bool))
+        return best_u, SolveInfo(torch.full(best.shape, evals[0]), best, torch.ones(best.shape, dtype=torch.bool))
 
 
 @dataclass
