@@ -232,7 +232,8 @@ class PINN(nn.Module):
         self.register_buffer("time_basis", torch.tensor(time_basis, dtype=torch.float32), persistent=False)
         self.n_gates = 1 + len(time_basis)
         self.periodic = periodic
-        self.register_buffer("sin_cols", torch.tensor(periodic, dtype=torch.long) + 1, persistent=False)
+        self.register_buffer("angles", torch.tensor(periodic, dtype=torch.long), persistent=False)  # x0 columns
+        self.register_buffer("sin_cols", self.angles + 1, persistent=False)  # their columns of the network input
         n_lin = 1 + self.nx + self.nu  # t, x0, u; periodic x0 columns hold the sine, their cosines follow
         self.register_buffer("cos_cols", torch.arange(len(periodic), dtype=torch.long) + n_lin, persistent=False)
         self.net = TangentMLP(n_lin + len(periodic), self.n_head * self.n_gates, hidden, activation)
@@ -248,7 +249,7 @@ class PINN(nn.Module):
         z = (torch.cat((t, x0, u), dim=-1) - self.in_center) / self.in_half
         if not self.periodic:
             return z
-        angle = x0[..., self.sin_cols - 1]
+        angle = x0[..., self.angles]
         return torch.cat((z.index_copy(-1, self.sin_cols, torch.sin(angle)), torch.cos(angle)), dim=-1)
 
     def gates(self, t: Tensor) -> tuple[Tensor, Tensor]:
@@ -332,9 +333,9 @@ class PINN(nn.Module):
         dz = dz.expand(*z.shape[:-1], n_state_in, z.shape[-1])
         if not self.periodic:
             return dz
-        dz, rows = dz.clone(), self.sin_cols - 1
-        dz[..., rows, self.sin_cols] = z[..., self.cos_cols]  # d sin(q) / dq = cos(q), read off the input
-        dz[..., rows, self.cos_cols] = -z[..., self.sin_cols]
+        dz = dz.clone()
+        dz[..., self.angles, self.sin_cols] = z[..., self.cos_cols]  # d sin(q) / dq = cos(q), read off the input
+        dz[..., self.angles, self.cos_cols] = -z[..., self.sin_cols]
         return dz
 
     def _second_order_jacobian(self, t: Tensor, x0: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
