@@ -63,6 +63,21 @@ def _softplus_curvature(a: np.ndarray, y: np.ndarray, slope: np.ndarray) -> np.n
     return slope * (1.0 - slope)
 
 
+def _silu_full(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """SiLU value, slope and curvature from one sigmoid, in place where possible (second-order Jacobians)."""
+    s = expit(a)
+    y = a * s
+    rest = 1.0 - s
+    slope = y * rest
+    slope += s
+    curvature = rest - s  # s (1 - s) (2 + a (1 - 2 s))
+    curvature *= a
+    curvature += 2.0
+    curvature *= s
+    curvature *= rest
+    return y, slope, curvature
+
+
 def _np(t: torch.Tensor) -> np.ndarray:
     """A float64 numpy copy, detached from the torch module."""
     return t.detach().double().numpy().copy()
@@ -76,6 +91,7 @@ CURVATURES = {  # second derivatives, mirrors pinn.CURVATURES
     "silu": _silu_curvature,
     "softplus": _softplus_curvature,
 }
+FUSED = {"silu": _silu_full}  # value, slope and curvature sharing work; others compose the two above
 
 
 def _folded_input(model: PINN, tau: float) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -226,33 +242,68 @@ class NumpyFlow:
 @dataclass
 class SecondOrderNumpyFlow(NumpyFlow):
     """NumpyFlow of a second-order PINN: q(tau) = q0 + v0 tau + N_G, v(tau) = v0 + N_g + dN_G/dt (N_G, N_g: the
-    network output summed over the gates with weights G_k(tau), g_k(tau)). Each sample's value rides with its
-    time tangent in a row pair [N, dN/dt], and each (x0, u) tangent with its mixed tangent d2N/dt dx, so the
-    output layer [[W_G, W_g], [0, W_G]] maps every pair straight to a state increment or a Jacobian column."""
+    network output summed over the gates with weights G_k(tau), g_k(tau)). Rows ride in two contiguous blocks,
+    z[0] = the values and their (x0, u) tangents, z[1] = the time derivatives of those rows, so every layer is
+    one GEMM and every elementwise update acts on a whole block; the output layer maps z[0] by [W_G, W_g] and
+    adds z[1] @ W_G (the dN_G/dt term) to the velocity part."""
 
     tau: float = 0.0
     t_in: np.ndarray = None  # (width,): d(first-layer pre-activation)/dt
+    w_time: np.ndarray = None  # (width, nq): W_G, maps the time block to the velocity increment
 
     def __post_init__(self) -> None:
         super().__post_init__()
         self.nq = self.nx // 2
         self.curvature = CURVATURES[self.activation]
+        self.full = FUSED.get(self.activation, self._composed)
         self.kinematic = np.zeros((self.nx, self.nx + self.nu))  # d(q0 + v0 tau, v0)/d(x0, u)
         self.kinematic[:, : self.nx] = np.eye(self.nx)
         self.kinematic[: self.nq, self.nq : self.nx] = self.tau * np.eye(self.nq)
 
     @classmethod
     def from_second_order_pinn(cls, model: PINN, tau: float) -> SecondOrderNumpyFlow:
-        """Fold the gate sums at t = tau into the pair output layer [[W_G, W_g], [0, W_G]]."""
+        """Fold the gate sums at t = tau into the output maps [W_G, W_g] (values) and W_G (time derivatives)."""
         first, t_in = _folded_input(model, tau)
         t = torch.full((1,), float(tau), dtype=model.out_scale.dtype)
         w_big, b_big = _gate_sum(model, model.gate_integrals(t))
         w_g, b_g = _gate_sum(model, model.gates(t)[0])
-        w_out = np.block([[w_big, w_g], [np.zeros_like(w_big), w_big]])
         return cls(
-            hidden=_hidden(model), w_out=w_out, b_out=np.concatenate((b_big, b_g)), hard_ic=True,
-            activation=model.config["activation"], nx=model.nx, nu=model.nu, tau=float(tau), t_in=t_in, **first,
+            hidden=_hidden(model), w_out=np.hstack((w_big, w_g)), b_out=np.concatenate((b_big, b_g)), hard_ic=True,
+            activation=model.config["activation"], nx=model.nx, nu=model.nu, tau=float(tau), t_in=t_in,
+            w_time=np.ascontiguousarray(w_big), **first,
         )  # fmt: skip
+
+    def _composed(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Value, slope and curvature for activations without a fused form."""
+        y, slope = self.act(a)
+        return y, slope, self.curvature(a, y, slope)
+
+    def _propagate(self, z: np.ndarray) -> np.ndarray:
+        """Carry z (2, batch, rows, width) through the hidden layers; row 0 is the value, rows 1: its tangents."""
+        shape, width = z.shape, z.shape[-1]
+        for w, b in self.hidden:
+            z = (z.reshape(-1, width) @ w).reshape(shape)
+            value = z[0, :, 0]
+            value += b
+            if shape[2] == 1:  # values only: d/dt of a value needs the slope, not the curvature
+                y, slope = self.act(value)
+            else:
+                y, slope, bend = self.full(value)
+                bend *= z[1, :, 0]  # sigma'' times the pre-activation's d/dt: the product rule's cross term
+                bend = bend[:, None] * z[0, :, 1:]
+            z[1] *= slope[:, None]
+            if shape[2] > 1:
+                z[1, :, 1:] += bend
+                z[0, :, 1:] *= slope[:, None]
+            value[...] = y
+        return z
+
+    def _output(self, z: np.ndarray) -> np.ndarray:
+        """(batch, rows, nx): the state increment (row 0) and Jacobian columns of the network part."""
+        _, batch, rows, width = z.shape
+        out = z[0].reshape(-1, width) @ self.w_out
+        out[:, self.nq :] += z[1].reshape(-1, width) @ self.w_time
+        return out.reshape(batch, rows, self.nx)
 
     def _state(self, x0: np.ndarray, increment: np.ndarray) -> np.ndarray:
         """(q, v)(tau) = (q0 + v0 tau, v0) + the network's increment."""
@@ -267,44 +318,27 @@ class SecondOrderNumpyFlow(NumpyFlow):
         x0, u = x0.reshape(-1, self.nx), u.reshape(-1, self.nu)
         batch, width = x0.shape[0], self.b_in.shape[0]
         y, slope = self.act(self._first_layer(x0, u)[0])
-        z = np.stack((y, slope * self.t_in), axis=1)  # (batch, 2, width): [N, dN/dt] per sample
-        for w, b in self.hidden:
-            z = (z.reshape(2 * batch, width) @ w).reshape(batch, 2, width)  # 2-D GEMM: one BLAS call
-            value = z[:, 0]
-            value += b
-            y, slope = self.act(value)
-            value[...] = y
-            z[:, 1] *= slope
-        increment = z.reshape(batch, 2 * width) @ self.w_out
+        z = np.empty((2, batch, 1, width))
+        z[0, :, 0] = y
+        np.multiply(slope, self.t_in, out=z[1, :, 0])
+        increment = self._output(self._propagate(z))[:, 0]
         return self._state(x0, increment).reshape(*lead, self.nx)
 
     def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """x(tau), A, B: per sample 1 + nx + nu row pairs, [N, dN/dt] then [dN/dx_j, d2N/dt dx_j], one GEMM a layer."""
+        """x(tau), A, B: per sample 1 + nx + nu rows [N, dN/dx_j] and their time derivatives, one GEMM a layer."""
         lead, nx, n_in = x0.shape[:-1], self.nx, self.nx + self.nu
         x0, u = x0.reshape(-1, nx), u.reshape(-1, self.nu)
         batch, width = x0.shape[0], self.b_in.shape[0]
-        z = np.empty((batch, 2 + 2 * n_in, width))
+        z = np.empty((2, batch, 1 + n_in, width))
         a, trig = self._first_layer(x0, u)
         angle_rows = self._angle_rows(trig)
-        y, slope = self.act(a)
-        z[:, 0] = y
-        np.multiply(slope, self.t_in, out=z[:, 1])
-        self._input_tangents(slope, angle_rows, z[:, 2::2])
-        self._input_tangents(self.curvature(a, y, slope) * self.t_in, angle_rows, z[:, 3::2])
-        rows = batch * (2 + 2 * n_in)
-        for w, b in self.hidden:
-            z = (z.reshape(rows, width) @ w).reshape(batch, 2 + 2 * n_in, width)  # 2-D GEMM: one BLAS call
-            value, tangents = z[:, 0], z[:, 1:]
-            value += b
-            y, slope = self.act(value)
-            bend = self.curvature(value, y, slope)
-            bend *= z[:, 1]
-            cross = bend[:, None, :] * z[:, 2::2]  # sigma'' * d/dt * d/dx_j of the pre-activation
-            tangents *= slope[:, None, :]
-            z[:, 3::2] += cross
-            value[...] = y
-        out = (z.reshape(batch * (1 + n_in), 2 * width) @ self.w_out).reshape(batch, 1 + n_in, nx)
-        # row 0 of each sample: the state increment; rows 1..: Jacobian columns
+        y, slope, bend = self.full(a)
+        z[0, :, 0] = y
+        np.multiply(slope, self.t_in, out=z[1, :, 0])
+        self._input_tangents(slope, angle_rows, z[0, :, 1:])
+        bend *= self.t_in
+        self._input_tangents(bend, angle_rows, z[1, :, 1:])
+        out = self._output(self._propagate(z))
         x1 = self._state(x0, out[:, 0])
         jac = out[:, 1:].swapaxes(-1, -2)
         jac += self.kinematic
