@@ -88,6 +88,30 @@ def test_bad_kinematic_weight_is_refused(make_cfg, bad):
         PINNModule(system, build_model(make_cfg("train", TINY), system), tau=0.2, kinematic_weight=bad)
 
 
+def test_huber_loss_is_squares_below_delta_and_linear_above(make_cfg):
+    cfg = make_cfg("train", TINY)
+    system = PowerCube()
+    model = build_model(cfg, system)
+    plain = PINNModule(system, model, tau=0.2)
+    dm = CollocationDataModule(system, tau=0.2, t_max=0.25, n_collocation=256, n_data=0, n_val=8, val_h=1e-2)
+    dm.setup()
+    r = plain._scaled_residual(plain._cast(dm.batch)).detach().abs()
+    delta = float(r.quantile(0.7))  # a third of the residuals beyond it
+    robust = PINNModule(system, model, tau=0.2, robust_delta=delta)
+    expected = torch.where(r <= delta, r.square(), 2 * delta * r - delta**2).mean()
+    torch.testing.assert_close(robust.losses(dm.batch)["physics"].detach(), expected)
+    assert robust.losses(dm.batch)["physics"] < plain.losses(dm.batch)["physics"]
+    huge = PINNModule(system, model, tau=0.2, robust_delta=10 * float(r.max()))  # no residual beyond: squares
+    torch.testing.assert_close(huge.losses(dm.batch)["physics"], plain.losses(dm.batch)["physics"])
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.1, float("inf"), "big"])
+def test_bad_robust_delta_is_refused(make_cfg, bad):
+    system = PowerCube()
+    with pytest.raises(ValueError, match="robust_delta must be a positive number or null"):
+        PINNModule(system, build_model(make_cfg("train", TINY), system), tau=0.2, robust_delta=bad)
+
+
 def test_soft_initial_condition_has_a_data_loss(make_cfg):
     cfg = make_cfg("train", [*TINY, "experiment=paper"])
     system = PowerCube()

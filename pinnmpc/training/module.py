@@ -39,11 +39,14 @@ class PINNModule(L.LightningModule):
         stall_min_evals: int = 3,
         stall_rel_tol: float = 0.0,
         stall_redraw: bool = True,
+        robust_delta: float | None = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["system", "model"])
         if dtype not in DTYPES:
             raise ValueError(f"unknown dtype {dtype!r}; expected one of {sorted(DTYPES)}")
+        if robust_delta is not None and not (isinstance(robust_delta, int | float) and 0 < robust_delta < math.inf):
+            raise ValueError(f"robust_delta must be a positive number or null, got {robust_delta!r}")
         self.automatic_optimization = False
         self.system = system
         self.model = model.to(DTYPES[dtype])
@@ -95,10 +98,19 @@ class PINNModule(L.LightningModule):
         b = self._cast({"t": t, "x0": x0, "u": u})
         return self._scaled_residual(b).square().sum(dim=-1).double()
 
+    def _penalty(self, r: Tensor) -> Tensor:
+        """Squares, or Huber's penalty (linear beyond robust_delta) so that the few large residuals of the stiff
+        start of each step and of joint B's friction switch do not set the fit everywhere else."""
+        delta = self.hparams.robust_delta
+        if delta is None:
+            return r.square()
+        a = r.abs()
+        return torch.where(a <= delta, a.square(), delta * (2 * a - delta))
+
     def losses(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         """Physics, data and total loss for one full batch."""
         b = self._cast(batch)
-        out = {"physics": self._scaled_residual(b).square().mean()}
+        out = {"physics": self._penalty(self._scaled_residual(b)).mean()}
         total = self.hparams.weight_physics * out["physics"]
         if "data_x0" in b and self.hparams.weight_data > 0:
             x0 = b["data_x0"]
