@@ -105,7 +105,7 @@ def test_huber_loss_is_squares_below_delta_and_linear_above(make_cfg):
     torch.testing.assert_close(huge.losses(dm.batch)["physics"], plain.losses(dm.batch)["physics"])
 
 
-@pytest.mark.parametrize("bad", [0.0, -0.1, float("inf"), "big"])
+@pytest.mark.parametrize("bad", [0.0, -0.1, float("inf"), float("nan"), "big", True])
 def test_bad_robust_delta_is_refused(make_cfg, bad):
     system = PowerCube()
     with pytest.raises(ValueError, match="robust_delta must be a positive number or null"):

@@ -45,7 +45,11 @@ class PINNModule(L.LightningModule):
         self.save_hyperparameters(ignore=["system", "model"])
         if dtype not in DTYPES:
             raise ValueError(f"unknown dtype {dtype!r}; expected one of {sorted(DTYPES)}")
-        if robust_delta is not None and not (isinstance(robust_delta, int | float) and 0 < robust_delta < math.inf):
+        if robust_delta is not None and (
+            isinstance(robust_delta, bool)
+            or not isinstance(robust_delta, int | float)
+            or not 0 < robust_delta < math.inf
+        ):
             raise ValueError(f"robust_delta must be a positive number or null, got {robust_delta!r}")
         self.automatic_optimization = False
         self.system = system
