@@ -249,11 +249,11 @@ class SecondOrderNumpyFlow(NumpyFlow):
 
     tau: float = 0.0
     t_in: np.ndarray = None  # (width,): d(first-layer pre-activation)/dt
-    w_time: np.ndarray = None  # (width, nq): W_G, maps the time block to the velocity increment
 
     def __post_init__(self) -> None:
         super().__post_init__()
         self.nq = self.nx // 2
+        self.w_time = np.ascontiguousarray(self.w_out[:, : self.nq])  # W_G: the time block's velocity increment
         self.curvature = CURVATURES[self.activation]
         self.full = FUSED.get(self.activation, self._composed)
         self.kinematic = np.zeros((self.nx, self.nx + self.nu))  # d(q0 + v0 tau, v0)/d(x0, u)
@@ -269,8 +269,7 @@ class SecondOrderNumpyFlow(NumpyFlow):
         w_g, b_g = _gate_sum(model, model.gates(t)[0])
         return cls(
             hidden=_hidden(model), w_out=np.hstack((w_big, w_g)), b_out=np.concatenate((b_big, b_g)), hard_ic=True,
-            activation=model.config["activation"], nx=model.nx, nu=model.nu, tau=float(tau), t_in=t_in,
-            w_time=np.ascontiguousarray(w_big), **first,
+            activation=model.config["activation"], nx=model.nx, nu=model.nu, tau=float(tau), t_in=t_in, **first,
         )  # fmt: skip
 
     def _composed(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
