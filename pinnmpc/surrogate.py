@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from pinnmpc.io import save_torch
-from pinnmpc.pinn import PINN
+from pinnmpc.pinn import PINN, pinn_from_state
 from pinnmpc.systems.base import Box
 
 FORMAT = "pinnmpc-surrogate"
@@ -166,11 +166,7 @@ def load_surrogate(
         if want is not None and want != have:
             raise CheckpointError(f"{path} was trained for a system with {what} dimension {have}; expected {want}")
     try:
-        model = PINN(**config)
-        first = next(iter(state.values()), None)
-        if first is not None:
-            model = model.to(first.dtype)  # keep float64 weights exact
-        model.load_state_dict(state)
+        model = pinn_from_state(config, state)
     except (RuntimeError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: weights do not fit the stored network config ({e})") from e
     return Surrogate(model, facts["tau"], state_names, input_names, meta=facts.get("meta", {}), dtype=dtype)

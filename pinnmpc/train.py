@@ -14,15 +14,19 @@ from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.cli import run_cli
 from pinnmpc.io import save_json
-from pinnmpc.pinn import PINN
+from pinnmpc.pinn import PINN, StagedPINN
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.training.callbacks import AtomicCheckpoint, SelfLoopFigure, SurrogateFacts
 from pinnmpc.training.data import flow_scale
+from pinnmpc.training.stage import staged_model
 
 
-def build_model(cfg: DictConfig, system: System) -> PINN:
-    """The network for this system's training box; output scale estimated from the flow when 'auto'."""
+def build_model(cfg: DictConfig, system: System) -> PINN | StagedPINN:
+    """The network for this system's training box (output scale estimated from the flow when 'auto'), or with
+    stage.base a correction network on top of that trained one."""
+    if cfg.stage.base:
+        return build_staged(cfg, system)
     scale = cfg.model.output_scale
     if scale == "auto":
         a = cfg.model.auto_scale
@@ -41,6 +45,18 @@ def build_model(cfg: DictConfig, system: System) -> PINN:
         second_order=cfg.model.get("second_order", False),
         periodic=list(cfg.model.get("periodic", [])),
     )
+
+
+def build_staged(cfg: DictConfig, system: System) -> StagedPINN:
+    """stage.base frozen plus a correction network of stage.hidden; the base fixes box, t_max and form."""
+    st = cfg.stage
+    model = staged_model(
+        system, st.base, cfg.tau, list(st.hidden), st.error_scale, st.first_layer_gain, st.last_layer_gain,
+        st.samples, st.h, cfg.seed,
+    )  # fmt: skip
+    if abs(model.t_max - cfg.t_max) > 1e-12:
+        raise ValueError(f"stage.base was trained on t in [0, {model.t_max}]; set t_max={model.t_max}, got {cfg.t_max}")
+    return model
 
 
 def resolve_ckpt(cfg: DictConfig, run_dir: Path) -> str | None:

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from pinnmpc.flow_numpy import NumpyFlow
-from pinnmpc.pinn import ACTIVATIONS, PINN
+from pinnmpc.flow_numpy import BlockDiagonal, NumpyFlow
+from pinnmpc.pinn import ACTIVATIONS, PINN, StagedPINN
 from pinnmpc.systems import PowerCube
 
 BOX = dict(
@@ -174,3 +174,71 @@ def test_bad_configuration_is_named():
         PINN(**BOX, ic="soft", time_basis=[0.02])
     with pytest.raises(ValueError, match="ic='gated' needs a non-empty time_basis"):
         PINN(**BOX, ic="gated")
+
+
+@pytest.mark.parametrize("name", ["gated", "periodic second-order", "hard"])
+def test_merged_staged_network_is_exactly_base_plus_correction(name):
+    torch.manual_seed(3)
+    base = {**BOX, **VARIANTS[name], "hidden": [16, 16, 16], "activation": "silu", "output_scale": [0.3, 0.4, 2, 3]}
+    correction = {**base, "hidden": [8, 12, 4], "output_scale": [1e-3, 2e-3, 1e-2, 3e-2]}
+    staged = StagedPINN(base, correction, residual_level=0.05).double()
+    with torch.no_grad():
+        staged.correction.net.layers[-1].weight.mul_(10.0)  # a correction that matters
+    merged = staged.merged()
+    assert merged.config["hidden"] == [24, 28, 20]
+    t, x0, u = _points(32, seed=4)
+    x_staged = staged(t, x0, u)
+    assert (x_staged - staged.base(t, x0, u)).abs().max() > 1e-4
+    torch.testing.assert_close(merged(t, x0, u), x_staged, rtol=0, atol=1e-12)
+    for got, want in zip(merged.with_time_derivative(t, x0, u), staged.with_time_derivative(t, x0, u)):
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-11)
+    torch.testing.assert_close(merged(torch.zeros_like(t), x0, u), x0, rtol=0, atol=1e-12)  # still exact at t = 0
+    assert not any(p.requires_grad for p in staged.base.parameters())
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [({"activation": "tanh"}, "differs in \\['activation'\\]"), ({"hidden": [8, 8]}, "differs in \\['depth'\\]")],
+)
+def test_correction_that_cannot_merge_is_refused(change, match):
+    base = {**BOX, **VARIANTS["gated"], "hidden": [16, 16, 16], "activation": "silu"}
+    with pytest.raises(ValueError, match=match):
+        StagedPINN(base, {**base, **change}, residual_level=0.05)
+
+
+@pytest.mark.parametrize("variant", ["periodic gated", "periodic second-order"])
+@pytest.mark.parametrize("lead", [(1,), (3, 5)])
+def test_numpy_flow_of_a_merged_network_multiplies_block_by_block_and_matches_torch(variant, lead):
+    torch.manual_seed(6)
+    base = {
+        **BOX,
+        **VARIANTS[variant],
+        "hidden": [16, 16, 16],
+        "activation": "silu",
+        "output_scale": [0.3, 0.4, 3, 3.5],
+    }
+    staged = StagedPINN(base, {**base, "hidden": [8, 8, 8], "output_scale": [0.01] * 4}, residual_level=0.05)
+    merged = staged.double().merged()
+    flow = NumpyFlow.from_pinn(merged, 0.2)
+    assert all(isinstance(w, BlockDiagonal) and len(w.blocks) == 2 for w, _ in flow.hidden)
+    g = torch.Generator().manual_seed(7)
+    x0 = (torch.rand(*lead, 4, generator=g, dtype=torch.float64) * 2 - 1) * 2.5
+    u = torch.rand(*lead, 2, generator=g, dtype=torch.float64) - 0.5
+    x_ref, jac_ref = merged.with_jacobian(torch.full((*lead, 1), 0.2, dtype=torch.float64), x0, u)
+    x1, a, b = flow.step_with_jacobian(x0.numpy(), u.numpy())
+    np.testing.assert_allclose(x1, x_ref.detach().numpy(), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.concatenate((a, b), -1), jac_ref.detach().numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(flow.step(x0.numpy(), u.numpy()), x1, rtol=0, atol=1e-14)
+
+
+def test_block_split_finds_the_blocks_and_leaves_dense_layers_alone():
+    rng = np.random.default_rng(0)
+    a, b, c = rng.normal(size=(3, 3)), rng.normal(size=(2, 2)), rng.normal(size=(4, 4))
+    w = np.zeros((9, 9))
+    w[:3, :3], w[3:5, 3:5], w[5:, 5:] = a, b, c
+    split = BlockDiagonal.split(w)
+    assert [blk.shape for blk in split.blocks] == [(3, 3), (2, 2), (4, 4)]
+    z = rng.normal(size=(2, 5, 9))
+    np.testing.assert_allclose(z @ split, z @ w, rtol=0, atol=1e-14)
+    dense = rng.normal(size=(9, 9))
+    assert BlockDiagonal.split(dense) is dense

@@ -179,6 +179,24 @@ def test_bad_adaptive_settings_are_refused(bad):
     assert str(next(iter(bad.values()))) in str(err.value)
 
 
+def test_t_high_keeps_collocation_times_up_to_tau():
+    system = PowerCube()
+    dm = CollocationDataModule(system, 0.2, 0.25, n_collocation=256, n_data=8, n_val=8, val_h=1e-2, t_high=0.2)
+    dm.draw()
+    t = dm.batch["t"]
+    assert float(t.min()) >= 0.0 and float(t.max()) <= 0.2
+    assert float(t.max()) > 0.19  # still covers the whole period (LHS: one point per 1/256 of it)
+    full = CollocationDataModule(system, 0.2, 0.25, n_collocation=256, n_data=8, n_val=8, val_h=1e-2)
+    full.draw()
+    assert float(full.batch["t"].max()) > 0.24
+
+
+@pytest.mark.parametrize("bad", [0.1, 0.3])
+def test_t_high_outside_tau_to_t_max_is_refused(bad):
+    with pytest.raises(ValueError, match=f"tau <= t_high <= t_max.*t_high={bad}"):
+        CollocationDataModule(PowerCube(), 0.2, 0.25, t_high=bad)
+
+
 def test_lhs_is_stratified_in_every_coordinate():
     pts = lhs_box(100, [0.0, -1.0], [1.0, 1.0], seed=0)
     for j, (lo, hi) in enumerate([(0.0, 1.0), (-1.0, 1.0)]):
@@ -271,3 +289,38 @@ def test_killed_training_resumes_without_losing_work(make_cfg, tmp_path):
     resumed = torch.load(last, weights_only=True)
     assert summary["epochs"] == killed["epoch"] + 2
     assert resumed["global_step"] > killed["global_step"]
+
+
+def test_a_correction_stage_trains_on_a_frozen_base_and_exports_one_network(make_cfg, tmp_path):
+    base_dir, stage_dir = tmp_path / "base", tmp_path / "stage"
+    train(make_cfg("train", [*TINY, "trainer.max_epochs=2"]), base_dir)
+    base = load_surrogate(base_dir / "surrogate.pt")
+    stage = [*TINY, f"stage.base={base_dir / 'surrogate.pt'}", "stage.hidden=[8,8]", "stage.samples=64", "stage.h=1e-3"]
+    cfg = make_cfg("train", [*stage, "trainer.max_epochs=3"])
+    model = build_model(cfg, PowerCube())
+    assert not any(p.requires_grad for p in model.base.parameters())
+    module = PINNModule(PowerCube(), model, tau=0.2, lbfgs_max_iter=5)
+    dm = CollocationDataModule(PowerCube(), 0.2, 0.25, n_collocation=256, n_data=0, n_val=8, val_h=1e-2, seed=1)
+    dm.setup()
+    before = float(module.losses(dm.batch)["total"].detach())
+    assert 0.1 < before < 10  # residuals in units of the base's residual level
+    _quiet_trainer(tmp_path, max_epochs=3).fit(module, datamodule=dm)
+    assert float(module.losses(dm.batch)["total"].detach()) < 0.8 * before
+    for got, want in zip(model.base.state_dict().values(), base.model.state_dict().values()):
+        torch.testing.assert_close(got, want.to(got.dtype), rtol=0, atol=0)  # the base stayed frozen
+
+    train(cfg, stage_dir)  # the CLI path: export merges base and correction into one plain network
+    merged = load_surrogate(stage_dir / "surrogate.pt")
+    assert merged.model.config["hidden"] == [24, 24]
+    last = load_surrogate(stage_dir / "checkpoints" / "last.ckpt")  # a staged .ckpt loads merged too
+    x0, u = torch.rand(5, 4, dtype=torch.float64) - 0.5, torch.rand(5, 2, dtype=torch.float64) - 0.5
+    assert (last.step(x0, u) - base.step(x0, u)).abs().max() > 0  # the correction changed the flow
+    summary = train(make_cfg("train", [*stage, "trainer.max_epochs=4", "resume=true"]), stage_dir)
+    assert summary["epochs"] == 4  # resumes like any run
+
+
+def test_a_stage_on_a_base_for_another_tau_is_refused(make_cfg, tmp_path):
+    train(make_cfg("train", [*TINY, "trainer.max_epochs=1"]), tmp_path)
+    cfg = make_cfg("train", [*TINY, f"stage.base={tmp_path / 'surrogate.pt'}", "stage.samples=8", "tau=0.1"])
+    with pytest.raises(ValueError, match="trained for tau=0.2; this run has tau=0.1"):
+        build_model(cfg, PowerCube())

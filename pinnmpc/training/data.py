@@ -61,6 +61,7 @@ class CollocationDataModule(L.LightningDataModule):
         adaptive_pool: int = 0,
         adaptive_k: float = 1.0,
         adaptive_c: float = 1.0,
+        t_high: float | None = None,
     ) -> None:
         super().__init__()
         if n_collocation < 1 or n_data < 0 or n_val < 1:
@@ -74,7 +75,10 @@ class CollocationDataModule(L.LightningDataModule):
             )
         if not 0 < tau <= t_max:
             raise ValueError(f"need 0 < tau <= t_max, got tau={tau}, t_max={t_max}")
-        self.system, self.tau, self.t_max = system, float(tau), float(t_max)
+        t_high = t_max if t_high is None else float(t_high)
+        if not tau <= t_high <= t_max:
+            raise ValueError(f"need tau <= t_high <= t_max for the collocation times, got t_high={t_high}")
+        self.system, self.tau, self.t_max, self.t_high = system, float(tau), float(t_max), t_high
         self.n_collocation, self.n_data = int(n_collocation), int(n_data)
         self.resample_every, self.resample_epochs = int(resample_every), {int(e) for e in resample_epochs}
         self.n_val, self.val_h, self.seed = int(n_val), float(val_h), int(seed)
@@ -112,7 +116,7 @@ class CollocationDataModule(L.LightningDataModule):
         s = self.system
         seed = self.seed + 7919 * self.draws
         low = (0.0, *s.state_box.low, *s.input_box.low)
-        high = (self.t_max, *s.state_box.high, *s.input_box.high)
+        high = (self.t_high, *s.state_box.high, *s.input_box.high)
         pts = self._collocation(low, high, seed)
         nx = s.state_box.dim
         batch = {"t": pts[:, :1], "x0": pts[:, 1 : 1 + nx], "u": pts[:, 1 + nx :]}

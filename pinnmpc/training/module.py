@@ -64,7 +64,7 @@ class PINNModule(L.LightningModule):
         nx = self.model.nx
         if residual_scale == "auto":
             if self.hparams.residual_form == "explicit":
-                return self.model.out_scale.detach().double() / self.model.t_max
+                return self.model.residual_unit.detach().double()
             return torch.ones(nx, dtype=torch.float64)
         scale = torch.tensor(list(residual_scale), dtype=torch.float64)
         if scale.shape != (nx,) or torch.any(scale <= 0):
@@ -127,8 +127,9 @@ class PINNModule(L.LightningModule):
     def configure_optimizers(self) -> list[torch.optim.Optimizer]:
         """L-BFGS with strong Wolfe line search (the paper), plus an optional Adam warm-up."""
         h = self.hparams
+        params = [p for p in self.model.parameters() if p.requires_grad]  # a staged model's base stays frozen
         lbfgs = torch.optim.LBFGS(
-            self.model.parameters(),
+            params,
             lr=h.lbfgs_lr,
             max_iter=h.lbfgs_max_iter,
             history_size=h.lbfgs_history,
@@ -136,7 +137,7 @@ class PINNModule(L.LightningModule):
             tolerance_change=h.lbfgs_tolerance_change,
             line_search_fn="strong_wolfe",
         )
-        return [lbfgs, torch.optim.Adam(self.model.parameters(), lr=h.adam_lr)]
+        return [lbfgs, torch.optim.Adam(params, lr=h.adam_lr)]
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         """One optimiser call over the full batch; recover from an L-BFGS stall."""
