@@ -10,6 +10,7 @@ import hydra
 import lightning as L
 import torch
 from hydra.utils import instantiate
+from lightning.pytorch.callbacks import Timer
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.cli import run_cli
@@ -59,6 +60,13 @@ def build_staged(cfg: DictConfig, system: System) -> StagedPINN:
     return model
 
 
+def training_time(trainer: L.Trainer, wall: float) -> float:
+    """Training time across resumes: Lightning's Timer (there whenever max_time is set) restores what earlier
+    processes spent from the checkpoint; without it, this process's wall time."""
+    timer = next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
+    return wall if timer is None else max(wall, float(timer.time_elapsed("train")))
+
+
 def resolve_ckpt(cfg: DictConfig, run_dir: Path) -> str | None:
     """Checkpoint to resume from: an explicit ckpt_path, or with resume=true this run dir's last.ckpt."""
     if cfg.ckpt_path:
@@ -103,6 +111,7 @@ def train(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnmpc.trai
         "trained_with": command,
         "config": OmegaConf.to_container(cfg, resolve=True),
         "wall_time_s": wall,
+        "training_time_s": training_time(trainer, wall),
         "epochs": trainer.current_epoch,
         "best_val_rmse_position": float(best.best_model_score) if best.best_model_score is not None else None,
         "final_metrics": metrics,

@@ -228,13 +228,24 @@ def test_list_overrides_leave_a_checkpoint_load_surrogate_reads(make_cfg, tmp_pa
 
 
 def test_resume_continues_from_last_checkpoint(make_cfg, tmp_path):
-    train(make_cfg("train", [*TINY, "trainer.max_epochs=2"]), tmp_path)
+    budget = "trainer.max_time=00:00:10:00"  # a wall-time budget brings Lightning's Timer, which resumes too
+    train(make_cfg("train", [*TINY, budget, "trainer.max_epochs=2"]), tmp_path)
     first = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=False)
-    summary = train(make_cfg("train", [*TINY, "trainer.max_epochs=4", "resume=true"]), tmp_path)
+    summary = train(make_cfg("train", [*TINY, budget, "trainer.max_epochs=4", "resume=true"]), tmp_path)
     second = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=False)
     assert summary["epochs"] == 4
+    # wall time is this process's; training time also counts the first run's, restored by Lightning's Timer
+    assert (
+        summary["training_time_s"]
+        > summary["wall_time_s"] + 0.5 * first["callbacks"][_timer_key(first)]["time_elapsed"]["train"]
+    )
     assert second["global_step"] > first["global_step"]
     assert second["epoch"] == first["epoch"] + 2
+
+
+def _timer_key(ckpt: dict) -> str:
+    """Key of Lightning's Timer state among a checkpoint's callback states."""
+    return next(k for k in ckpt["callbacks"] if k.startswith("Timer"))
 
 
 def test_stalled_lbfgs_is_detected_and_recovered(make_cfg, tmp_path):
