@@ -193,7 +193,7 @@ def test_t_high_keeps_collocation_times_up_to_tau():
 
 @pytest.mark.parametrize("bad", [0.1, 0.3])
 def test_t_high_outside_tau_to_t_max_is_refused(bad):
-    with pytest.raises(ValueError, match=f"tau <= t_high <= t_max.*t_high={bad}"):
+    with pytest.raises(ValueError, match=rf"tau \(0.2\) <= t_high <= t_max \(0.25\).*t_high={bad}"):
         CollocationDataModule(PowerCube(), 0.2, 0.25, t_high=bad)
 
 

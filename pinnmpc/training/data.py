@@ -77,7 +77,9 @@ class CollocationDataModule(L.LightningDataModule):
             raise ValueError(f"need 0 < tau <= t_max, got tau={tau}, t_max={t_max}")
         t_high = t_max if t_high is None else float(t_high)
         if not tau <= t_high <= t_max:
-            raise ValueError(f"need tau <= t_high <= t_max for the collocation times, got t_high={t_high}")
+            raise ValueError(
+                f"need tau ({tau}) <= t_high <= t_max ({t_max}) for the collocation times, got t_high={t_high}"
+            )
         self.system, self.tau, self.t_max, self.t_high = system, float(tau), float(t_max), t_high
         self.n_collocation, self.n_data = int(n_collocation), int(n_data)
         self.resample_every, self.resample_epochs = int(resample_every), {int(e) for e in resample_epochs}
