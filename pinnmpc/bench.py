@@ -45,7 +45,7 @@ from pinnmpc.references import Reference, load_reference, resolve_reference_path
 from pinnmpc.surrogate import Dimensions, Surrogate, load_surrogate
 from pinnmpc.systems.base import Box, System
 from pinnmpc.threads import use_threads
-from pinnmpc.training.data import reference_flow, uniform_box
+from pinnmpc.training.data import random_pairs, reference_flow, uniform_box
 
 log = logging.getLogger(__name__)
 
@@ -224,9 +224,8 @@ def step_methods(system: System, pinn64: Surrogate, pinn32: Surrogate, plant: Sc
 
 def random_states(system: System, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """x0 uniform in the state box and u uniform in the input box (the training box), seeded."""
-    x0 = uniform_box(n, system.state_box.low, system.state_box.high, seed).numpy()
-    u = uniform_box(n, system.input_box.low, system.input_box.high, seed + 1).numpy()
-    return x0, u
+    x0, u = random_pairs(system, n, seed)
+    return x0.numpy(), u.numpy()
 
 
 def time_method(method: StepMethod, x: np.ndarray, u: np.ndarray, batch: int, repeats: int, warmup: int) -> np.ndarray:

@@ -123,18 +123,19 @@ class BlockDiagonal:
         self.blocks = [np.ascontiguousarray(b) for b in blocks]
         edges = np.cumsum([0, *(b.shape[0] for b in self.blocks)]).tolist()
         self.parts = [(slice(a, b), block) for a, b, block in zip(edges[:-1], edges[1:], self.blocks)]
-        self.shape = (edges[-1],) * 2
 
     @classmethod
     def split(cls, w: np.ndarray) -> BlockDiagonal | np.ndarray:
         """The blocks of a square W^T that is block-diagonal (zeros off the blocks), else W^T itself."""
         n = w.shape[0]
+        if w.shape != (n, n):
+            return w
         edges, start = [], 0
         for i in range(1, n):  # a block ends at i where nothing couples rows < i with columns >= i and vice versa
             if not (w[start:i, i:].any() or w[i:, start:i].any()):
                 edges.append(i)
                 start = i
-        if not edges or w.shape[0] != w.shape[1]:
+        if not edges:
             return w
         bounds = [0, *edges, n]
         return cls([w[a:b, a:b] for a, b in zip(bounds[:-1], bounds[1:])])

@@ -29,6 +29,17 @@ def uniform_box(n: int, low: Sequence[float], high: Sequence[float], seed: int) 
     return torch.from_numpy(rng.uniform(low, high, size=(n, len(low))))
 
 
+def random_pairs(system: System, n: int, seed: int) -> tuple[Tensor, Tensor]:
+    """n held-out (x0, u), each uniform over the training box (seeds seed and seed + 1)."""
+    x0 = uniform_box(n, system.state_box.low, system.state_box.high, seed)
+    return x0, uniform_box(n, system.input_box.low, system.input_box.high, seed + 1)
+
+
+def collocation_box(system: System, t_high: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Bounds of the (t, x0, u) points the physics loss sees, t in [0, t_high]."""
+    return (0.0, *system.state_box.low, *system.input_box.low), (t_high, *system.state_box.high, *system.input_box.high)
+
+
 def reference_flow(system: System, x0: Tensor, u: Tensor, tau: float, h: float) -> Tensor:
     """Accurate x(tau) by fine fixed-step RK4, vectorised over the batch."""
     with torch.no_grad():
@@ -37,8 +48,7 @@ def reference_flow(system: System, x0: Tensor, u: Tensor, tau: float, h: float) 
 
 def flow_scale(system: System, t_max: float, n: int, h: float, quantile: float, seed: int) -> list[float]:
     """Typical size of x(t_max) - x0 per state, so every network output is O(1)."""
-    x0 = uniform_box(n, system.state_box.low, system.state_box.high, seed)
-    u = uniform_box(n, system.input_box.low, system.input_box.high, seed + 1)
+    x0, u = random_pairs(system, n, seed)
     delta = (reference_flow(system, x0, u, t_max, h) - x0).abs()
     return torch.quantile(delta, quantile, dim=0).clamp_min(1e-6).tolist()
 
@@ -117,8 +127,7 @@ class CollocationDataModule(L.LightningDataModule):
         """Draw a fresh set of collocation and data points; the k-th plain-LHS draw is fixed by (seed, k)."""
         s = self.system
         seed = self.seed + 7919 * self.draws
-        low = (0.0, *s.state_box.low, *s.input_box.low)
-        high = (self.t_high, *s.state_box.high, *s.input_box.high)
+        low, high = collocation_box(s, self.t_high)
         pts = self._collocation(low, high, seed)
         nx = s.state_box.dim
         batch = {"t": pts[:, :1], "x0": pts[:, 1 : 1 + nx], "u": pts[:, 1 + nx :]}
@@ -133,10 +142,8 @@ class CollocationDataModule(L.LightningDataModule):
         if not self.batch:
             self.draw()
         if not self.val:
-            s = self.system
-            x0 = uniform_box(self.n_val, s.state_box.low, s.state_box.high, self.seed + 104729)
-            u = uniform_box(self.n_val, s.input_box.low, s.input_box.high, self.seed + 104730)
-            self.val = {"x0": x0, "u": u, "x1": reference_flow(s, x0, u, self.tau, self.val_h)}
+            x0, u = random_pairs(self.system, self.n_val, self.seed + 104729)
+            self.val = {"x0": x0, "u": u, "x1": reference_flow(self.system, x0, u, self.tau, self.val_h)}
 
     def due(self, epoch: int) -> bool:
         """Whether the schedule asks for new points at this epoch."""

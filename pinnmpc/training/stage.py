@@ -10,13 +10,12 @@ from torch import Tensor
 from pinnmpc.pinn import PINN, StagedPINN
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import System
-from pinnmpc.training.data import lhs_box, reference_flow, uniform_box
+from pinnmpc.training.data import collocation_box, lhs_box, random_pairs, reference_flow
 
 
 def one_step_rmse(system: System, model: PINN, tau: float, n: int, h: float, seed: int) -> Tensor:
     """RMSE per state of x(tau) on n random (x0, u) against fine RK4: the size the correction has to reach."""
-    x0 = uniform_box(n, system.state_box.low, system.state_box.high, seed)
-    u = uniform_box(n, system.input_box.low, system.input_box.high, seed + 1)
+    x0, u = random_pairs(system, n, seed)
     dtype = model.out_scale.dtype
     with torch.no_grad():
         x1 = model(torch.full_like(x0[:, :1], tau).to(dtype), x0.to(dtype), u.to(dtype)).double()
@@ -25,9 +24,7 @@ def one_step_rmse(system: System, model: PINN, tau: float, n: int, h: float, see
 
 def residual_level(system: System, model: PINN, n: int, seed: int) -> float:
     """RMS of the explicit ODE residual in the network's residual units over n LHS points of its training box."""
-    low = (0.0, *system.state_box.low, *system.input_box.low)
-    high = (model.t_max, *system.state_box.high, *system.input_box.high)
-    pts = lhs_box(n, low, high, seed).to(model.out_scale.dtype)
+    pts = lhs_box(n, *collocation_box(system, model.t_max), seed).to(model.out_scale.dtype)
     nx = system.state_box.dim
     t, x0, u = pts[:, :1], pts[:, 1 : 1 + nx], pts[:, 1 + nx :]
     with torch.no_grad():
