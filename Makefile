@@ -6,8 +6,17 @@ PY := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
 TORCH_PIP_ARGS ?=
 ARGS ?=
-OVERRIDES := $(filter-out ARGS=% PYTHON=% VENV=% TORCH_SPEC=% TORCH_PIP_ARGS=% SHARED_REF=%,$(MAKEOVERRIDES)) $(ARGS)
 SHARED_REF ?= ../shared/powercube/reference
+# Every `name=value` given to make becomes one Hydra override, in command-line order, each exactly once and
+# shell-quoted as one argument (values may hold spaces); ARGS="a=1 b=2" is split by the shell like a command line.
+KNOBS := ARGS PYTHON VENV TORCH_SPEC TORCH_PIP_ARGS SHARED_REF
+space := $(subst ,, )
+reverse = $(if $(1),$(call reverse,$(wordlist 2,$(words $(1)),$(1))) $(firstword $(1)))
+uniq = $(if $(1),$(firstword $(1)) $(call uniq,$(filter-out $(firstword $(1)),$(1))))
+# MAKEOVERRIDES lists them last-first, with a value's spaces escaped as "\ ": keep only each name
+CLI_NAMES := $(call uniq,$(call reverse,$(foreach d,$(subst \$(space),^,$(MAKEOVERRIDES)),$(firstword $(subst =, ,$(d))))))
+shell_quote = '$(subst ','\'',$(1))'
+OVERRIDES = $(foreach v,$(filter-out $(KNOBS),$(CLI_NAMES)),$(call shell_quote,$(v)=$($(v)))) $(ARGS)
 
 .PHONY: install train self-loop closed-loop closed-loop-paper robustness evaluate bench sweep sweep-optuna tensorboard test test-all lint format contract clean
 
@@ -67,5 +76,6 @@ format: install
 contract: install  ## the outside contract checks in ../shared
 	$(PY) ../shared/tools/check_contract.py --closed-loop
 
-clean:
-	rm -rf outputs multirun .pytest_cache .ruff_cache
+clean:  ## delete outputs/ (sweeps too: outputs/sweeps/) and caches; keeps run dirs of live runs and shipped checkpoints
+	$(PY) -m pinnmpc.cli clean outputs multirun lightning_logs
+	rm -rf .pytest_cache .ruff_cache

@@ -2,26 +2,27 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import hydra
 import numpy as np
-from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
-from pinnmpc.cli import run_cli
+from pinnmpc.cli import StopSignal, run_cli
 from pinnmpc.controller.build import build_nmpc
-from pinnmpc.controller.nmpc import NMPC
+from pinnmpc.controller.nmpc import Controller
 from pinnmpc.io import save_json, save_npz
 from pinnmpc.plant import PlantError, ScipyPlant
 from pinnmpc.references import Reference, load_reference, out_of_box, resolve_reference_path
+from pinnmpc.settings import SettingError, validate_closed_loop
 from pinnmpc.surrogate import load_surrogate
-from pinnmpc.systems.base import System
+from pinnmpc.systems.base import Box, System
+from pinnmpc.systems.registry import build_system
 from pinnmpc.threads import use_threads
 
 log = logging.getLogger(__name__)
@@ -41,24 +42,69 @@ def _stats(values: np.ndarray) -> dict[str, float]:
 
 def plant_system(system: System, cfg: DictConfig) -> System:
     """The simulated robot: the model with optional friction/mass mismatch (never seen by the controller)."""
-    params = getattr(system, "params", None)
-    if params is None or (cfg.friction_scale == 1.0 and cfg.mass_scale == 1.0):
+    if cfg.friction_scale == 1.0 and cfg.mass_scale == 1.0:
         return system
-    new = dataclasses.replace(params, friction_scale=cfg.friction_scale, mass_scale=cfg.mass_scale)
-    return dataclasses.replace(system, params=new)
+    return system.with_mismatch(friction_scale=cfg.friction_scale, mass_scale=cfg.mass_scale)
+
+
+def build_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box | None, float]:
+    """The controller named by controller.kind, the state box its model is valid in (None: everywhere) and tau.
+
+    kind pinn (default): NMPC on the surrogate (checkpoint, or the one shipped for this system);
+    kind casadi: the classical NMPC on the true model (compiled, pinnmpc.controller.casadi_nmpc)."""
+    kind = cfg.controller.get("kind", "pinn")
+    if kind == "casadi":
+        from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc
+
+        return build_casadi_nmpc(cfg.controller, system), None, system.tau
+    if kind != "pinn":
+        raise ValueError(f"controller.kind={kind!r}; expected 'pinn' or 'casadi'")
+    surrogate = load_surrogate(
+        cfg.checkpoint, system=system.name if cfg.checkpoint is None else None, state_names=system.state_names
+    )
+    check_input_bounds(cfg, surrogate.input_box)
+    return build_nmpc(cfg.controller, surrogate), surrogate.domain, surrogate.tau
+
+
+def bounds_outside(cfg: DictConfig, box: Box) -> list[str]:
+    """controller.u_low/u_high entries beyond the input box the surrogate was trained on (empty: none)."""
+    out = []
+    for key, edge, beyond in (("u_low", box.low, np.less), ("u_high", box.high, np.greater)):
+        given = cfg.controller.get(key)
+        if given is not None and np.any(beyond(np.asarray(list(given), dtype=np.float64), np.asarray(edge))):
+            out.append(f"controller.{key}={list(given)}")
+    return out
+
+
+def check_input_bounds(cfg: DictConfig, box: Box) -> None:
+    """Input bounds beyond the training box make the NMPC plan on extrapolated predictions: refused unless
+    allow_inputs_outside_box=true, and then a loud warning."""
+    outside = bounds_outside(cfg, box)
+    if not outside:
+        return
+    what = (
+        f"{' and '.join(outside)} reach beyond the surrogate's training input box "
+        f"[{list(box.low)}, {list(box.high)}], where its predictions are extrapolation"
+    )
+    if not cfg.get("allow_inputs_outside_box", False):
+        raise SettingError(f"{what}; expected bounds inside the box (or allow_inputs_outside_box=true)")
+    log.warning("WARNING: %s (allowed by allow_inputs_outside_box=true)", what)
 
 
 def simulate(
-    nmpc: NMPC,
+    controller: Controller,
     plant: ScipyPlant,
     ref: Reference,
+    domain: Box | None = None,
     noise_sigma: float = 0.0,
     seed: int = 0,
     max_steps: int | None = None,
     progress: bool = True,
+    stop: Callable[[], bool] | None = None,
 ) -> dict[str, Any]:
-    """Receding-horizon loop; stops cleanly on a plant failure and returns what was reached."""
-    horizon, nx = nmpc.horizon, ref.x.shape[1]
+    """Receding-horizon loop; stops cleanly on a plant failure or when stop() turns true (a signal), and returns
+    what was reached."""
+    horizon, nx = controller.horizon, ref.x.shape[1]
     steps = len(ref) - horizon - 1
     if steps < 1:
         raise ValueError(
@@ -67,12 +113,16 @@ def simulate(
     if max_steps is not None:
         steps = min(steps, int(max_steps))
     rng = np.random.default_rng(seed)
-    box = nmpc.surrogate.domain
-    lo, hi = np.array(box.low), np.array(box.high)
-    nmpc.reset()
+    lo = np.full(nx, -np.inf) if domain is None else np.array(domain.low)
+    hi = np.full(nx, np.inf) if domain is None else np.array(domain.high)
+    controller.reset()
     x = np.array(ref.x[0], dtype=np.float64)
     xs, us, status, out_of_box_steps, warned = [x], [], "ok", 0, False
     for k in tqdm(range(steps), desc="closed loop", unit="step", disable=not progress, file=sys.stderr):
+        if stop is not None and stop():
+            status = "interrupted"
+            log.warning("interrupted after %d of %d steps; writing what was reached", k, steps)
+            break
         measured = x + noise_sigma * rng.standard_normal(nx)
         if np.any(measured < lo) or np.any(measured > hi):
             out_of_box_steps += 1
@@ -83,7 +133,7 @@ def simulate(
                     k,
                 )
                 warned = True
-        u = nmpc.make_step(measured, ref.x[k + 1 : k + 1 + horizon])
+        u = controller.make_step(measured, ref.x[k + 1 : k + 1 + horizon])
         try:
             x = plant.step(x, u)
         except PlantError as e:
@@ -95,27 +145,26 @@ def simulate(
         us.append(u)
     return {
         "x": np.array(xs),
-        "u": np.array(us, dtype=np.float64).reshape(-1, nmpc.ocp.nu),
+        "u": np.array(us, dtype=np.float64).reshape(-1, len(controller.low)),
         "status": status,
         "out_of_box_steps": out_of_box_steps,
     }
 
 
 def metrics(
-    ref: Reference, run: dict[str, Any], nmpc: NMPC, plant: ScipyPlant, names: tuple[str, ...]
+    ref: Reference, run: dict[str, Any], controller: Controller, plant: ScipyPlant, names: tuple[str, ...]
 ) -> dict[str, Any]:
     """metrics.json: tracking error per state (SI units), OCP and plant timings, solver statistics."""
     x = run["x"]
     err = np.abs(x - ref.x[: len(x)])
-    st = nmpc.stats
+    st = controller.stats
     return {
         "reference": ref.name,
         "status": run["status"],
         "steps": len(st),
         "tau": plant.tau,
-        "horizon": nmpc.horizon,
-        "solver": type(nmpc.solver).__name__,
-        "disturbance_gain": float(nmpc.disturbance_gain),
+        "horizon": controller.horizon,
+        **controller.describe(),
         "mae": {n: float(v) for n, v in zip(names, err.mean(0))},
         "rmse": {n: float(v) for n, v in zip(names, np.sqrt((err**2).mean(0)))},
         "max_abs_error": {n: float(v) for n, v in zip(names, err.max(0))},
@@ -129,30 +178,65 @@ def metrics(
         },
         "converged_fraction": float(np.mean([s.converged for s in st])) if st else 0.0,
         "fallbacks": sum(s.fallback for s in st),
+        "not_converged": sum(not s.converged for s in st),
         "out_of_box_steps": run["out_of_box_steps"],
         "u_abs_max": float(np.abs(run["u"]).max()) if len(run["u"]) else 0.0,
+        "fallback_fraction": sum(s.fallback for s in st) / len(st) if st else 0.0,
     }
 
 
-def run_closed_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Load surrogate and reference, run the loop, write metrics.json, trajectory.npz and plots."""
+def verdict(m: dict[str, Any], max_fallback_fraction: float) -> str:
+    """The run's status: a run that mostly applied fallback inputs did not control anything, whatever it tracked."""
+    if m["status"] != "ok" or not m["steps"]:
+        return m["status"]
+    n, k = m["steps"], m["fallbacks"]
+    if k == n:
+        return f"failed: every one of the {n} steps fell back (no OCP solve succeeded; inputs were not the NMPC's)"
+    if k / n > max_fallback_fraction:
+        limit = f"failure.max_fallback_fraction={max_fallback_fraction:g}"
+        return f"failed: {k} of {n} steps fell back ({k / n:.0%} > {limit})"
+    return "ok"
+
+
+def system_reference(cfg: DictConfig, system: System, tau: float) -> Reference:
+    """reference.path if given, else the system's built-in reference.name, on the grid of tau."""
+    box = system.state_box
+    return load_reference(
+        resolve_reference_path(cfg.reference.path),
+        tau,
+        cfg.reference.name,
+        system.state_names,
+        OmegaConf.to_container(cfg.system.references, resolve=True),
+        (box.low[: system.nq], box.high[: system.nq]),
+    )
+
+
+def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = None) -> dict[str, Any]:
+    """Check the settings, load controller and reference, run the loop (until the end, a plant failure or a signal
+    to stop), write metrics.json, trajectory.npz and plots."""
+    system: System = build_system(cfg.system)
+    validate_closed_loop(cfg, system)
     use_threads(cfg.threads)
-    system: System = instantiate(cfg.system)
-    surrogate = load_surrogate(cfg.checkpoint, nx=len(system.state_names), nu=len(system.input_names))
-    if cfg.tau is not None and abs(cfg.tau - surrogate.tau) > 1e-12:
+    controller, domain, tau = build_controller(cfg, system)
+    if cfg.tau is not None and abs(cfg.tau - tau) > 1e-12:
         raise ValueError(
-            f"tau={cfg.tau} differs from the surrogate's tau={surrogate.tau} (a PINN predicts one period of its tau)"
+            f"tau={cfg.tau} differs from the controller model's tau={tau} (a PINN predicts one period of its tau)"
         )
-    ref = load_reference(resolve_reference_path(cfg.reference.path), surrogate.tau, cfg.reference.name)
-    dist = out_of_box(ref, surrogate.domain.low, surrogate.domain.high)
-    if dist > 0:
-        log.warning(
-            "reference leaves the surrogate's training box by up to %.3g; tracking there is extrapolation", dist
-        )
-    nmpc = build_nmpc(cfg.controller, surrogate)
-    plant = ScipyPlant(plant_system(system, cfg.plant), surrogate.tau, cfg.plant.method, cfg.plant.rtol, cfg.plant.atol)
-    run = simulate(nmpc, plant, ref, cfg.noise_sigma, cfg.seed, cfg.max_steps, cfg.progress)
-    result = metrics(ref, run, nmpc, plant, system.state_names)
+    ref = system_reference(cfg, system, tau)
+    if domain is not None:
+        dist = out_of_box(ref, domain.low, domain.high)
+        if dist > 0:
+            log.warning(
+                "reference leaves the surrogate's training box by up to %.3g; tracking there is extrapolation", dist
+            )
+    plant = ScipyPlant(plant_system(system, cfg.plant), tau, cfg.plant.method, cfg.plant.rtol, cfg.plant.atol)
+    requested = None if stop is None else (lambda: stop.requested)
+    run = simulate(controller, plant, ref, domain, cfg.noise_sigma, cfg.seed, cfg.max_steps, cfg.progress, requested)
+    result = metrics(ref, run, controller, plant, system.state_names)
+    failure = cfg.get("failure") or {}
+    result["status"] = verdict(result, float(failure.get("max_fallback_fraction", 1.0)))
+    result["input_bounds_outside_box"] = bool(domain is not None and bounds_outside(cfg, controller_box(controller)))
+    st = controller.stats
     n = len(run["x"])
     save_npz(
         run_dir / "trajectory.npz",
@@ -160,43 +244,77 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         x=run["x"],
         x_ref=ref.x[:n],
         u=run["u"],
-        ocp_time_s=np.array([s.time_s for s in nmpc.stats]),
-        iterations=np.array([s.iterations for s in nmpc.stats]),
-        cost=np.array([s.cost for s in nmpc.stats]),
-        converged=np.array([s.converged for s in nmpc.stats]),
-        fallback=np.array([s.fallback for s in nmpc.stats]),
+        ocp_time_s=np.array([s.time_s for s in st]),
+        iterations=np.array([s.iterations for s in st]),
+        cost=np.array([s.cost for s in st]),
+        converged=np.array([s.converged for s in st]),
+        fallback=np.array([s.fallback for s in st]),
     )
     save_json(run_dir / "metrics.json", result)
-    if cfg.plots:
-        from pinnmpc import plots
-
-        fig = plots.tracking_figure(
-            ref.t[:n],
-            ref.x[:n],
-            run["x"],
-            run["u"],
-            nmpc.low.tolist(),
-            nmpc.high.tolist(),
-            title=f"closed loop on {ref.name}",
-        )
-        plots.save_figure(fig, run_dir / "closed_loop.png")
-        if cfg.animate:
-            plots.animate_arm(ref.t[:n], ref.x[:n], run["x"], run_dir / "closed_loop.gif")
+    if cfg.plots and len(run["u"]):
+        write_plots(cfg, system, ref, run, controller, run_dir)
     return result
+
+
+def controller_box(controller: Controller) -> Box:
+    """The input box the controller's model was trained on (the NMPC's surrogate)."""
+    return controller.surrogate.input_box  # type: ignore[attr-defined]
+
+
+def write_plots(
+    cfg: DictConfig, system: System, ref: Reference, run: dict[str, Any], controller: Controller, run_dir: Path
+) -> None:
+    """closed_loop.png, and with animate=true closed_loop.gif of the arm (stick drawing from its kinematics)."""
+    from pinnmpc import plots
+
+    n = len(run["x"])
+    title = f"{system.name}: closed loop on {ref.name} ({controller.describe()['solver']})"
+    labels = plots.Labels.of(system)
+    low, high = np.asarray(controller.low).tolist(), np.asarray(controller.high).tolist()
+    fig = plots.tracking_figure(ref.t[:n], ref.x[:n], run["x"], run["u"], low, high, labels, title=title)
+    plots.save_figure(fig, run_dir / "closed_loop.png")
+    if cfg.animate:
+        nq = system.nq
+        error = np.abs(run["x"][:, :nq] - ref.x[:n, :nq]).max(axis=1)
+        points_ref, points = system.kinematics(ref.x[:n, :nq]), system.kinematics(run["x"][:, :nq])
+        gif_title = f"{system.name} on {ref.name}"
+        plots.animate_arm(ref.t[:n], points_ref, points, run_dir / "closed_loop.gif", title=gif_title, error=error)
+
+
+def headline(m: dict[str, Any], names: tuple[str, ...], units: tuple[str, ...], run_dir: Path) -> str:
+    """One line: status, tracking of every joint angle, OCP vs plant time, and everything that went wrong."""
+    nq = len(names) // 2
+    mae = ", ".join(f"{n} {m['mae'][n]:.2e} {u}" for n, u in zip(names[:nq], units[:nq]))
+    trouble = [
+        f"{m[k]} {label}"
+        for k, label in (
+            ("fallbacks", "fallbacks"),
+            ("not_converged", "not converged"),
+            ("out_of_box_steps", "out of box"),
+        )
+        if m[k]
+    ] + (["input bounds beyond the training box"] if m.get("input_bounds_outside_box") else [])
+    return (
+        f"{m['status']}: {m['steps']} steps on {m['reference']} with {m['solver']}"
+        + (f" (offset-free, gain {m['disturbance_gain']:g})" if m["disturbance_gain"] > 0 else "")
+        + f"; MAE {mae}; OCP median {1e3 * m['ocp_time_s']['median']:.2f} ms "
+        f"(plant step {1e3 * m['plant_step_time_s']['median']:.2f} ms)"
+        + (f"; {', '.join(trouble)}" if trouble else "")
+        + f"; outputs in {run_dir}"
+    )
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="closed_loop")
 def main(cfg: DictConfig) -> None:
     """CLI: print the headline numbers and where the outputs went."""
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    m = run_cli(lambda: run_closed_loop(cfg, run_dir), "pinnmpc.closed_loop", run_dir)
-    print(
-        f"{m['status']}: {m['steps']} steps on {m['reference']}"
-        + (f" (offset-free, gain {m['disturbance_gain']:g})" if m["disturbance_gain"] > 0 else "")
-        + f"; MAE alpha {m['mae']['alpha']:.2e} rad, "
-        f"beta {m['mae']['beta']:.2e} rad; OCP median {1e3 * m['ocp_time_s']['median']:.2f} ms "
-        f"(plant step {1e3 * m['plant_step_time_s']['median']:.2f} ms); outputs in {run_dir}"
-    )
+    with StopSignal() as stop:
+        m = run_cli(lambda: run_closed_loop(cfg, run_dir, stop), "pinnmpc.closed_loop", run_dir)
+    system = build_system(cfg.system)
+    print(headline(m, system.state_names, system.state_units, run_dir))
+    if m["status"] == "interrupted":
+        print(f"pinnmpc.closed_loop: interrupted by {stop.name} after {m['steps']} steps", file=sys.stderr)
+        sys.exit(stop.exit_code)
     if m["status"] != "ok":
         sys.exit(1)
 

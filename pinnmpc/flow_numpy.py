@@ -3,13 +3,16 @@ which is several times lower in numpy than in torch. Same weights, same math as 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
 from scipy.special import expit
 
 from pinnmpc.pinn import PINN
+from pinnmpc.systems.base import Box
 
 
 def _tanh(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -113,6 +116,18 @@ def _folded_input(model: PINN, tau: float) -> tuple[dict[str, np.ndarray], np.nd
     return first, w1[:, 0] / half[0]
 
 
+def _facts(model: PINN, tau: float, state_names: Sequence[str], input_names: Sequence[str]) -> dict[str, object]:
+    """What the FlowMap interface asks besides the maths: tau, names and the network's training boxes."""
+    cfg = model.config
+    return {
+        "tau": float(tau),
+        "state_names": tuple(state_names),
+        "input_names": tuple(input_names),
+        "state_box": Box(cfg["state_low"], cfg["state_high"]),
+        "input_box": Box(cfg["input_low"], cfg["input_high"]),
+    }
+
+
 class BlockDiagonal:
     """W^T of a block-diagonal layer (a merged multi-stage network): z @ W multiplies block by block, which at
     these sizes is 2-5x cheaper than one GEMM with the zeros (the cost of a GEMM grows steeply past ~100 wide)."""
@@ -179,20 +194,38 @@ class NumpyFlow:
     periodic: np.ndarray | None = None  # indices of the states entering as (sin, cos); their rows of w_in are zero
     w_sin: np.ndarray | None = None  # (n_periodic, width): first layer acting on sin of the periodic states
     w_cos: np.ndarray | None = None  # (n_periodic, width): ... and on their cosines
+    tau: float = 0.0  # the period folded in, s: the FlowMap facts (pinnmpc.flowmap) from here on
+    state_names: tuple[str, ...] = ()  # empty: x0, x1, ...
+    input_names: tuple[str, ...] = ()  # empty: u0, u1, ...
+    state_box: Box | None = None  # the network's training box (None: unbounded)
+    input_box: Box | None = None
+
+    array_api: ClassVar[str] = "numpy"
 
     def __post_init__(self) -> None:
         if self.periodic is None:
             self.periodic = np.empty(0, dtype=np.intp)
+        self.state_names = tuple(self.state_names) or tuple(f"x{i}" for i in range(self.nx))
+        self.input_names = tuple(self.input_names) or tuple(f"u{i}" for i in range(self.nu))
+        self.state_box = self.state_box or Box([-np.inf] * self.nx, [np.inf] * self.nx)
+        self.input_box = self.input_box or Box([-np.inf] * self.nu, [np.inf] * self.nu)
         self.w_trig = np.concatenate((self.w_sin, self.w_cos)) if self.periodic.size else None  # (sin, cos) @ w_trig
         self.eye = np.eye(self.nx)  # dx/dx0 of the skip connection x0 + ...
         self.act = NUMPY_ACTIVATIONS[self.activation]
         self.value = VALUE_ACTIVATIONS[self.activation]
 
     @classmethod
-    def from_pinn(cls, model: PINN, tau: float) -> NumpyFlow:
+    def from_pinn(
+        cls,
+        model: PINN,
+        tau: float,
+        state_names: Sequence[str] = (),
+        input_names: Sequence[str] = (),
+    ) -> NumpyFlow:
         """Copy float64 weights out of the torch module and fold in what is constant at t = tau."""
+        facts = _facts(model, tau, state_names, input_names)
         if model.second_order:
-            return SecondOrderNumpyFlow.from_second_order_pinn(model, tau)
+            return SecondOrderNumpyFlow.from_second_order_pinn(model, tau, facts)
         first, _ = _folded_input(model, tau)
         hard = model.exact_ic
         if hard:  # the time gates are constants at t = tau: x(tau) - x0 = scale * sum_k g_k N_k
@@ -203,8 +236,12 @@ class NumpyFlow:
             b_out = scale * _np(model.net.layers[-1].bias) + _np(model.out_center)
         return cls(
             hidden=_hidden(model), w_out=np.ascontiguousarray(w_out), b_out=b_out, hard_ic=hard,
-            activation=model.config["activation"], nx=model.nx, nu=model.nu, **first,
+            activation=model.config["activation"], nx=model.nx, nu=model.nu, **first, **facts,
         )  # fmt: skip
+
+    def numpy_flow(self) -> NumpyFlow:
+        """Itself: the FlowMap's numpy fast path."""
+        return self
 
     def _first_layer(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
         """Pre-activation of the first layer (GEMMs on x0 and u, no concatenation), and (sin, cos) of the
@@ -282,7 +319,6 @@ class SecondOrderNumpyFlow(NumpyFlow):
     one GEMM and every elementwise update acts on a whole block; the output layer maps z[0] by [W_G, W_g] and
     adds z[1] @ W_G (the dN_G/dt term) to the velocity part."""
 
-    tau: float = 0.0
     t_in: np.ndarray = None  # (width,): d(first-layer pre-activation)/dt
 
     def __post_init__(self) -> None:
@@ -296,15 +332,18 @@ class SecondOrderNumpyFlow(NumpyFlow):
         self.kinematic[: self.nq, self.nq : self.nx] = self.tau * np.eye(self.nq)
 
     @classmethod
-    def from_second_order_pinn(cls, model: PINN, tau: float) -> SecondOrderNumpyFlow:
+    def from_second_order_pinn(
+        cls, model: PINN, tau: float, facts: dict[str, object] | None = None
+    ) -> SecondOrderNumpyFlow:
         """Fold the gate sums at t = tau into the output maps [W_G, W_g] (values) and W_G (time derivatives)."""
+        facts = {**(facts or _facts(model, tau, (), ())), "tau": float(tau)}
         first, t_in = _folded_input(model, tau)
         t = torch.full((1,), float(tau), dtype=model.out_scale.dtype)
         w_big, b_big = _gate_sum(model, model.gate_integrals(t))
         w_g, b_g = _gate_sum(model, model.gates(t)[0])
         return cls(
             hidden=_hidden(model), w_out=np.hstack((w_big, w_g)), b_out=np.concatenate((b_big, b_g)), hard_ic=True,
-            activation=model.config["activation"], nx=model.nx, nu=model.nu, tau=float(tau), t_in=t_in, **first,
+            activation=model.config["activation"], nx=model.nx, nu=model.nu, t_in=t_in, **first, **facts,
         )  # fmt: skip
 
     def _composed(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,24 +1,27 @@
-"""Fixed-step integrators over one zero-hold period: baselines and accurate reference solutions."""
+"""Fixed-step integrators over one zero-hold period: baselines and accurate reference solutions.
+
+Written once over plain arithmetic, so the same code integrates torch tensors (differentiable), numpy arrays
+and CasADi symbols (the compiled true-model step of pinnmpc.flowmap)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
-from torch import Tensor
+Array = Any  # torch Tensor, numpy array or CasADi symbol: anything with + and scalar *
+Rhs = Callable[[Array, Array], Array]
 
-Rhs = Callable[[Tensor, Tensor], Tensor]
 
-
-def _n_steps(tau: float, h: float) -> int:
+def n_steps(tau: float, h: float) -> int:
     """Whole number of steps that cover tau with steps no longer than h."""
     if tau <= 0 or h <= 0:
         raise ValueError(f"tau and h must be positive, got tau={tau}, h={h}")
     return max(1, round(tau / h)) if abs(tau / h - round(tau / h)) < 1e-9 else int(tau // h) + 1
 
 
-def euler_step(rhs: Rhs, x0: Tensor, u: Tensor, tau: float, h: float) -> Tensor:
+def euler_step(rhs: Rhs, x0: Array, u: Array, tau: float, h: float) -> Array:
     """Explicit Euler over tau with zero-hold u (the paper's cheapest baseline)."""
-    n = _n_steps(tau, h)
+    n = n_steps(tau, h)
     dt = tau / n
     x = x0
     for _ in range(n):
@@ -26,9 +29,9 @@ def euler_step(rhs: Rhs, x0: Tensor, u: Tensor, tau: float, h: float) -> Tensor:
     return x
 
 
-def rk4_step(rhs: Rhs, x0: Tensor, u: Tensor, tau: float, h: float) -> Tensor:
+def rk4_step(rhs: Rhs, x0: Array, u: Array, tau: float, h: float) -> Array:
     """Classical RK4 over tau with zero-hold u; h = tau/10 is the paper's baseline."""
-    n = _n_steps(tau, h)
+    n = n_steps(tau, h)
     dt = tau / n
     x = x0
     for _ in range(n):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from matplotlib.animation import FuncAnimation, PillowWriter
@@ -15,13 +15,7 @@ from matplotlib.ticker import NullFormatter
 
 from pinnmpc.io import atomic_write
 
-STATE_NAMES = ("alpha", "beta", "dalpha", "dbeta")
-STATE_UNITS = ("rad", "rad", "rad/s", "rad/s")
-INPUT_NAMES = ("u1", "u2")
-INPUT_UNITS = ("A", "A")
-
 # Display defaults only: nothing here is a model parameter.
-LINK_LENGTHS = (0.5, 0.4)  # m, drawing lengths of the two links (not the identified PowerCube geometry)
 DPI = 120  # PNG resolution: legible on screen, small on disk
 FPS = 10  # GIF playback rate
 MAX_FRAMES = 300  # GIF frame cap: keeps file size and render time bounded for long runs
@@ -34,13 +28,21 @@ SCALING_FIGSIZE = (6.5, 4.5)
 ARM_FIGSIZE = (5.0, 5.0)
 
 
-class Labels(NamedTuple):
-    """Names and units of states and inputs, for systems other than the PowerCube."""
+MAX_JOINT_PANELS = 3  # up to this many joints get a panel per state; more share one position and one velocity panel
 
-    state_names: Sequence[str] = STATE_NAMES
-    state_units: Sequence[str] = STATE_UNITS
-    input_names: Sequence[str] = INPUT_NAMES
-    input_units: Sequence[str] = INPUT_UNITS
+
+class Labels(NamedTuple):
+    """Names and units of states and inputs: every panel is labelled from the system."""
+
+    state_names: Sequence[str]
+    state_units: Sequence[str]
+    input_names: Sequence[str]
+    input_units: Sequence[str]
+
+    @classmethod
+    def of(cls, system: Any) -> Labels:
+        """Labels of a System (anything with state/input names and units)."""
+        return cls(system.state_names, system.state_units, system.input_names, system.input_units)
 
 
 def _as_2d(name: str, a: np.ndarray, rows: int, cols: int) -> np.ndarray:
@@ -97,7 +99,9 @@ def _plot_inputs(
     ax.set_ylabel(_label("u", "/".join(dict.fromkeys(units))))
 
 
-def _plot_errors(ax: Axes, t: np.ndarray, err: np.ndarray, names: Sequence[str], units: Sequence[str]) -> None:
+def _plot_errors(
+    ax: Axes, t: np.ndarray, err: np.ndarray, names: Sequence[str], units: Sequence[str], title: str
+) -> None:
     """Log scale: errors span many decades, and linear axes hide the small ones entirely."""
     largest = np.nanmax(np.abs(err)) if np.any(np.isfinite(err)) else 1.0
     floor = max(ERROR_FLOOR, largest * 10.0**-ERROR_DECADES)
@@ -105,7 +109,7 @@ def _plot_errors(ax: Axes, t: np.ndarray, err: np.ndarray, names: Sequence[str],
     for i, name in enumerate(names):
         ax.plot(t, clipped[:, i], color=f"C{i}", lw=1.2, label=name)
     ax.set_yscale("log")
-    ax.set_title("absolute error per state")
+    ax.set_title(title)
     ax.set_ylabel(_label("|error|", ", ".join(dict.fromkeys(units))))
 
 
@@ -127,27 +131,34 @@ def _comparison_figure(
     second: tuple[str, np.ndarray, dict],
     u: np.ndarray,
     title: str,
-    labels: Labels | None,
+    labels: Labels,
     u_bounds: tuple[Sequence[float], Sequence[float]] | None = None,
 ) -> Figure:
     """Two trajectories per state, their difference on a log axis, and the zero-hold inputs: the shared layout."""
     t = _time(t)
-    state_names, state_units, input_names, input_units = labels or Labels()
+    state_names, state_units, input_names, input_units = labels
     n, nx, nu = t.size, len(state_names), len(input_names)
     (name_a, x_a, style_a), (name_b, x_b, style_b) = first, second
     x_a, x_b = _as_2d(name_a, x_a, n, nx), _as_2d(name_b, x_b, n, nx)
     u_held = _held_inputs(t, u, nu)
     if u_bounds is not None and (len(u_bounds[0]) != nu or len(u_bounds[1]) != nu):
         raise ValueError(f"u_low and u_high need {nu} entries, got {len(u_bounds[0])} and {len(u_bounds[1])}")
-    fig = Figure(figsize=TRACKING_FIGSIZE, layout="constrained")
-    axes = fig.subplots(3, 2, sharex=True)
-    for i, ax in enumerate(axes[:2].flat):
-        ax.plot(t, x_a[:, i], **style_a)
-        ax.plot(t, x_b[:, i], **style_b)
-        ax.set_title(state_names[i])
-        ax.set_ylabel(_label(state_names[i], state_units[i]))
-    _plot_errors(axes[2, 0], t, x_b - x_a, state_names, state_units)
-    _plot_inputs(axes[2, 1], t, u_held, input_names, input_units, *(u_bounds or (None, None)))
+    nq = nx // 2
+    groups = [[i] for i in range(nx)] if nq <= MAX_JOINT_PANELS else [list(range(nq)), list(range(nq, nx))]
+    rows = len(groups) // 2 + 1
+    fig = Figure(figsize=(TRACKING_FIGSIZE[0], 3.0 * rows), layout="constrained")
+    axes = fig.subplots(rows, 2, sharex=True, squeeze=False)
+    panels = [axes[r, c] for c in range(2) for r in range(rows - 1)]  # positions down the left, velocities right
+    for ax, group in zip(panels, groups):
+        for k, i in enumerate(group):
+            many = len(group) > 1
+            ax.plot(t, x_a[:, i], **{**style_a, **({"color": f"C{k}", "label": None} if many else {})})
+            ax.plot(t, x_b[:, i], **{**style_b, **({"color": f"C{k}", "label": state_names[i]} if many else {})})
+        ax.set_title(state_names[group[0]] if len(group) == 1 else f"{'positions' if group[0] < nq else 'velocities'}")
+        ax.set_ylabel(_label(state_names[group[0]] if len(group) == 1 else "x", state_units[group[0]]))
+    err = np.abs(x_b - x_a)
+    _plot_errors(axes[-1, 0], t, err[:, :nq], state_names[:nq], state_units[:nq], "position error")
+    _plot_inputs(axes[-1, 1], t, u_held, input_names, input_units, *(u_bounds or (None, None)))
     return _finish(fig, axes, title)
 
 
@@ -158,8 +169,8 @@ def tracking_figure(
     u: np.ndarray,
     u_low: Sequence[float],
     u_high: Sequence[float],
+    labels: Labels,
     title: str = "",
-    labels: Labels | None = None,
 ) -> Figure:
     """Closed-loop overview in one glance: does it track, how well (log error), and at what input effort."""
     reference = ("x_ref", x_ref, {"color": "k", "ls": "--", "lw": 1.2, "label": "reference"})
@@ -172,8 +183,8 @@ def self_loop_figure(
     x_plant: np.ndarray,
     x_pinn: np.ndarray,
     u: np.ndarray,
+    labels: Labels,
     title: str = "",
-    labels: Labels | None = None,
 ) -> Figure:
     """Surrogate validation: where and how fast the PINN rollout drifts from the plant under the same inputs."""
     every = max(1, np.asarray(t).size // MAX_MARKERS)
@@ -224,57 +235,78 @@ def save_figure(fig: Figure, path: str | Path, dpi: int = DPI) -> Path:
     return atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=dpi))
 
 
-def arm_points(x: np.ndarray, link_lengths: tuple[float, float] = LINK_LENGTHS) -> np.ndarray:
-    """Base, elbow and tip positions (N, 3, 2), alpha from the hanging-down vertical and beta relative to link 1."""
-    x = np.atleast_2d(np.asarray(x, dtype=float))
-    l1, l2 = link_lengths
-    a, ab = x[:, 0], x[:, 0] + x[:, 1]
-    elbow = l1 * np.stack([np.sin(a), -np.cos(a)], axis=-1)
-    tip = elbow + l2 * np.stack([np.sin(ab), -np.cos(ab)], axis=-1)
-    return np.stack([np.zeros_like(elbow), elbow, tip], axis=1)
+def _planar(points: np.ndarray) -> bool:
+    """Whether every drawn point lies in one z plane: then a 2-D drawing says everything."""
+    return bool(np.ptp(points[..., 2]) < 1e-9)
 
 
 def animate_arm(
     t: np.ndarray,
-    x_ref: np.ndarray,
-    x: np.ndarray,
+    p_ref: np.ndarray,
+    p: np.ndarray,
     path: str | Path,
+    title: str = "",
+    error: np.ndarray | None = None,
     fps: int = FPS,
-    link_lengths: tuple[float, float] = LINK_LENGTHS,
     max_frames: int = MAX_FRAMES,
 ) -> Path:
-    """A GIF shows tracking behaviour (overshoot, lag) that time plots of angles make hard to picture."""
+    """A GIF shows tracking behaviour (overshoot, lag) that time plots of angles make hard to picture.
+
+    p_ref and p are the arm's drawn points (N, k, 3) from System.kinematics, base first and tip last; error is
+    the largest joint-angle error per sample, shown as a readout. Frames are subsampled to at most max_frames
+    and played at fps, so the title states the playback speed against real time."""
     t = _time(t)
     n = t.size
-    x_ref, x = np.asarray(x_ref, dtype=float), np.asarray(x, dtype=float)
-    for name, a in (("x_ref", x_ref), ("x", x)):
-        if a.ndim != 2 or a.shape[0] != n or a.shape[1] < 2:
-            raise ValueError(f"{name} needs shape ({n}, >=2) for the joint angles, got {a.shape}")
+    p_ref, p = np.asarray(p_ref, dtype=float), np.asarray(p, dtype=float)
+    for name, a in (("p_ref", p_ref), ("p", p)):
+        if a.ndim != 3 or a.shape[0] != n or a.shape[2] != 3:
+            raise ValueError(f"{name} needs shape ({n}, points, 3), got {a.shape}")
     if max_frames < 1:
         raise ValueError(f"max_frames must be >= 1, got {max_frames}")
     frames = np.unique(np.linspace(0, n - 1, min(n, max_frames)).round().astype(int))
-    p_ref, p = arm_points(x_ref, link_lengths), arm_points(x, link_lengths)
-
+    speed = (t[-1] - t[0]) / max(len(frames) / fps, 1e-9)
+    planar = _planar(np.concatenate([p_ref, p]))
     fig = Figure(figsize=ARM_FIGSIZE, layout="constrained")
     FigureCanvasAgg(fig)  # the writer grabs RGBA buffers, which the bare base canvas cannot render
-    ax = fig.subplots()
-    reach = 1.1 * sum(link_lengths)
-    ax.set(xlim=(-reach, reach), ylim=(-reach, reach), aspect="equal", xlabel="x [m]", ylabel="y [m]")
+    reach = 1.1 * float(np.max(np.linalg.norm(np.concatenate([p_ref, p]), axis=-1)))
+    if planar:
+        ax = fig.subplots()
+        ax.set(xlim=(-reach, reach), ylim=(-reach, reach), aspect="equal", xlabel="x [m]", ylabel="y [m]")
+        dims = (0, 1)
+    else:
+        ax = fig.add_subplot(projection="3d")
+        ax.set(xlim=(-reach, reach), ylim=(-reach, reach), zlim=(0, 2 * reach), xlabel="x", ylabel="y", zlabel="z")
+        dims = (0, 1, 2)
     ax.grid(True, alpha=0.3)
-    ax.plot(p_ref[:, 2, 0], p_ref[:, 2, 1], color="0.6", lw=0.8, ls=":", label="reference tip path")
+    tip_ref = [p_ref[:, -1, d] for d in dims]
+    ax.plot(*tip_ref, color="0.6", lw=0.8, ls=":", label="reference tip path")
     # wide and faint underneath: still visible once the actual arm lies exactly on top of it
-    (ref_line,) = ax.plot([], [], color="C2", ls="--", lw=7, marker="o", ms=10, alpha=0.35, label="reference")
-    (trace,) = ax.plot([], [], color="C1", lw=1.0, label="tip trace")
-    (arm_line,) = ax.plot([], [], color="C0", lw=3.5, marker="o", ms=7, mfc="k", mec="k", label="actual")
-    label = ax.text(0.03, 0.96, "", transform=ax.transAxes, va="top", family="monospace")
+    (ref_line,) = ax.plot(
+        *[[]] * len(dims), color="C2", ls="--", lw=7, marker="o", ms=10, alpha=0.35, label="reference"
+    )
+    (trace,) = ax.plot(*[[]] * len(dims), color="C1", lw=1.0, label="tip trace")
+    (arm_line,) = ax.plot(*[[]] * len(dims), color="C0", lw=3.5, marker="o", ms=6, mfc="k", mec="k", label="actual")
+    text = ax.text if planar else ax.text2D  # a 3-D axes places fixed text with text2D
+    label = text(0.02, 0.98, "", transform=ax.transAxes, va="top", family="monospace", fontsize="small")
+    playback = f"playback {speed:.1f}x real time"
+    fig.suptitle(f"{title}\n{playback}" if title else playback, fontsize="medium")
     ax.legend(fontsize="small", loc="upper right")
+
+    def put(line: Any, pts: np.ndarray) -> None:
+        """Set a 2-D or 3-D line's data."""
+        line.set_data(pts[:, dims[0]], pts[:, dims[1]])
+        if not planar:
+            line.set_3d_properties(pts[:, 2])
 
     def draw(k: int) -> tuple:
         """One frame: sample index k of the full trajectory."""
-        ref_line.set_data(p_ref[k, :, 0], p_ref[k, :, 1])
-        arm_line.set_data(p[k, :, 0], p[k, :, 1])
-        trace.set_data(p[: k + 1, 2, 0], p[: k + 1, 2, 1])
-        label.set_text(f"t = {t[k]:6.2f} s")
+        put(ref_line, p_ref[k])
+        put(arm_line, p[k])
+        put(trace, p[: k + 1, -1])
+        readout = f"t = {t[k]:6.2f} s"
+        if error is not None:
+            readout += f"\nmax |angle error| {error[k]:.1e} rad"
+        label.set_text(readout)
         return ref_line, arm_line, trace, label
 
     anim = FuncAnimation(fig, draw, frames=frames.tolist(), blit=False, repeat=False)

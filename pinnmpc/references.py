@@ -3,20 +3,18 @@
 from __future__ import annotations
 
 import csv
-import functools
 import math
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import scipy.io
 
-STATE_NAMES = ("alpha", "beta", "dalpha", "dbeta")  # column order of Reference.x
-CSV_COLUMNS = ("t", *STATE_NAMES)  # columns a .csv reference must name in its header
-MAT_FILES = {"y_soll": 2, "Dy_soll": 2, "t_soll": 1}  # paper's .mat files (variable = file stem) and their rows
-KINDS = "a folder with y_soll.mat, Dy_soll.mat and t_soll.mat, a .npz (t, x) or a .csv (t, alpha, beta, dalpha, dbeta)"
+MAT_FILES = ("y_soll", "Dy_soll", "t_soll")  # paper's layout: positions (nq, N), velocities (nq, N), times (1, N)
+KINDS = "a folder with y_soll.mat, Dy_soll.mat and t_soll.mat, a .npz (t, x) or a .csv (t and the state names)"
 BUILTIN_DT = 0.01  # s, sampling of the built-in references; fine enough to resample to any controller step
 PAPER_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "powercube" / "reference"  # never copied here
 RESAMPLE_SLACK = 1e-9  # s, a grid point this close past the last sample still counts as inside
@@ -40,9 +38,11 @@ class Reference:
         x = _as_float(self.x, "x", self.name)
         if t.ndim != 1:
             raise ReferenceError(f"{self.name}: t has shape {t.shape}; expected (N,)")
-        if x.shape != (len(t), len(STATE_NAMES)):
-            hint = " (transposed?)" if x.shape == (len(STATE_NAMES), len(t)) else ""
-            raise ReferenceError(f"{self.name}: x has shape {x.shape}{hint}; expected (N, 4) = ({len(t)}, 4)")
+        if x.ndim != 2 or x.shape[0] != len(t) or x.shape[1] < 2 or x.shape[1] % 2:
+            hint = " (transposed?)" if x.ndim == 2 and x.shape[1] == len(t) else ""
+            raise ReferenceError(
+                f"{self.name}: x has shape {x.shape}{hint}; expected ({len(t)}, nx): positions, then velocities"
+            )
         if len(t) < 2:
             raise ReferenceError(f"{self.name}: {len(t)} sample(s); expected at least 2")
         bad_t = np.flatnonzero(~np.isfinite(t))
@@ -53,8 +53,7 @@ class Reference:
         if bad_x.size:
             i, j = (int(v) for v in bad_x[0])
             raise ReferenceError(
-                f"{self.name}: non-finite {STATE_NAMES[j]} = {x[i, j]} at sample {i} (t={t[i]:g}); "
-                "expected finite numbers"
+                f"{self.name}: non-finite state {j} = {x[i, j]} at sample {i} (t={t[i]:g}); expected finite numbers"
             )
         bad_dt = np.flatnonzero(np.diff(t) <= 0)
         if bad_dt.size:
@@ -81,10 +80,12 @@ def _as_float(value: object, what: str, name: str) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# Built-in references: each joint is a chain of quintic (minimum-jerk) blends between waypoints, so position,
-# velocity and acceleration are continuous, the velocity is the exact derivative, and every waypoint is reached at rest.
-# All stay inside |alpha|, |beta| <= 2.5 rad and |velocity| <= 0.8 rad/s (a blend over q0 -> q1 in d seconds peaks
-# at 1.875 |q1 - q0| / d).
+# Built-in references, described as data in conf/system/<name>.yaml (`references:`), one entry per name:
+#   {kind: waypoints, joints: [{q: [...], durations: [...]}, ...]}: each joint a chain of quintic (minimum-jerk)
+#       blends between positions reached at rest, so position, velocity and acceleration are continuous;
+#   {kind: sine, amplitude: [...], frequency: [...], offset: [...], duration: s}: sinusoids per joint;
+#   {kind: random, moves: n, duration: s, fraction: f}: quintic moves between random waypoints in the middle
+#       fraction f of the state box (name it `random-<seed>` to pick the seed, default 0).
 
 
 @dataclass(frozen=True)
@@ -93,30 +94,6 @@ class Waypoints:
 
     q: tuple[float, ...]
     durations: tuple[float, ...]
-
-
-# "default": ~24 s obstacle-avoidance style path (not the paper's): large swings with reversals in both joints,
-# starting and ending at rest; peaks 0.66 rad/s (alpha) and 0.75 rad/s (beta).
-DEFAULT_DURATIONS = (3.5, 3.5, 4.0, 3.0, 3.0, 3.5, 3.5)
-DEFAULT_ALPHA = Waypoints(q=(-0.8, 0.3, -0.9, 0.5, -0.2, 0.6, -0.5, 0.2), durations=DEFAULT_DURATIONS)
-DEFAULT_BETA = Waypoints(q=(1.0, -0.3, 1.1, -0.5, 0.4, -0.4, 1.0, 0.3), durations=DEFAULT_DURATIONS)
-
-# "reversals": 12 s of fast back-and-forth around a centre, both joints peaking at ~0.7 rad/s; beta swings at a
-# different rate (1.0 s per swing vs 1.5 s) so the reversals of the two joints do not coincide.
-REVERSALS_ALPHA = Waypoints(q=(-0.2, *(0.08, -0.48) * 4, -0.2), durations=(0.75, *(1.5,) * 7, 0.75))
-REVERSALS_BETA = Waypoints(q=(0.5, *(0.68, 0.32) * 6, 0.5), durations=(0.5, *(1.0,) * 11, 0.5))
-
-# "rest": 18.5 s of moves separated by rest phases of 1-2 s where both joints hold still (a repeated waypoint), the
-# regime where joint B's static friction makes it stick; peaks 0.75 rad/s.
-REST_DURATIONS = (1.0, 3.0, 1.5, 3.0, 2.0, 3.0, 1.5, 2.5, 1.0)
-REST_ALPHA = Waypoints(q=(0.0, 0.0, 0.9, 0.9, -0.3, -0.3, 0.5, 0.5, -0.4, -0.4), durations=REST_DURATIONS)
-REST_BETA = Waypoints(q=(0.5, 0.5, -0.5, -0.5, 0.7, 0.7, 0.0, 0.0, 0.9, 0.9), durations=REST_DURATIONS)
-
-# "sine": (amplitude rad, frequency Hz, offset rad) per joint over 20 s (two alpha periods, three beta periods);
-# frequencies in ratio 2:3, so the joints sweep through many relative phases and the pattern closes after 20 s.
-SINE_ALPHA = (0.8, 0.1, 0.0)
-SINE_BETA = (0.6, 0.15, 0.3)
-SINE_DURATION = 20.0
 
 
 def quintic_blend(t: np.ndarray, waypoints: Waypoints) -> tuple[np.ndarray, np.ndarray]:
@@ -139,50 +116,71 @@ def _grid(duration: float) -> np.ndarray:
     return np.arange(round(duration / BUILTIN_DT) + 1) * BUILTIN_DT
 
 
-def _waypoint_reference(name: str, alpha: Waypoints, beta: Waypoints) -> Reference:
-    """Both joints from their waypoint tables; the shorter one holds its last position until the longer ends."""
-    t = _grid(max(sum(alpha.durations), sum(beta.durations)))
-    (a, da), (b, db) = quintic_blend(t, alpha), quintic_blend(t, beta)
-    return Reference(t=t, x=np.stack([a, b, da, db], axis=1), name=f"builtin:{name}")
+def waypoint_reference(name: str, joints: Sequence[Waypoints]) -> Reference:
+    """Every joint from its waypoint table; shorter ones hold their last position until the longest ends."""
+    t = _grid(max(sum(w.durations) for w in joints))
+    pos, vel = zip(*(quintic_blend(t, w) for w in joints))
+    return Reference(t=t, x=np.stack([*pos, *vel], axis=1), name=f"builtin:{name}")
 
 
-def _sine_reference() -> Reference:
+def sine_reference(
+    name: str, amplitude: Sequence[float], frequency: Sequence[float], offset: Sequence[float], duration: float
+) -> Reference:
     """Sinusoids with analytic velocities: a reference that never rests, unlike the waypoint ones."""
-    t = _grid(SINE_DURATION)
-    (amp_a, f_a, off_a), (amp_b, f_b, off_b) = SINE_ALPHA, SINE_BETA
-    w_a, w_b = 2.0 * math.pi * f_a, 2.0 * math.pi * f_b
-    x = np.stack(
-        [
-            amp_a * np.sin(w_a * t) + off_a,
-            amp_b * np.sin(w_b * t) + off_b,
-            amp_a * w_a * np.cos(w_a * t),
-            amp_b * w_b * np.cos(w_b * t),
-        ],
-        axis=1,
-    )
-    return Reference(t=t, x=x, name="builtin:sine")
+    t = _grid(duration)
+    a, f, c = (np.asarray(v, dtype=np.float64)[None, :] for v in (amplitude, frequency, offset))
+    w = 2.0 * math.pi * f
+    x = np.concatenate([a * np.sin(w * t[:, None]) + c, a * w * np.cos(w * t[:, None])], axis=1)
+    return Reference(t=t, x=x, name=f"builtin:{name}")
 
 
-BUILTINS: dict[str, Callable[[], Reference]] = {
-    "default": functools.partial(_waypoint_reference, "default", DEFAULT_ALPHA, DEFAULT_BETA),
-    "reversals": functools.partial(_waypoint_reference, "reversals", REVERSALS_ALPHA, REVERSALS_BETA),
-    "rest": functools.partial(_waypoint_reference, "rest", REST_ALPHA, REST_BETA),
-    "sine": _sine_reference,
-}
+def random_reference(
+    name: str, low: Sequence[float], high: Sequence[float], seed: int, moves: int, duration: float, fraction: float
+) -> Reference:
+    """Quintic moves of every joint between random waypoints in the middle `fraction` of its position range."""
+    lo, hi = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+    mid, half = (lo + hi) / 2, fraction * (hi - lo) / 2
+    q = mid + half * np.random.default_rng(seed).uniform(-1.0, 1.0, size=(int(moves) + 1, len(lo)))
+    q[0] = mid  # start at rest in the middle, where every run of this reference begins
+    joints = [Waypoints(tuple(q[:, j]), (float(duration),) * int(moves)) for j in range(len(lo))]
+    return waypoint_reference(name, joints)
 
 
-def builtin_reference(name: str = "default") -> Reference:
-    """A project-owned reference, so closed-loop runs work without the paper's data."""
-    if name not in BUILTINS:
-        raise ReferenceError(f"unknown built-in reference {name!r}; expected one of: {', '.join(BUILTINS)}")
-    return BUILTINS[name]()
+def builtin_reference(
+    name: str, specs: dict[str, Any], position_box: tuple[Sequence[float], Sequence[float]] | None = None
+) -> Reference:
+    """A reference described in the system's config (`references:`), so closed loops run without data files."""
+    spec, seed = specs.get(name), None
+    base, _, suffix = name.rpartition("-")
+    if spec is None and suffix.isdigit() and base in specs:
+        spec, seed = specs[base], int(suffix)
+    if not isinstance(spec, dict):
+        raise ReferenceError(f"unknown built-in reference {name!r}; expected one of: {', '.join(specs)}")
+    kind = spec.get("kind")
+    try:
+        if kind == "waypoints":
+            joints = [Waypoints(tuple(j["q"]), tuple(j["durations"])) for j in spec["joints"]]
+            return waypoint_reference(name, joints)
+        if kind == "sine":
+            keys = ("amplitude", "frequency", "offset", "duration")
+            return sine_reference(name, *(spec[k] for k in keys))
+        if kind == "random":
+            if position_box is None:
+                raise ReferenceError(f"built-in reference {name!r} needs the system's joint range")
+            seed = int(spec.get("seed", 0)) if seed is None else seed
+            return random_reference(
+                name, *position_box, seed, spec["moves"], spec["duration"], spec.get("fraction", 0.5)
+            )
+    except (KeyError, TypeError) as e:
+        raise ReferenceError(f"built-in reference {name!r}: malformed spec {spec} ({e!r})") from None
+    raise ReferenceError(f"built-in reference {name!r}: kind={kind!r}; expected waypoints, sine or random")
 
 
 # ---------------------------------------------------------------------------------------------------------------
 # Files
 
 
-def read_reference(path: str | Path) -> Reference:
+def read_reference(path: str | Path, state_names: Sequence[str]) -> Reference:
     """Load a reference as stored, dispatching on its kind, so resampling stays a separate explicit step."""
     if str(path) == "":
         raise ReferenceError(f"empty reference path; expected {KINDS}, or null for a built-in")
@@ -190,41 +188,59 @@ def read_reference(path: str | Path) -> Reference:
     if not path.exists():
         raise ReferenceError(f"{path}: no such file or folder; expected {KINDS}")
     if path.is_dir():
-        return _read_mat_folder(path)
-    suffix = path.suffix.lower()
-    if suffix == ".npz":
-        return _read_npz(path)
-    if suffix == ".csv":
-        return _read_csv(path)
-    if suffix == ".mat":
+        ref = _read_mat_folder(path)
+    elif path.suffix.lower() == ".npz":
+        ref = _read_npz(path)
+    elif path.suffix.lower() == ".csv":
+        ref = _read_csv(path, state_names)
+    elif path.suffix.lower() == ".mat":
         raise ReferenceError(
             f"{path}: a single .mat file; expected the folder holding y_soll.mat, Dy_soll.mat, t_soll.mat"
         )
-    raise ReferenceError(f"{path}: unknown reference kind {suffix or '(no extension)'!r}; expected {KINDS}")
+    else:
+        raise ReferenceError(f"{path}: unknown reference kind {path.suffix or '(no extension)'!r}; expected {KINDS}")
+    return check_states(ref, state_names)
+
+
+def check_states(ref: Reference, state_names: Sequence[str]) -> Reference:
+    """The reference must have one column per state of the system it is tracked on."""
+    if ref.x.shape[1] != len(state_names):
+        raise ReferenceError(
+            f"{ref.name}: x has {ref.x.shape[1]} columns; this system has {len(state_names)} states "
+            f"({', '.join(state_names)})"
+        )
+    return ref
 
 
 def _read_mat_folder(folder: Path) -> Reference:
     """The paper's layout: one variable per .mat file, each a row-per-signal matrix."""
     arrays: dict[str, np.ndarray] = {}
-    for var, rows in MAT_FILES.items():
+    for var in MAT_FILES:
         file = folder / f"{var}.mat"
         if not file.is_file():
             raise ReferenceError(f"{folder}: missing {file.name}; expected {KINDS}")
         try:
             data = scipy.io.loadmat(file)
-        except Exception as exc:  # noqa: BLE001 - scipy raises many types for a bad file; all mean "not readable"
+        except Exception as exc:  # scipy raises many types for a bad file; all mean "not readable"
             raise ReferenceError(
                 f"{file}: cannot read as MATLAB file ({_one_line(exc)}); expected a -v7 .mat"
             ) from None
         if var not in data:
             found = ", ".join(k for k in data if not k.startswith("__")) or "none"
-            raise ReferenceError(f"{file}: no variable {var!r} (found: {found}); expected {var} of shape ({rows}, N)")
+            raise ReferenceError(f"{file}: no variable {var!r} (found: {found}); expected {var} (rows, N)")
         arr = np.asarray(data[var])
         if var == "t_soll" and arr.ndim == 2 and arr.shape[1] == 1:
             arr = arr.T  # a column of times is as unambiguous as a row
-        if arr.ndim != 2 or arr.shape[0] != rows:
-            raise ReferenceError(f"{file}: {var} has shape {arr.shape}; expected ({rows}, N)")
+        if arr.ndim != 2 or (var == "t_soll" and arr.shape[0] != 1):
+            raise ReferenceError(
+                f"{file}: {var} has shape {arr.shape}; expected ({'1' if var == 't_soll' else 'nq'}, N)"
+            )
         arrays[var] = arr
+    if arrays["y_soll"].shape[0] != arrays["Dy_soll"].shape[0]:
+        raise ReferenceError(
+            f"{folder}: y_soll has {arrays['y_soll'].shape[0]} rows, Dy_soll {arrays['Dy_soll'].shape[0]}; "
+            "expected one row per joint in both"
+        )
     lengths = {var: arr.shape[1] for var, arr in arrays.items()}
     if len(set(lengths.values())) != 1:
         raise ReferenceError(f"{folder}: sample counts differ {lengths}; expected the same N in every file")
@@ -233,7 +249,7 @@ def _read_mat_folder(folder: Path) -> Reference:
 
 
 def _read_npz(path: Path) -> Reference:
-    """Arrays t (N,) and x (N, 4); no pickles, so a reference file can never run code."""
+    """Arrays t (N,) and x (N, nx); no pickles, so a reference file can never run code."""
     try:
         with np.load(path, allow_pickle=False) as data:
             missing = [k for k in ("t", "x") if k not in data.files]
@@ -245,32 +261,33 @@ def _read_npz(path: Path) -> Reference:
             t, x = np.asarray(data["t"]), np.asarray(data["x"])
     except ReferenceError:
         raise
-    except Exception as exc:  # noqa: BLE001 - zipfile, zlib, numpy format errors all mean "not a readable npz"
+    except Exception as exc:  # zipfile, zlib, numpy format errors all mean "not a readable npz"
         raise ReferenceError(
-            f"{path}: cannot read as .npz ({_one_line(exc)}); expected arrays t (N,), x (N, 4)"
+            f"{path}: cannot read as .npz ({_one_line(exc)}); expected arrays t (N,), x (N, nx)"
         ) from None
     return Reference(t=t, x=x, name=str(path))
 
 
-def _read_csv(path: Path) -> Reference:
-    """Columns found by header name, so column order and extra columns do not matter."""
+def _read_csv(path: Path, state_names: Sequence[str]) -> Reference:
+    """Columns found by header name (t and the system's state names), so order and extra columns do not matter."""
+    columns = ("t", *(n.lower() for n in state_names))
     try:
         lines = path.read_text(encoding="utf-8-sig").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise ReferenceError(f"{path}: cannot read as text ({_one_line(exc)}); expected a .csv with a header") from None
     start = next((i for i, line in enumerate(lines) if line.strip()), None)
     if start is None:
-        raise ReferenceError(f"{path}: empty file; expected a header row naming {', '.join(CSV_COLUMNS)}")
+        raise ReferenceError(f"{path}: empty file; expected a header row naming {', '.join(columns)}")
     header = [h.strip().lower() for h in next(csv.reader([lines[start]]))]
     if header:
         header[0] = header[0].lstrip("#").strip()  # np.savetxt writes its header as a "# " comment
-    missing = [c for c in CSV_COLUMNS if c not in header]
+    missing = [c for c in columns if c not in header]
     if missing:
         raise ReferenceError(
             f"{path}: missing column(s) {', '.join(missing)} (found: {', '.join(header)}); "
-            f"expected a header row naming {', '.join(CSV_COLUMNS)}"
+            f"expected a header row naming {', '.join(columns)}"
         )
-    usecols = [header.index(c) for c in CSV_COLUMNS]
+    usecols = [header.index(c) for c in columns]
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # an empty body warns; it is reported below as too few samples
@@ -279,7 +296,7 @@ def _read_csv(path: Path) -> Reference:
         raise ReferenceError(
             f"{path}: cannot parse rows ({_one_line(exc)}); expected numbers in every column"
         ) from None
-    data = data.reshape(-1, len(CSV_COLUMNS))
+    data = data.reshape(-1, len(columns))
     return Reference(t=data[:, 0], x=data[:, 1:], name=str(path))
 
 
@@ -314,17 +331,29 @@ def resample(ref: Reference, tau: float) -> Reference:
     return Reference(t=t, x=x, name=ref.name)
 
 
-def load_reference(path: str | Path | None, tau: float, name: str = "default") -> Reference:
-    """What the closed-loop CLI needs: a file if given, else the named built-in, on the controller's grid."""
-    ref = builtin_reference(name) if path is None else read_reference(path)
+def load_reference(
+    path: str | Path | None,
+    tau: float,
+    name: str,
+    state_names: Sequence[str],
+    builtins: dict[str, Any],
+    position_box: tuple[Sequence[float], Sequence[float]] | None = None,
+) -> Reference:
+    """What the closed-loop CLI needs: a file if given, else the named built-in, on the controller's grid.
+
+    builtins is the system's `references:` config; position_box its joint range, for random references."""
+    if path is None:
+        ref = check_states(builtin_reference(name, builtins, position_box), state_names)
+    else:
+        ref = read_reference(path, state_names)
     return resample(ref, tau)
 
 
 def out_of_box(ref: Reference, low: Sequence[float], high: Sequence[float]) -> float:
     """Largest per-coordinate excursion past the box, to warn when a reference leaves the surrogate's training box."""
     lo, hi = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
-    if lo.shape != (len(STATE_NAMES),) or hi.shape != lo.shape:
-        raise ReferenceError(f"box low {lo.shape}, high {hi.shape}; expected 4 bounds each ({', '.join(STATE_NAMES)})")
+    if lo.shape != (ref.x.shape[1],) or hi.shape != lo.shape:
+        raise ReferenceError(f"box low {lo.shape}, high {hi.shape}; expected {ref.x.shape[1]} bounds each")
     if np.any(lo > hi):
         raise ReferenceError(f"box low {lo.tolist()} exceeds high {hi.tolist()}; expected low <= high")
     return float(np.max(np.maximum(lo - ref.x, ref.x - hi).clip(min=0.0)))

@@ -13,9 +13,12 @@ from omegaconf import DictConfig
 from pinnmpc.cli import run_cli
 from pinnmpc.closed_loop import run_closed_loop
 from pinnmpc.io import atomic_write, save_json
+from pinnmpc.report import md_table
+from pinnmpc.settings import validate_robustness
+from pinnmpc.systems.registry import build_system
 
 
-def grid_runs(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
+def grid_runs(cfg: DictConfig, run_dir: Path, positions: list[str]) -> list[dict[str, Any]]:
     """One closed loop per (noise sigma, friction scale, mass scale), each in its own subfolder."""
     rows = []
     grid = cfg.robustness
@@ -24,7 +27,7 @@ def grid_runs(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
         run_cfg.noise_sigma, run_cfg.plant.friction_scale, run_cfg.plant.mass_scale = sigma, friction, mass
         name = f"noise{sigma:g}_friction{friction:g}_mass{mass:g}"
         m = run_closed_loop(run_cfg, run_dir / name)
-        worst = max(m["max_abs_error"][k] for k in grid.bounded_states)
+        worst = max(m["max_abs_error"][k] for k in positions)
         rows.append(
             {
                 "noise_sigma": sigma,
@@ -41,26 +44,29 @@ def grid_runs(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
     return rows
 
 
-def markdown(rows: list[dict[str, Any]], bound: float) -> str:
-    """The table a reader compares against the nominal row."""
-    head = (
-        "| noise sigma | friction scale | mass scale | MAE alpha | MAE beta | max err alpha | max err beta | bounded |"
-    )
-    lines = [head, "|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        lines.append(
-            f"| {r['noise_sigma']:g} | {r['friction_scale']:g} | {r['mass_scale']:g} | {r['mae']['alpha']:.2e} | "
-            f"{r['mae']['beta']:.2e} | {r['max_abs_error']['alpha']:.2e} | {r['max_abs_error']['beta']:.2e} | "
-            f"{'yes' if r['bounded'] else 'NO'} |"
-        )
-    return "\n".join(lines) + f"\n\nbounded: status ok and max position error <= {bound:g} rad.\n"
+def markdown(rows: list[dict[str, Any]], bound: float, positions: list[str]) -> str:
+    """The table a reader compares against the nominal row: MAE and worst error of every joint angle."""
+    headers = ["noise sigma", "friction scale", "mass scale"]
+    headers += [f"MAE {p}" for p in positions] + [f"max err {p}" for p in positions] + ["fallbacks", "bounded"]
+    body = [
+        [f"{r['noise_sigma']:g}", f"{r['friction_scale']:g}", f"{r['mass_scale']:g}"]
+        + [f"{r['mae'][p]:.2e}" for p in positions]
+        + [f"{r['max_abs_error'][p]:.2e}" for p in positions]
+        + [str(r["fallbacks"]), "yes" if r["bounded"] else "NO"]
+        for r in rows
+    ]
+    return md_table(headers, body) + f"\n\nbounded: status ok and max position error <= {bound:g} rad.\n"
 
 
 def run_robustness(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
     """Run the grid, write robustness.json and robustness.md."""
-    rows = grid_runs(cfg, run_dir)
+    system = build_system(cfg.system)
+    validate_robustness(cfg, system)
+    positions = list(system.state_names[: system.nq])
+    rows = grid_runs(cfg, run_dir, positions)
     save_json(run_dir / "robustness.json", rows)
-    atomic_write(run_dir / "robustness.md", lambda p: p.write_text(markdown(rows, cfg.robustness.bound)))
+    text = markdown(rows, cfg.robustness.bound, positions)
+    atomic_write(run_dir / "robustness.md", lambda p: p.write_text(text))
     return rows
 
 
@@ -68,8 +74,8 @@ def run_robustness(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
 def main(cfg: DictConfig) -> None:
     """CLI: print the table."""
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    rows = run_cli(lambda: run_robustness(cfg, run_dir), "pinnmpc.robustness", run_dir)
-    print(markdown(rows, cfg.robustness.bound))
+    run_cli(lambda: run_robustness(cfg, run_dir), "pinnmpc.robustness", run_dir)
+    print((run_dir / "robustness.md").read_text() + f"outputs in {run_dir}")
 
 
 if __name__ == "__main__":

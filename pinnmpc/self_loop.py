@@ -2,27 +2,31 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import hydra
 import numpy as np
 import torch
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from pinnmpc.cli import run_cli
 from pinnmpc.io import save_json, save_npz
 from pinnmpc.plant import ScipyPlant
+from pinnmpc.settings import validate_self_loop
 from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
+from pinnmpc.systems.registry import build_system
 from pinnmpc.threads import use_threads
 
 
-def sine_inputs(steps: int, amplitude: float) -> np.ndarray:
-    """The paper's excitation: u1_k = A sin(2 pi k / (steps - 1)), u2 = -u1."""
-    u1 = amplitude * np.sin(np.linspace(0.0, 2 * np.pi, steps))
-    return np.stack((u1, -u1), axis=-1)
+def sine_inputs(steps: int, amplitude: Sequence[float]) -> np.ndarray:
+    """The paper's excitation, one amplitude per input: u_k = a sin(2 pi k / (steps - 1)) (paper: a = (0.5, -0.5))."""
+    a = np.asarray(amplitude, dtype=np.float64)
+    if a.ndim != 1 or not np.all(np.isfinite(a)):
+        raise ValueError(f"amplitude={list(np.atleast_1d(a))}; expected one finite number per input")
+    return np.sin(np.linspace(0.0, 2 * np.pi, int(steps)))[:, None] * a[None, :]
 
 
 def rollout_surrogate(surrogate: Surrogate, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -44,9 +48,12 @@ def rollout_plant(plant: ScipyPlant, x0: np.ndarray, u: np.ndarray) -> np.ndarra
 
 def run_self_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Both rollouts, the error per state, metrics.json, self_loop.npz and a plot."""
+    system: System = build_system(cfg.system)
+    validate_self_loop(cfg, system)
     use_threads(cfg.threads)
-    system: System = instantiate(cfg.system)
-    surrogate = load_surrogate(cfg.checkpoint, nx=len(system.state_names), nu=len(system.input_names))
+    surrogate = load_surrogate(
+        cfg.checkpoint, system=system.name if cfg.checkpoint is None else None, state_names=system.state_names
+    )
     u = sine_inputs(cfg.steps, cfg.amplitude)
     x0 = np.asarray(cfg.x0, dtype=np.float64)
     x_pinn = rollout_surrogate(surrogate, x0, u)
@@ -67,7 +74,12 @@ def run_self_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         from pinnmpc import plots
 
         fig = plots.self_loop_figure(
-            t, x_plant, x_pinn, u, title=f"self-loop, {cfg.steps} steps of tau = {surrogate.tau} s"
+            t,
+            x_plant,
+            x_pinn,
+            u,
+            plots.Labels.of(system),
+            title=f"{system.name}: self-loop, {cfg.steps} steps of tau = {surrogate.tau} s",
         )
         plots.save_figure(fig, run_dir / "self_loop.png")
     return result

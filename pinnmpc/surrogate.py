@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
 
+from pinnmpc.flow_numpy import NumpyFlow
 from pinnmpc.io import save_torch
 from pinnmpc.pinn import PINN, pinn_from_state
 from pinnmpc.systems.base import Box
@@ -16,7 +17,22 @@ from pinnmpc.systems.base import Box
 FORMAT = "pinnmpc-surrogate"
 FORMAT_VERSION = 1
 REQUIRED_FACTS = ("tau", "state_names", "input_names", "model")  # what load_surrogate needs besides the weights
-SHIPPED = Path(__file__).resolve().parent / "checkpoints" / "powercube.pt"
+CHECKPOINTS = Path(__file__).resolve().parent / "checkpoints"  # shipped networks, one default per system
+DEFAULT_SYSTEM = "powercube"  # load_surrogate() without a system
+SHIPPED = CHECKPOINTS / f"{DEFAULT_SYSTEM}.pt"
+
+
+def shipped(system: str | None = None) -> Path:
+    """The shipped default network of a system (pinnmpc/checkpoints/<system>.pt)."""
+    name = DEFAULT_SYSTEM if system is None else str(system)
+    path = CHECKPOINTS / f"{name}.pt"
+    if not path.is_file():
+        have = sorted(p.stem for p in CHECKPOINTS.glob("*.pt") if "-" not in p.stem)
+        raise CheckpointError(
+            f"system={name!r} has no shipped checkpoint ({path.name}); shipped: {have}. "
+            f"Train one with `make train system={name}` and pass its surrogate.pt"
+        )
+    return path
 
 
 class CheckpointError(ValueError):
@@ -42,6 +58,8 @@ class Dimensions:
 
 class Surrogate(Dimensions):
     """x(t) = flow from x0 under zero-hold u, batched over leading dimensions, float64 by default."""
+
+    array_api: ClassVar[str] = "torch"  # a FlowMap (pinnmpc.flowmap) on torch tensors, differentiable
 
     def __init__(
         self,
@@ -94,6 +112,10 @@ class Surrogate(Dimensions):
         x1, jac = self.model.with_jacobian(torch.full_like(x0[..., :1], self.tau), x0, u)
         return x1, jac[..., : self.nx], jac[..., self.nx :]
 
+    def numpy_flow(self) -> NumpyFlow:
+        """The same x(tau) as plain numpy (weights copied, t = tau folded in): the controller's batch-1 fast path."""
+        return NumpyFlow.from_pinn(self.model, self.tau, self.state_names, self.input_names)
+
     def save(self, path: str | Path) -> Path:
         """Lean checkpoint (weights and the facts needed to rebuild), written atomically."""
         return save_torch(
@@ -121,7 +143,7 @@ def _read(path: Path) -> dict[str, Any]:
         raise CheckpointError(f"checkpoint path is a folder: {path}; expected a .pt or .ckpt file")
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)  # never runs code from a file
-    except Exception as e:  # noqa: BLE001 - any failure to unpickle means the file is not a usable checkpoint
+    except Exception as e:  # any failure to unpickle means the file is not a usable checkpoint
         raise CheckpointError(
             f"checkpoint {path} cannot be read ({type(e).__name__}: corrupt, truncated or not a torch file); "
             "expected a .pt or .ckpt written by pinnmpc"
@@ -153,15 +175,27 @@ def _unpack(obj: dict[str, Any], path: Path) -> tuple[dict[str, Any], dict[str, 
 
 def load_surrogate(
     path: str | Path | None = None,
+    system: str | None = None,
     nx: int | None = None,
     nu: int | None = None,
     dtype: torch.dtype = torch.float64,
+    state_names: tuple[str, ...] | None = None,
 ) -> Surrogate:
-    """Load a trained surrogate (None: the checkpoint shipped with the package); nx/nu guard against other systems."""
-    path = SHIPPED if path is None else Path(path)
+    """Load a trained surrogate: a file, or (path=None) the one shipped for `system` (None: the PowerCube).
+
+    nx/nu, or the system's state_names, guard against a network trained for another robot."""
+    if system is not None and not isinstance(system, str):
+        raise TypeError(f"system must be a system name like 'planar3', got {type(system).__name__}")
+    path = shipped(system) if path is None else Path(path)
     obj = _read(path)
     config, state, facts = _unpack(obj, path)
-    state_names, input_names = tuple(facts["state_names"]), tuple(facts["input_names"])
+    names, input_names = tuple(facts["state_names"]), tuple(facts["input_names"])
+    if state_names is not None and tuple(state_names) != names:
+        raise CheckpointError(
+            f"{path} was trained for states {list(names)}; this system has {list(state_names)} "
+            f"(pass the checkpoint of this system, or system=<its name>)"
+        )
+    state_names = names
     for what, want, have in (("state", nx, len(state_names)), ("input", nu, len(input_names))):
         if want is not None and want != have:
             raise CheckpointError(f"{path} was trained for a system with {what} dimension {have}; expected {want}")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shlex
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -13,13 +15,16 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import Timer
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.cli import run_cli
+from pinnmpc.cli import StopSignal, run_cli
 from pinnmpc.io import save_json
 from pinnmpc.pinn import PINN, StagedPINN
-from pinnmpc.surrogate import load_surrogate
+from pinnmpc.settings import validate_train
+from pinnmpc.surrogate import FORMAT, load_surrogate
 from pinnmpc.systems.base import System
-from pinnmpc.training.callbacks import AtomicCheckpoint, SelfLoopFigure, SurrogateFacts
+from pinnmpc.systems.registry import build_system
+from pinnmpc.training.callbacks import AtomicCheckpoint, GracefulStop, SelfLoopFigure, SurrogateFacts
 from pinnmpc.training.data import flow_scale
+from pinnmpc.training.progress import BudgetBar, quiet_lightning
 from pinnmpc.training.stage import staged_model
 
 
@@ -60,29 +65,97 @@ def build_staged(cfg: DictConfig, system: System) -> StagedPINN:
     return model
 
 
-def training_time(trainer: L.Trainer, wall: float) -> float:
-    """Training time across resumes: Lightning's Timer (there whenever max_time is set) restores what earlier
-    processes spent from the checkpoint; without it, this process's wall time."""
+LIGHTNING_KEYS = ("pytorch-lightning_version", "state_dict", "optimizer_states", "loops", "epoch", "global_step")
+EXPECTED_CKPT = "expected a Lightning .ckpt written by pinnmpc.train (e.g. <run dir>/checkpoints/last.ckpt)"
+
+
+def training_time(trainer: L.Trainer, wall: float | None = None) -> float:
+    """Training time across processes: the Timer (train() always has one) starts from what the checkpoint it
+    resumed from had counted; the time a killed process spent after its last checkpoint is not in it."""
     timer = next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
-    return wall if timer is None else max(wall, float(timer.time_elapsed("train")))
+    if timer is None:
+        return float("nan") if wall is None else wall
+    return float(timer.time_elapsed("train"))
 
 
 def resolve_ckpt(cfg: DictConfig, run_dir: Path) -> str | None:
-    """Checkpoint to resume from: an explicit ckpt_path, or with resume=true this run dir's last.ckpt."""
+    """Checkpoint to resume from: an explicit ckpt_path, or with resume=true this run dir's last.ckpt (which must
+    exist: a resume that silently started over would discard the earlier run's work)."""
     if cfg.ckpt_path:
         path = Path(cfg.ckpt_path)
         if not path.is_file():
-            raise FileNotFoundError(f"ckpt_path={cfg.ckpt_path} does not exist; expected a Lightning .ckpt file")
+            what = "is a folder" if path.is_dir() else "does not exist"
+            raise FileNotFoundError(f"ckpt_path={cfg.ckpt_path} {what}; {EXPECTED_CKPT}")
         return str(path)
+    if not cfg.resume:
+        return None
     last = run_dir / "checkpoints" / "last.ckpt"
-    return str(last) if cfg.resume and last.is_file() else None
+    if not last.is_file():
+        raise FileNotFoundError(
+            f"resume=true but {last} does not exist; expected the run dir of an earlier training run "
+            "(pass it as hydra.run.dir=<that dir>)"
+        )
+    return str(last)
 
 
-def train(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnmpc.train") -> dict[str, Any]:
-    """Fit, export the best network as surrogate.pt, and return its validation metrics."""
-    L.seed_everything(cfg.seed, workers=True)
+def read_ckpt(path: str, label: str) -> dict[str, Any]:
+    """A Lightning training checkpoint's contents, or a one-line error naming the file and what was expected."""
+    with open(path, "rb") as f:
+        head = f.read(4)
+    if not (head.startswith(b"PK\x03\x04") or head.startswith(b"\x80")):  # torch's zip format, or a legacy pickle
+        raise ValueError(f"{label} is not a torch file (starts with {head!r}); {EXPECTED_CKPT}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - torch raises many types for a file that is not a checkpoint
+        detail = str(e).strip().splitlines()[0].split(". ")[0][:100] if str(e).strip() else ""
+        reason = f"{type(e).__name__}: {detail}" if detail else type(e).__name__
+        raise ValueError(
+            f"{label} cannot be read ({reason}; corrupt, truncated or not a torch file); {EXPECTED_CKPT}"
+        ) from None
+    if isinstance(ckpt, dict) and ckpt.get("format") == FORMAT:
+        raise ValueError(f"{label} is an exported surrogate (weights only, no optimizer state); {EXPECTED_CKPT}")
+    missing = [k for k in LIGHTNING_KEYS if not isinstance(ckpt, dict) or k not in ckpt]
+    if missing:
+        raise ValueError(f"{label} is not a Lightning training checkpoint (no {', '.join(missing)}); {EXPECTED_CKPT}")
+    return ckpt
+
+
+def check_fits(ckpt: dict[str, Any], label: str, module: L.LightningModule) -> None:
+    """The checkpoint's network has this configuration's parameter shapes (else Lightning fails mid-restore)."""
+    have = {k: tuple(v.shape) for k, v in ckpt["state_dict"].items() if isinstance(v, torch.Tensor)}
+    want = {k: tuple(v.shape) for k, v in module.state_dict().items()}
+    if have != want:
+        diff = next((k for k in sorted(set(have) | set(want)) if have.get(k) != want.get(k)), "")
+        raise ValueError(
+            f"{label} holds another network ({diff}: {have.get(diff)} in the file, {want.get(diff)} here); "
+            "expected a checkpoint of this configuration (same system, model and stage settings)"
+        )
+
+
+def resume_command(cfg_overrides: list[str], run_dir: Path) -> str:
+    """The command that continues this run from its last.ckpt."""
+    skip = ("resume=", "ckpt_path=", "hydra.run.dir=", "+resume=", "+ckpt_path=")
+    kept = [o for o in cfg_overrides if not o.startswith(skip)]
+    return shlex.join(["python", "-m", "pinnmpc.train", *kept, "resume=true", f"hydra.run.dir={run_dir}"])
+
+
+def train(
+    cfg: DictConfig,
+    run_dir: Path,
+    command: str = "python -m pinnmpc.train",
+    stop: StopSignal | None = None,
+    overrides: list[str] | None = None,
+) -> dict[str, Any]:
+    """Fit, export the best network as surrogate.pt, and return its validation metrics; with a StopSignal, a
+    SIGTERM/SIGINT ends training after the current (cut short) epoch with status "interrupted" and a resume command."""
+    system: System = build_system(cfg.system)
+    validate_train(cfg, system)
+    ckpt_path = resolve_ckpt(cfg, run_dir)
+    label = f"ckpt_path={ckpt_path}" if cfg.ckpt_path else f"resume=true: {ckpt_path}"
+    ckpt = None if ckpt_path is None else read_ckpt(ckpt_path, label)
+    quiet_lightning()
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
     torch.set_num_threads(cfg.threads)
-    system: System = instantiate(cfg.system)
     model = build_model(cfg, system)
     # _convert_="all": plain lists, not OmegaConf ones, reach the hyper-parameters stored in checkpoints,
     # which load_surrogate reads with torch.load(weights_only=True)
@@ -90,6 +163,9 @@ def train(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnmpc.trai
         system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed
     )
     module = instantiate(cfg.module, _partial_=True, _convert_="all")(system=system, model=model, tau=cfg.tau)
+    if ckpt is not None:
+        check_fits(ckpt, label, module)
+        del ckpt
     ckpt_dir = run_dir / "checkpoints"
     best = AtomicCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/rmse_position", mode="min")
     last = AtomicCheckpoint(  # every epoch, so a killed run loses at most one epoch of work
@@ -98,27 +174,43 @@ def train(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnmpc.trai
     figure = SelfLoopFigure(
         cfg.self_loop_figure.every_n_epochs, cfg.self_loop_figure.steps, cfg.self_loop_figure.amplitude
     )
-    callbacks = [best, last, SurrogateFacts(cfg.tau), figure]
+    callbacks: list[L.Callback] = [best, last, SurrogateFacts(cfg.tau), figure, BudgetBar(cfg.progress)]
+    if cfg.trainer.get("max_time") is None:  # with max_time Lightning adds this Timer itself
+        callbacks.append(Timer())  # counts training time across resumes (its state is in every checkpoint)
+    if stop is not None:
+        callbacks.append(GracefulStop(stop))
     logger = L.pytorch.loggers.TensorBoardLogger(save_dir=str(run_dir), name="tensorboard", version="")
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=logger, default_root_dir=str(run_dir))
     start = time.perf_counter()
-    trainer.fit(module, datamodule=datamodule, ckpt_path=resolve_ckpt(cfg, run_dir))
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path)
+    except (KeyboardInterrupt, SystemExit):  # a second signal: stop at once, keep the last epoch's checkpoint
+        if stop is None or not stop.requested:
+            raise
     wall = time.perf_counter() - start
+    interrupted = stop is not None and stop.requested
     source = best.best_model_path or last.best_model_path
-    surrogate = load_surrogate(source)
-    metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
-    surrogate.meta = {
+    meta = {
         "trained_with": command,
         "config": OmegaConf.to_container(cfg, resolve=True),
+        "status": f"interrupted by {stop.name}" if interrupted and stop is not None else "ok",
         "wall_time_s": wall,
         "training_time_s": training_time(trainer, wall),
         "epochs": trainer.current_epoch,
         "best_val_rmse_position": float(best.best_model_score) if best.best_model_score is not None else None,
-        "final_metrics": metrics,
+        "final_metrics": {k: float(v) for k, v in trainer.callback_metrics.items()},
     }
-    surrogate.save(run_dir / "surrogate.pt")
-    summary = {"wall_time_s": wall, "epochs": trainer.current_epoch, "best_checkpoint": source, **surrogate.meta}
+    if source and Path(source).is_file():
+        surrogate = load_surrogate(source)
+        surrogate.meta = meta
+        surrogate.save(run_dir / "surrogate.pt")
+    summary = {**meta, "best_checkpoint": source or None}
     summary.pop("config")
+    if interrupted:
+        summary["status"] = "interrupted"
+        summary["signal"] = stop.name if stop is not None else ""
+        resumable = (run_dir / "checkpoints" / "last.ckpt").is_file()
+        summary["resume_command"] = resume_command(overrides or [], run_dir) if resumable else None
     save_json(run_dir / "train_metrics.json", summary)
     return summary
 
@@ -128,8 +220,12 @@ def main(cfg: DictConfig) -> float:
     """CLI: returns the best validation position RMSE, so Optuna sweeps can minimise it."""
     hydra_cfg = hydra.core.hydra_config.HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)
-    command = " ".join(["python -m pinnmpc.train", *hydra_cfg.overrides.task])
-    summary = run_cli(lambda: train(cfg, run_dir, command), "pinnmpc.train", run_dir)
+    overrides = list(hydra_cfg.overrides.task)
+    command = " ".join(["python -m pinnmpc.train", *overrides])
+    with StopSignal() as stop:
+        summary = run_cli(lambda: train(cfg, run_dir, command, stop, overrides), "pinnmpc.train", run_dir)
+    if summary["status"] == "interrupted":
+        exit_interrupted(summary, run_dir, stop)
     score = summary["best_val_rmse_position"]
     if score is None:  # the run ended before its first validation epoch
         every = cfg.trainer.check_val_every_n_epoch
@@ -137,6 +233,22 @@ def main(cfg: DictConfig) -> float:
         return float("inf")
     print(f"best val RMSE (positions) {score:.3e} rad; surrogate: {run_dir / 'surrogate.pt'}")
     return score
+
+
+def exit_interrupted(summary: dict[str, Any], run_dir: Path, stop: StopSignal) -> None:
+    """Say what was kept and how to go on, then exit 128 + the signal number."""
+    kept = ", ".join(
+        n for n in ("checkpoints/last.ckpt", "surrogate.pt", "train_metrics.json") if (run_dir / n).is_file()
+    )
+    print(
+        f"pinnmpc.train: interrupted by {stop.name} after epoch {summary['epochs']}; kept in {run_dir}: {kept}",
+        file=sys.stderr,
+    )
+    if summary["resume_command"]:
+        print(f"resume with: {summary['resume_command']}", file=sys.stderr)
+    else:
+        print("nothing to resume: no epoch had ended; start the run again", file=sys.stderr)
+    sys.exit(stop.exit_code)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""A real bench run at tiny sizes: every section runs, bench.json is sane, bench.md has the tables, PNGs exist."""
+"""Real bench runs at tiny sizes, PowerCube and planar arm: every section runs, bench.json is sane, bench.md has the
+tables, PNGs exist."""
 
 from __future__ import annotations
 
@@ -13,9 +14,12 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
-from pinnmpc.bench import RK4Model, run_bench, run_controller
-from pinnmpc.references import load_reference
-from pinnmpc.systems import PowerCube
+from pinnmpc.bench import run_bench, run_controller
+from pinnmpc.bench.common import bench_reference
+from pinnmpc.flowmap import RK4Model
+from pinnmpc.pinn import PINN
+from pinnmpc.surrogate import Surrogate
+from pinnmpc.systems import PowerCube, load_system
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -39,7 +43,8 @@ TINY = [
     "scaling.step_repeats=2",
     "scaling.step_warmup=1",
 ]
-SECTIONS_OFF = [f"{s}.enabled=false" for s in ("step", "closed_loop", "optimality", "scaling")]
+SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical")
+SECTIONS_OFF = [f"{s}.enabled=false" for s in SECTIONS]
 
 
 def _cfg(overrides: list[str]) -> DictConfig:
@@ -71,7 +76,7 @@ def test_json_round_trips_and_is_finite(bench: tuple[dict[str, Any], Path]) -> N
     result, run_dir = bench
     on_disk = json.loads((run_dir / "bench.json").read_text())
     assert on_disk == json.loads(json.dumps(result))
-    assert {"machine", "paper", "step", "closed_loop", "optimality", "scaling", "elapsed_s"} <= set(on_disk)
+    assert {"machine", "system", "paper", *SECTIONS, "elapsed_s"} <= set(on_disk)
     bad = [(p, v) for p, v in _numbers({k: v for k, v in on_disk.items() if k != "machine"}) if not math.isfinite(v)]
     assert not bad
 
@@ -80,6 +85,7 @@ def test_step_table(bench: tuple[dict[str, Any], Path]) -> None:
     step = bench[0]["step"]
     assert set(step["timing"]) == {"1", "8"}
     expected = {"pinn_f64", "pinn_f32", "pinn_numpy", "euler_numpy", "euler_torch", "rk4_numpy", "rk4_torch", "rk45"}
+    expected.add("rk4_compiled")  # RK4 of the true model as CasADi-generated C
     for b, rows in step["timing"].items():
         assert set(rows) == expected
         rk45 = step["rk45_median_s"][b]
@@ -94,11 +100,13 @@ def test_step_table(bench: tuple[dict[str, Any], Path]) -> None:
     for name in ("euler", "rk4"):  # numpy and torch run the same formulas: the same answer
         np_rmse, torch_rmse = step["rmse"][f"{name}_numpy"], step["rmse"][f"{name}_torch"]
         assert np_rmse == pytest.approx(torch_rmse, rel=1e-9)
+    assert step["rmse"]["rk4_compiled"] == pytest.approx(step["rmse"]["rk4_numpy"], rel=1e-9)  # ... and the C
 
 
 def test_step_skips_rk45_batch_rows_when_asked(tmp_path: Path) -> None:
     off = [o for o in SECTIONS_OFF if not o.startswith("step")]
-    result = run_bench(_cfg([*TINY, *off, "step.rk45_batch=skip"]), tmp_path)
+    result = run_bench(_cfg([*TINY, *off, "step.rk45_batch=skip", "step.compiled_rk4=false"]), tmp_path)
+    assert "rk4_compiled" not in result["step"]["rmse"]
     assert "rk45" in result["step"]["timing"]["1"]
     assert "rk45" not in result["step"]["timing"]["8"]
     assert all("ratio_to_rk45" not in row for row in result["step"]["timing"]["8"].values())
@@ -194,7 +202,8 @@ def test_markdown_has_every_table(bench: tuple[dict[str, Any], Path]) -> None:
         "| PINN-MPC, lifted_gauss_newton, paper's controller |",
         "| PINN-MPC, gauss_newton, offset-free (gain 0.7) |",
         "without offset-free",
-        "true model (RK4",
+        "true model (RK4 h=0.02), gauss_newton",
+        "autodiff through RK4 in torch",
         "paper (RMSprop",
         "7.53e-03",
         "### Built-in references",
@@ -207,6 +216,11 @@ def test_markdown_has_every_table(bench: tuple[dict[str, Any], Path]) -> None:
         "## 5. Targets",
         "| one-step RMSE alpha | 0.001 |",
         "| OCP median / plant step median | 1 |",
+        "Units: alpha [rad], beta [rad], dalpha [rad/s], dbeta [rad/s].",
+        "| RK4 h=0.02 (compiled C, CasADi) |",
+        "## 6. PINN vs classical NMPC (powercube)",
+        "| classical NMPC, casadi-sqpmethod |",
+        "MAE alpha [rad]",
     ):
         assert text in md, text
     assert "4.14e-04" in md and "1.77e-03" in md  # the paper's one-step numbers sit next to ours
@@ -225,9 +239,33 @@ def test_targets_sit_next_to_the_measured_numbers(bench: tuple[dict[str, Any], P
     assert ratio["value"] == pytest.approx(row["ratio_ocp_to_plant"]) and ratio["met"] == (ratio["value"] <= 1.0)
 
 
+def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
+    result = bench[0]
+    cl = result["classical"]
+    assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod"]
+    pinn, classical = cl["rows"]["pinn_lifted_gauss_newton"], cl["rows"]["classical_sqpmethod"]
+    assert pinn["mae"] == result["closed_loop"]["rows"]["pinn_lifted_gauss_newton"]["mae"]  # reused, same process
+    assert classical["solver"] == "casadi-sqpmethod" and classical["model"] == "classical"
+    assert classical["status"] == "ok" and classical["steps"] == MAX_STEPS
+    assert all(v > 0 for v in classical["mae"].values())
+    t = classical["ocp_time_s"]
+    assert 0 < t["median"] <= t["p95"] <= t["max"]
+    assert classical["ratio_ocp_to_plant"] == pytest.approx(t["median"] / classical["plant_step_median_s"], rel=1e-12)
+    assert cl["shared"] == ["horizon", "Q", "R", "R_rate", "u_low", "u_high"]
+
+
+def test_classical_alone_runs_its_own_pinn_row_and_extra_solvers(tmp_path: Path) -> None:
+    off = [o for o in SECTIONS_OFF if not o.startswith("classical")]
+    overrides = [*TINY, *off, "classical.enabled=true", "classical.solvers=[ipopt]", "closed_loop.max_steps=3"]
+    cl = run_bench(_cfg(overrides), tmp_path)["classical"]
+    assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod", "classical_ipopt"]
+    assert all(r["steps"] == 3 and r["status"] == "ok" for r in cl["rows"].values())
+    assert "| classical NMPC, casadi-ipopt |" in (tmp_path / "bench.md").read_text()
+
+
 def test_all_sections_off_still_writes_reports(tmp_path: Path) -> None:
     result = run_bench(_cfg(SECTIONS_OFF), tmp_path)
-    assert {"step", "closed_loop", "optimality", "scaling"}.isdisjoint(result) and result["targets"] == []
+    assert set(SECTIONS).isdisjoint(result) and result["targets"] == []
     assert "Machine:" in (tmp_path / "bench.md").read_text()
     assert json.loads((tmp_path / "bench.json").read_text())["elapsed_s"] == {}
 
@@ -251,6 +289,82 @@ def test_rk4_model_jacobians_agree() -> None:
 def test_true_model_baseline_runs_a_closed_loop() -> None:
     cfg = _cfg(["closed_loop.max_steps=2", "progress=false"])
     system = PowerCube()
-    ref = load_reference(None, 0.2, "default")
+    ref = bench_reference(cfg, system, 0.2, "default")
     row, _ = run_controller(cfg, system, RK4Model(system, 0.2, 0.02), ref, "lifted_gauss_newton", record=False)
     assert row["status"] == "ok" and row["steps"] == 2  # the controller takes the true model like a surrogate
+
+
+def test_reference_auto_is_the_papers_only_where_the_paper_ran() -> None:
+    planar = _cfg(["system=planar3"])
+    assert planar.paper is None and planar.step.h == 0.0025  # conf/bench/system/planar3.yaml
+    ref = bench_reference(planar, load_system("planar3"), 0.1)
+    assert ref.name == "builtin:default" and ref.x.shape[1] == 6
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The planar 3-link arm: the same bench with names, units, targets and references from its config
+
+P3_STEPS = 2  # closed-loop solves per row
+P3_TINY = [
+    "system=planar3",
+    "progress=false",
+    "step.batch_sizes=[1,4]",
+    "step.n_states=4",
+    "step.repeats=2",
+    "step.warmup=0",
+    "step.h=0.01",  # 10 RK4 steps a period: few calls of the URDF arm's torch rhs, the costly one
+    "step.ref_h=1.0e-3",
+    f"closed_loop.max_steps={P3_STEPS}",
+    "closed_loop.solvers=[lifted_gauss_newton]",
+    "closed_loop.true_model_solvers=[lifted_gauss_newton]",
+    "closed_loop.more_references=[sine]",
+    "closed_loop.paper_controller=false",
+    "optimality.enabled=false",
+    "scaling.enabled=false",
+]
+
+
+@pytest.fixture(scope="module")
+def planar3(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
+    """A tiny untrained network for the planar arm's boxes, saved like a trained one, and one bench run on it."""
+    folder = tmp_path_factory.mktemp("bench_planar3")
+    system = load_system("planar3")
+    torch.manual_seed(0)
+    box, ubox = system.state_box, system.input_box
+    model = PINN(box.low, box.high, ubox.low, ubox.high, t_max=0.125, hidden=[16, 16], periodic=[0, 1, 2])
+    path = Surrogate(model, system.tau, system.state_names, system.input_names).save(folder / "surrogate.pt")
+    return run_bench(_cfg([*P3_TINY, f"checkpoint={path}"]), folder), folder
+
+
+def test_planar3_bench_is_generic(planar3: tuple[dict[str, Any], Path]) -> None:
+    result, run_dir = planar3
+    names = ["q_joint1", "q_joint2", "q_joint3", "v_joint1", "v_joint2", "v_joint3"]
+    assert result["system"]["name"] == "planar3" and result["system"]["state_names"] == names
+    assert result["paper"] is None and {"step", "closed_loop", "classical"} <= set(result)
+    assert {"optimality", "scaling"}.isdisjoint(result)
+    step = result["step"]
+    assert step["tau_s"] == 0.1 and step["h_s"] == 0.01
+    assert all(set(r) == set(names) for r in step["rmse"].values())
+    assert all(math.isfinite(v) for k in ("pinn_f64", "pinn_numpy") for v in step["rmse"][k].values())
+    assert step["rmse"]["rk4_compiled"] == pytest.approx(step["rmse"]["rk4_numpy"], rel=1e-9)
+    cl = result["closed_loop"]
+    assert cl["reference"] == "builtin:default" and list(cl["references"]) == ["sine"]
+    assert cl["true_model_backend"] == "compiled"  # the torch rhs of a URDF arm is far too slow for a controller
+    assert set(cl["rows"]) == {"pinn_lifted_gauss_newton", "true_rk4_lifted_gauss_newton"}
+    for row in [*cl["rows"].values(), *cl["references"].values(), *result["classical"]["rows"].values()]:
+        assert row["steps"] == P3_STEPS and set(row["mae"]) == set(names)
+    assert list(result["classical"]["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod"]
+    targets = {t["what"]: t for t in result["targets"]}
+    assert targets["one-step RMSE q_joint1"]["limit"] == 1e-3  # conf/system/planar3.yaml
+    md = (run_dir / "bench.md").read_text()
+    for text in (
+        "# pinnmpc benchmark: planar3",
+        "Units: q_joint1 [rad]",
+        "| RMSE q_joint1 |",
+        "true model (RK4 h=0.0025, compiled), lifted_gauss_newton",  # conf/bench/system/planar3.yaml
+        "## 6. PINN vs classical NMPC (planar3)",
+        "MAE q_joint3 [rad]",
+    ):
+        assert text in md, text
+    for text in ("paper", "alpha", "Table 1"):  # the PowerCube's publication stays out of another arm's report
+        assert text not in md, text

@@ -12,15 +12,27 @@ from pinnmpc.controller.solvers import make_solver
 from pinnmpc.surrogate import Surrogate
 
 
+OPTIONAL = {  # what a Python caller may leave out (conf/controller/nmpc.yaml sets all of it for the CLIs)
+    "R_rate": None,
+    "u_low": None,
+    "u_high": None,
+    "warm_start": True,
+    "solver": "lifted_gauss_newton",
+    "solvers": {},
+    "disturbance": {},
+}
+
+
 def build_nmpc(cfg: Any, surrogate: Surrogate) -> NMPC:
     """NMPC from conf/controller: horizon, weights, bounds (null: the surrogate's input box), solver."""
     if isinstance(cfg, DictConfig):
         cfg = OmegaConf.to_container(cfg, resolve=True)  # plain values: config objects are slow in hot loops
-    solver = make_solver(cfg["solver"], **(cfg["solvers"].get(cfg["solver"]) or {}))
+    cfg = {**OPTIONAL, **cfg}
+    solver = make_solver(cfg["solver"], **((cfg["solvers"] or {}).get(cfg["solver"]) or {}))
     ocp = HorizonOCP(surrogate, cfg["horizon"], cfg["Q"], cfg["R"], cfg["R_rate"])
     low = surrogate.input_box.low if cfg["u_low"] is None else cfg["u_low"]
     high = surrogate.input_box.high if cfg["u_high"] is None else cfg["u_high"]
-    d = cfg.get("disturbance") or {}
+    d = cfg["disturbance"] or {}
     return NMPC(
         ocp,
         solver,

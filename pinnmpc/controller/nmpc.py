@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -24,6 +25,35 @@ class StepStats:
     cost: float
     converged: bool
     fallback: bool
+
+
+class Controller(Protocol):
+    """What the closed loop needs of a controller (do-mpc style): make_step(x, x_ref) -> u and its statistics."""
+
+    horizon: int
+    stats: list[StepStats]
+
+    @property
+    def low(self) -> Any:
+        """Input lower bounds (nu,)."""
+        ...
+
+    @property
+    def high(self) -> Any:
+        """Input upper bounds (nu,)."""
+        ...
+
+    def reset(self) -> None:
+        """Forget warm starts and statistics: the start of a new run."""
+        ...
+
+    def make_step(self, x: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
+        """Input to apply now for the measured state x (nx,) and the next H reference states (H, nx)."""
+        ...
+
+    def describe(self) -> dict[str, Any]:
+        """solver name and disturbance_gain, for metrics.json."""
+        ...
 
 
 @dataclass
@@ -63,18 +93,22 @@ class NMPC:
         """Prediction horizon H."""
         return self.ocp.horizon
 
+    def describe(self) -> dict[str, Any]:
+        """Solver and offset-free gain, for metrics.json and headlines."""
+        return {"controller": "pinn", "solver": type(self.solver).__name__, "disturbance_gain": self.disturbance_gain}
+
     @property
     def surrogate(self) -> Surrogate:
         """The model the controller predicts with."""
         return self.ocp.surrogate
 
     @property
-    def U(self) -> Tensor:  # noqa: N802
+    def U(self) -> Tensor:
         """The plan the next solve starts from (the last solution shifted by one step), (H, nu)."""
         return torch.from_numpy(self._U)
 
     @U.setter
-    def U(self, plan: Tensor | np.ndarray) -> None:  # noqa: N802
+    def U(self, plan: Tensor | np.ndarray) -> None:
         """Seed the next solve's start, e.g. with a plan from elsewhere."""
         plan = np.array(plan, dtype=np.float64)
         if plan.shape != (self.horizon, self.ocp.nu):
@@ -115,12 +149,12 @@ class NMPC:
 
     def solve(
         self, x0: Tensor, x_ref: Tensor, U0: Tensor, u_prev: Tensor, prior: np.ndarray | None = None
-    ) -> tuple[Tensor, SolveInfo]:  # noqa: N803
+    ) -> tuple[Tensor, SolveInfo]:
         """Batched OCP: x0 (B, nx), x_ref (B, H, nx), U0 (B, H, nu), u_prev (B, nu); prior: see Solver."""
         if x_ref.shape[-2] != self.horizon:
             raise ValueError(f"x_ref must cover the horizon: got {x_ref.shape[-2]} steps, expected {self.horizon}")
         args = (self.ocp, x0, self.clip(U0), x_ref, u_prev, self.low, self.high)
-        U, info = self.solver.solve(*args, **self._prior_kwargs(prior))  # noqa: N806
+        U, info = self.solver.solve(*args, **self._prior_kwargs(prior))
         return self.clip(torch.as_tensor(U)), info
 
     @property
@@ -142,7 +176,7 @@ class NMPC:
         args = (x0[None], self._U[None], x_ref[None], self._u_prev[None], self._low, self._high)
         if getattr(self.solver, "array_api", "torch") != "numpy":
             args = tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in args)
-        U, info = self.solver.solve(self.ocp, *args, **self._prior_kwargs(self._prior))  # noqa: N806
+        U, info = self.solver.solve(self.ocp, *args, **self._prior_kwargs(self._prior))
         return np.clip(np.asarray(U, dtype=np.float64)[0], self._low, self._high), info
 
     def make_step(self, x: np.ndarray | Tensor, x_ref: np.ndarray | Tensor) -> np.ndarray:
@@ -153,14 +187,14 @@ class NMPC:
         fallback = False
         try:
             self._estimate_disturbance(x0)
-            U, info = self._solve_one(x0, ref)  # noqa: N806
+            U, info = self._solve_one(x0, ref)
             ok = bool(np.isfinite(U).all()) and bool(np.isfinite(np.asarray(info.cost)).all())
         except (RuntimeError, FloatingPointError, np.linalg.LinAlgError):  # e.g. a singular solve on NaN outputs
             ok, info = False, None
         if not ok:
             fallback = True
             # self._U is already the previous plan shifted: its first entry is the input planned for now
-            U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self._low, self._high)  # noqa: N806
+            U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self._low, self._high)
         elapsed = time.perf_counter() - start
         self._U = self._shifted(U) if self.warm_start else self._cold_start()
         kind = getattr(self.solver, "prior_kind", "sensitivities")
@@ -210,6 +244,6 @@ class NMPC:
         return nxt - d if d is not None else nxt.copy()
 
     @staticmethod
-    def _shifted(U: np.ndarray) -> np.ndarray:  # noqa: N803
+    def _shifted(U: np.ndarray) -> np.ndarray:
         """Warm start for the next solve: drop the applied input, repeat the last one."""
         return np.concatenate((U[1:], U[-1:]), axis=0)

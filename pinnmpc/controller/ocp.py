@@ -1,7 +1,8 @@
-"""The horizon optimal control problem as a batched nonlinear least-squares problem on a surrogate.
+"""The horizon optimal control problem as a batched nonlinear least-squares problem on a flow map.
 
 Everything here works on torch tensors (autograd, for the torch.optim solvers) and on
-numpy arrays (the fast Gauss-Newton path), with the same formulas.
+numpy arrays (the fast Gauss-Newton path), with the same formulas. The model is any
+pinnmpc.flowmap.FlowMap: the surrogate, its numpy fast path or the true model by RK4.
 """
 
 from __future__ import annotations
@@ -13,8 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pinnmpc.flow_numpy import NumpyFlow
-from pinnmpc.surrogate import Surrogate
+from pinnmpc.flowmap import FlowMap, check_flow_map, numpy_path
 
 Array = Tensor | np.ndarray
 
@@ -47,11 +47,11 @@ def psd_sqrt(matrix: Sequence[Sequence[float]] | Sequence[float], n: int, name: 
 
 
 class HorizonOCP:
-    """min_U sum_i ||W_q (x_i - x_ref_i)||^2 + ||W_r u_i||^2 + ||W_d (u_i - u_{i-1})||^2, x_{i+1} = s.step(x_i, u_i)."""
+    """min_U sum_i ||W_q (x_i - x_ref_i)||^2 + ||W_r u_i||^2 + ||W_d (u_i - u_{i-1})||^2, x_{i+1} = F.step(x_i, u_i)."""
 
     def __init__(
         self,
-        surrogate: Surrogate,
+        model: FlowMap,
         horizon: int,
         Q: Sequence,
         R: Sequence,
@@ -59,9 +59,10 @@ class HorizonOCP:
     ) -> None:
         if int(horizon) < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
-        self.surrogate = surrogate
+        check_flow_map(model)
+        self.model = model
         self.horizon = int(horizon)
-        nx, nu = surrogate.nx, surrogate.nu
+        nx, nu = model.nx, model.nu
         self.nx, self.nu = nx, nu
         w_d = None if R_rate is None else psd_sqrt(R_rate, nu, "R_rate")
         if w_d is not None and not torch.any(w_d != 0):
@@ -70,8 +71,15 @@ class HorizonOCP:
         self.weights[np] = tuple(None if w is None else w.numpy() for w in self.weights[torch])
         self._jac_u: dict[ModuleType, Array] = {}
         self._normal_u: tuple[np.ndarray, np.ndarray] | None = None
-        self.flow = NumpyFlow.from_pinn(surrogate.model, surrogate.tau) if hasattr(surrogate, "model") else None
+        self.differentiable = getattr(model, "array_api", "torch") == "torch"  # torch calls keep autograd
+        fast = numpy_path(model) or (None if self.differentiable else model)
+        self.flow: FlowMap | None = fast  # the numpy fast path (None: numpy arrays go through torch)
         self.disturbance = None
+
+    @property
+    def surrogate(self) -> FlowMap:
+        """The model predicted with (the name from when it was always the surrogate)."""
+        return self.model
 
     @property
     def w_q(self) -> Tensor:
@@ -119,35 +127,48 @@ class HorizonOCP:
         d = self._disturbance[xp_of(x)]
         return x if d is None else x + d
 
+    def _numpy_only(self, *arrays: Tensor) -> list[np.ndarray]:
+        """Tensors for a numpy-only model: fine as constants, an error where autograd must pass through."""
+        if any(a.requires_grad for a in arrays):
+            raise TypeError(
+                f"{type(self.model).__name__} works on numpy arrays only; solvers that differentiate through "
+                "torch (rmsprop, lbfgs, autograd gradients) need a torch flow map such as the Surrogate"
+            )
+        return [a.detach().numpy() for a in arrays]
+
     def _model_step(self, x: Array, u: Array) -> Array:
-        """One undisturbed surrogate step in the namespace of x."""
+        """One undisturbed model step in the namespace of x."""
         if isinstance(x, Tensor):
-            return self.surrogate.step(x, u)
+            if self.differentiable:
+                return self.model.step(x, u)
+            return torch.from_numpy(self.flow.step(*self._numpy_only(x, u)))
         if self.flow is not None:
             return self.flow.step(x, u)
-        return self.surrogate.step(torch.from_numpy(x), torch.from_numpy(u)).numpy()
+        return self.model.step(torch.from_numpy(x), torch.from_numpy(u)).numpy()
 
     def step(self, x: Array, u: Array) -> Array:
-        """One predicted step (surrogate plus disturbance) in the namespace of x."""
+        """One predicted step (model plus disturbance) in the namespace of x."""
         return self._disturbed(self._model_step(x, u))
 
     def step_with_jacobian(self, x: Array, u: Array) -> tuple[Array, Array, Array]:
         """One predicted step with its Jacobians (d is constant), in the namespace of x."""
-        if isinstance(x, Tensor):
-            y, a, b = self.surrogate.step_with_jacobian(x, u)
+        if isinstance(x, Tensor) and self.differentiable:
+            y, a, b = self.model.step_with_jacobian(x, u)
+        elif isinstance(x, Tensor):
+            y, a, b = (torch.from_numpy(v) for v in self.flow.step_with_jacobian(*self._numpy_only(x, u)))
         elif self.flow is not None:
             y, a, b = self.flow.step_with_jacobian(x, u)
         else:
-            t = self.surrogate.step_with_jacobian(torch.from_numpy(x), torch.from_numpy(u))
+            t = self.model.step_with_jacobian(torch.from_numpy(x), torch.from_numpy(u))
             y, a, b = (v.numpy() for v in t)
         return self._disturbed(y), a, b
 
     def prediction_error(self, x_prev: np.ndarray, u_prev: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """What the undisturbed surrogate missed over the last period: x - F(x_prev, u_prev)."""
+        """What the undisturbed model missed over the last period: x - F(x_prev, u_prev)."""
         return x - self._model_step(x_prev, u_prev)
 
     def rollout(self, x0: Array, U: Array) -> Array:
-        """Predicted states x_1..x_H (..., H, nx) by self-loop of the surrogate."""
+        """Predicted states x_1..x_H (..., H, nx) by self-loop of the model."""
         xs, x = [], x0
         for i in range(self.horizon):
             x = self.step(x, U[..., i, :])

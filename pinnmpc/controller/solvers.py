@@ -21,7 +21,7 @@ def _project(u: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.where(u - lo <= tol, lo, np.where(hi - u <= tol, hi, u))
 
 
-def _result(shape: tuple[int, ...], U, iterations, cost, converged, warm):  # noqa: ANN001, ANN202
+def _result(shape: tuple[int, ...], U, iterations, cost, converged, warm):
     """A solve's outputs in the problems' own batch shape (warm: the next solve's prior, flat batch)."""
     lead = shape[:-2]
     return U.reshape(shape), iterations.reshape(lead), cost.reshape(lead), converged.reshape(lead), warm
@@ -56,7 +56,7 @@ class Solver(Protocol):
         x_ref: Tensor,
         u_prev: Tensor,
         low: Tensor,
-        high: Tensor,  # noqa: N803
+        high: Tensor,
     ) -> tuple[Tensor, SolveInfo]:
         """Return the optimised inputs and statistics."""
         ...
@@ -71,13 +71,13 @@ class RMSpropSolver:
     tol: float = 1e-8  # stop when the summed cost changes less than this (paper: 1e-8)
     array_api: ClassVar[str] = "torch"
 
-    def solve(self, ocp, x0, U0, x_ref, u_prev, low, high):  # noqa: ANN001, ANN201, N803
+    def solve(self, ocp, x0, U0, x_ref, u_prev, low, high):
         """Projected first-order descent with autograd gradients."""
-        U = U0.clone().requires_grad_(True)  # noqa: N806
+        U = U0.clone().requires_grad_(True)
         opt = torch.optim.RMSprop([U], lr=self.lr)
         prev = float("inf")
         it = 0
-        for it in range(1, self.max_iter + 1):  # noqa: B007
+        for it in range(1, self.max_iter + 1):
             opt.zero_grad()
             cost = ocp.cost(x0, U, x_ref, u_prev).sum()
             cost.backward()
@@ -87,7 +87,7 @@ class RMSpropSolver:
             if abs(prev - float(cost.detach())) < self.tol:
                 break
             prev = float(cost.detach())
-        U = U.detach()  # noqa: N806
+        U = U.detach()
         with torch.no_grad():
             final = ocp.cost(x0, U, x_ref, u_prev)
         converged = torch.full(final.shape, it < self.max_iter)
@@ -103,9 +103,9 @@ class LBFGSSolver:
     tol: float = 1e-12  # stop when a round changes the summed cost less than this
     array_api: ClassVar[str] = "torch"
 
-    def solve(self, ocp, x0, U0, x_ref, u_prev, low, high):  # noqa: ANN001, ANN201, N803
+    def solve(self, ocp, x0, U0, x_ref, u_prev, low, high):
         """Quasi-Newton with strong Wolfe line search and clamping."""
-        U = U0.clone().requires_grad_(True)  # noqa: N806
+        U = U0.clone().requires_grad_(True)
         opt = torch.optim.LBFGS([U], lr=1.0, max_iter=self.max_iter, line_search_fn="strong_wolfe")
         evals = [0]
 
@@ -159,7 +159,7 @@ class GaussNewtonSolver:
         if self.alphas.ndim != 1 or self.alphas.size == 0 or np.any(self.alphas <= 0):
             raise ValueError(f"step_lengths must be a non-empty list of positive numbers, got {self.step_lengths}")
 
-    def solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior=None):  # noqa: ANN001, ANN201
+    def solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior=None):
         """Accepts torch or numpy; returns the same kind.
 
         prior: the previous receding-horizon solve's SolveInfo field named by prior_kind, when U0 is its
@@ -195,7 +195,7 @@ class GaussNewtonSolver:
         """Shape of the prior this solver takes: the sensitivities d x_i / d U."""
         return (batch, ocp.horizon, ocp.nx, ocp.horizon * ocp.nu)
 
-    def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):  # noqa: ANN001, ANN202
+    def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):
         """Iterate until every problem has converged or max_iter is reached.
 
         The first two line searches evaluate their candidates with Jacobians, so the accepted one's is
@@ -258,7 +258,7 @@ class GaussNewtonSolver:
                 break
         return _result(shape, _project(U, lo, hi), iterations, cost, ~running, sens)
 
-    def _jacobian(self, ocp, x0, U, x_ref, u_prev, prior=None):  # noqa: ANN001, ANN202
+    def _jacobian(self, ocp, x0, U, x_ref, u_prev, prior=None):
         """Residuals, Jacobian and (numpy surrogates) the state sensitivities that a later solve may reuse."""
         if ocp.flow is not None and self.reuse_jacobian:
             return ocp.jacobian_rollout(x0, U, x_ref, u_prev, prior)
@@ -285,12 +285,12 @@ class GaussNewtonSolver:
             rho = np.where(fast & (latest <= self.fast_ratio) & (before == before), latest, rho)
         return np.where(rho < 1.0, decrease * rho / (1.0 - rho), np.inf)
 
-    def _step(self, r, jac, u, lo, hi):  # noqa: ANN001, ANN202
+    def _step(self, r, jac, u, lo, hi):
         """Gauss-Newton step within the box for residuals r and their Jacobian: see _newton_step."""
         jt = jac.swapaxes(-1, -2)
         return self._newton_step(jt @ jac, 2.0 * np.matmul(jt, r[..., None])[..., 0], u, lo, hi)
 
-    def _newton_step(self, jtj, grad, u, lo, hi):  # noqa: ANN001, ANN202
+    def _newton_step(self, jtj, grad, u, lo, hi):
         """Gauss-Newton step within the box, by a primal active set on the (convex) Gauss-Newton model
         1/2 d^T (2 J^T J) d + grad^T d.
 
@@ -315,7 +315,7 @@ class GaussNewtonSolver:
         predicted = -np.einsum("bi,bi->b", delta, grad + np.matmul(jtj, delta[..., None])[..., 0])
         return delta, pgrad_max, predicted, cut
 
-    def _active_set_path(self, hess, grad, fixed, u, lo, hi):  # noqa: ANN001, ANN202
+    def _active_set_path(self, hess, grad, fixed, u, lo, hi):
         """Piecewise-linear path of the primal active-set method: Newton direction on the free variables,
         cut at the first bound it meets, which joins the fixed ones."""
         delta, fixed, done = np.zeros_like(u), fixed.copy(), np.zeros(u.shape[0], dtype=bool)
@@ -335,7 +335,7 @@ class GaussNewtonSolver:
         return delta
 
     @staticmethod
-    def _masked_solve(hess, grad, fixed):  # noqa: ANN001, ANN205
+    def _masked_solve(hess, grad, fixed):
         """Newton direction of the model 1/2 d^T (2 hess) d + grad^T d on the free variables (0 on the fixed)."""
         if not fixed.any():
             return np.linalg.solve(hess, -0.5 * grad[..., None])[..., 0]
@@ -344,13 +344,13 @@ class GaussNewtonSolver:
         np.einsum("bii->bi", m)[...] += fixed
         return np.linalg.solve(m, np.where(fixed, 0.0, -0.5 * grad)[..., None])[..., 0]
 
-    def _line_search(self, ocp, x0, x_ref, u_prev, u, delta, f, lo, hi, with_jacobian):  # noqa: ANN001, ANN202
+    def _line_search(self, ocp, x0, x_ref, u_prev, u, delta, f, lo, hi, with_jacobian):
         """The first step length alone (usually the full step, which near the optimum always wins), then the
         others in one batch only for the problems it did not improve; with_jacobian: residuals and Jacobians
         come along (None otherwise)."""
         horizon_nu = (ocp.horizon, ocp.nu)
 
-        def evaluate(x0, cand, x_ref, u_prev):  # noqa: ANN001, ANN202
+        def evaluate(x0, cand, x_ref, u_prev):
             if with_jacobian:
                 r, jac, sens = self._jacobian(ocp, x0, cand.reshape(-1, cand.shape[-1]), x_ref, u_prev)
             else:
@@ -405,7 +405,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     accepts_prior: ClassVar[bool] = True
     prior_kind: ClassVar[str] = "states"
 
-    def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):  # noqa: ANN001, ANN202
+    def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):
         """Lifted iterations on the numpy surrogate; single shooting when there is none or they fail."""
         if ocp.flow is None:
             return (*super()._solve(ocp, x0, U0, x_ref, u_prev, low, high, None)[:4], None)
@@ -486,7 +486,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         return (batch, ocp.horizon, ocp.nx)
 
     @staticmethod
-    def _linearise(ocp, nodes, U):  # noqa: ANN001, ANN205
+    def _linearise(ocp, nodes, U):
         """One batched network call at all nodes, then the linearised predictions x_1..x_H (B, H, nx), their
         sensitivities to U (B, H*nx, H*nu), the largest defect per problem and the chain matrix.
 
@@ -508,7 +508,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         defect = np.abs(y[:, :-1] - nodes[:, 1:]).reshape(batch, -1).max(-1, initial=0.0)
         return sol[..., -1].reshape(batch, horizon, nx), sol[..., :-1], defect, chain
 
-    def _reached(self, ocp, x0, nodes, U, chain):  # noqa: ANN001, ANN202
+    def _reached(self, ocp, x0, nodes, U, chain):
         """The states U reaches from x0 (B, H, nx): one batched network call at the final nodes, their defects
         carried through the last linearisation (x_i - y_i = A_i (x_{i-1} - y_{i-1} + gap_{i-1}), exact to
         second order in the defects, which are tiny at convergence); a full rollout where one is larger

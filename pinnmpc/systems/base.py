@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -43,20 +44,42 @@ class Box:
 
 @runtime_checkable
 class System(Protocol):
-    """A controlled ODE dx/dt = rhs(x, u), batched over leading dimensions."""
+    """A controlled arm dx/dt = rhs(x, u) with x = (q, v), positions first; batched over leading dimensions.
+
+    Everything downstream (PINN, training, plant, controllers, references, plots, bench) asks only this."""
 
     name: str
+    tau: float  # control period of the zero-order hold, s
+    nq: int  # joints: x has 2 nq entries
     state_names: tuple[str, ...]
     input_names: tuple[str, ...]
+    state_units: tuple[str, ...]
+    input_units: tuple[str, ...]
     state_box: Box
     input_box: Box
 
-    def rhs(self, x: Tensor, u: Tensor) -> Tensor:
-        """dx/dt for x (..., nx), u (..., nu); differentiable."""
+    def rhs(self, x: Any, u: Any) -> Any:
+        """dx/dt for x (..., nx), u (..., nu): torch tensors (differentiable) or numpy arrays (the plant)."""
+        ...
+
+    def fast_rhs(self, x: Tensor, u: Tensor) -> Tensor:
+        """dx/dt on large batches (training, reference flows): first-order differentiable, cheapest path."""
         ...
 
     def residual(self, x: Tensor, dxdt: Tensor, u: Tensor, form: str) -> Tensor:
-        """ODE residual in the chosen form ('explicit': dxdt - rhs; 'mass': M-multiplied)."""
+        """ODE residual in the chosen form ('explicit': dxdt - rhs; 'mass': M-multiplied where available)."""
+        ...
+
+    def casadi_rhs(self) -> Any:
+        """dx/dt as a CasADi Function (x, u) -> dx: the same physics for the classical NMPC."""
+        ...
+
+    def with_mismatch(self, friction_scale: float = 1.0, mass_scale: float = 1.0) -> System:
+        """The same arm with scaled friction and inertia: a plant the controller does not know."""
+        ...
+
+    def kinematics(self, q: np.ndarray) -> np.ndarray:
+        """Points to draw (N, k, 3), base first and tool tip last, for joint positions q (N, nq)."""
         ...
 
 

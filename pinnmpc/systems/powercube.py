@@ -8,9 +8,13 @@ conf/system/powercube.yaml.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
+from types import SimpleNamespace
+from typing import Any
 
+import casadi as ca
 import numpy as np
 import torch
 from torch import Tensor
@@ -56,9 +60,23 @@ DEFAULT_PARAMS = PowerCubeParams()
 Array = Tensor | np.ndarray
 
 
-def _xp(a: Array):
-    """Array namespace of a: the same formulas serve torch (PINN, controller) and numpy (scipy plant)."""
-    return torch if isinstance(a, Tensor) else np
+CASADI = SimpleNamespace(  # the functions the formulas use, for CasADi symbols (the classical NMPC)
+    sin=ca.sin, cos=ca.cos, tanh=ca.tanh, sign=ca.sign, stack=lambda xs, _axis: ca.vertcat(*xs)
+)
+
+
+def _xp(a: Any) -> Any:
+    """Array namespace of a: the same formulas serve torch (PINN, controller), numpy (scipy plant) and CasADi."""
+    if isinstance(a, Tensor):
+        return torch
+    if isinstance(a, ca.SX | ca.MX | ca.DM):
+        return CASADI
+    return np
+
+
+def _at(a: Any, i: int) -> Any:
+    """Coordinate i along the last axis (a CasADi column vector has no leading batch axes)."""
+    return a[i] if isinstance(a, ca.SX | ca.MX | ca.DM) else a[..., i]
 
 
 def _friction(v: Array, viscous: float, tanh_terms: tuple[tuple[float, float], ...]) -> Array:
@@ -72,7 +90,7 @@ def _friction(v: Array, viscous: float, tanh_terms: tuple[tuple[float, float], .
 
 def mass_matrix(x: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> tuple[Array, Array, Array]:
     """Entries (M11, M12, M22) of the symmetric mass matrix M(beta)."""
-    cb = _xp(x).cos(x[..., 1])
+    cb = _xp(x).cos(_at(x, 1))
     s = p.mass_scale
     return s * (p.m11 + 2 * p.c * cb), s * (p.m12 + p.c * cb), s * p.m22 + 0 * cb
 
@@ -80,7 +98,7 @@ def mass_matrix(x: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> tuple[Array, A
 def generalized_forces(x: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> tuple[Array, Array]:
     """Right side h - k + B u of M qdd = h - k + B u."""
     xp = _xp(x)
-    alpha, beta, da, db = x[..., 0], x[..., 1], x[..., 2], x[..., 3]
+    alpha, beta, da, db = _at(x, 0), _at(x, 1), _at(x, 2), _at(x, 3)
     sb = xp.sin(beta)
     s = p.mass_scale
     k1 = -s * p.c * sb * (2 * da * db + db * db)
@@ -89,7 +107,7 @@ def generalized_forces(x: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS) 
     f = p.friction_scale
     h1 = p.grav_a * GRAVITY * xp.sin(alpha) + g_ab - f * _friction(da, p.visc_a, p.tanh_a)
     h2 = g_ab - f * (_friction(db, p.visc_b, p.tanh_b) + p.coulomb_b * xp.sign(db))
-    return h1 - k1 + p.gain * u[..., 0], h2 - k2 + p.gain * u[..., 1]
+    return h1 - k1 + p.gain * _at(u, 0), h2 - k2 + p.gain * _at(u, 1)
 
 
 def rhs(x: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> Array:
@@ -99,7 +117,7 @@ def rhs(x: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> Array:
     det = m11 * m22 - m12 * m12
     dda = (m22 * r1 - m12 * r2) / det
     ddb = (m11 * r2 - m12 * r1) / det
-    return _xp(x).stack((x[..., 2], x[..., 3], dda, ddb), -1)
+    return _xp(x).stack((_at(x, 2), _at(x, 3), dda, ddb), -1)
 
 
 def mass_residual(x: Array, dxdt: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> Array:
@@ -125,13 +143,41 @@ class PowerCube:
     params: PowerCubeParams = field(default_factory=PowerCubeParams)
     state_box: Box = Box((-math.pi, -math.pi, -2.5, -2.5), (math.pi, math.pi, 2.5, 2.5))
     input_box: Box = Box((-0.5, -0.5), (0.5, 0.5))
+    tau: float = 0.2  # control period of the paper, s
+    link_lengths: tuple[float, float] = (0.5, 0.4)  # m, for drawings only (not part of the identified model)
     name: str = "powercube"
     state_names: tuple[str, ...] = ("alpha", "beta", "dalpha", "dbeta")
     input_names: tuple[str, ...] = ("u1", "u2")
+    state_units: tuple[str, ...] = ("rad", "rad", "rad/s", "rad/s")
+    input_units: tuple[str, ...] = ("A", "A")
+    nq: int = 2  # joints; positions come first in the state
+
+    def with_mismatch(self, friction_scale: float = 1.0, mass_scale: float = 1.0) -> PowerCube:
+        """The same arm with scaled friction and mass matrix: a plant the controller does not know."""
+        params = dataclasses.replace(self.params, friction_scale=friction_scale, mass_scale=mass_scale)
+        return dataclasses.replace(self, params=params)
+
+    def casadi_rhs(self) -> ca.Function:
+        """dx/dt = f(x, u) as a CasADi SX function: the same closed form, evaluated on symbols."""
+        x, u = ca.SX.sym("x", 4), ca.SX.sym("u", 2)
+        return ca.Function("powercube_rhs", [x, u], [rhs(x, u, self.params)], {"cse": True})
+
+    def kinematics(self, q: np.ndarray) -> np.ndarray:
+        """Base, elbow and tip (N, 3, 3) in the vertical plane, alpha from hanging down, beta relative to link 1."""
+        q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+        (l1, l2), a, ab = self.link_lengths, q[:, 0], q[:, 0] + q[:, 1]
+        zero = np.zeros_like(a)
+        elbow = np.stack([l1 * np.sin(a), -l1 * np.cos(a), zero], axis=-1)
+        tip = elbow + np.stack([l2 * np.sin(ab), -l2 * np.cos(ab), zero], axis=-1)
+        return np.stack([np.zeros_like(elbow), elbow, tip], axis=1)
 
     def rhs(self, x: Array, u: Array) -> Array:
         """Batched dx/dt: differentiable for torch tensors, fast for numpy arrays (the plant)."""
         check_shapes(self, x, u)
+        return rhs(x, u, self.params)
+
+    def fast_rhs(self, x: Tensor, u: Tensor) -> Tensor:
+        """The batched training/reference path: the closed form is already the fastest."""
         return rhs(x, u, self.params)
 
     def residual(self, x: Tensor, dxdt: Tensor, u: Tensor, form: str = "explicit") -> Tensor:

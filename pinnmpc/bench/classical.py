@@ -1,0 +1,70 @@
+"""Section 6: the PINN controller against the classical NMPC on the true model (CasADi, compiled), in the same
+process, on the same reference, plant and protocol: one table per system."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from pinnmpc.bench.loops import loop_row, run_controller
+from pinnmpc.references import Reference
+from pinnmpc.surrogate import Surrogate
+from pinnmpc.systems.base import System
+
+log = logging.getLogger(__name__)
+
+CASADI_CONFIG = "conf/controller/casadi.yaml"  # where the classical controller's settings come from
+
+
+def classical_cfg(cfg: DictConfig, solver: str) -> DictConfig:
+    """The classical controller's config with `solver`, and the settings listed in classical.shared (horizon,
+    weights, bounds, offset-free estimator) taken from the PINN controller, so both solve the same problem."""
+    shared = {k: cfg.controller[k] for k in cfg.classical.shared if k in cfg.controller}
+    return OmegaConf.merge(cfg.classical.controller, shared, {"solver": solver})
+
+
+def classical_solvers(cfg: DictConfig) -> list[str]:
+    """The classical rows: the casadi config's default solver first, then classical.solvers."""
+    default = str(cfg.classical.controller.solver)
+    return [default, *(str(s) for s in cfg.classical.solvers if str(s) != default)]
+
+
+def available(cfg: DictConfig) -> bool:
+    """Whether the classical controller's config was composed into the bench config."""
+    return cfg.classical.get("controller") is not None
+
+
+def bench_classical(
+    cfg: DictConfig,
+    system: System,
+    surrogate: Surrogate,
+    ref: Reference,
+    pinn_rows: dict[str, dict[str, Any]] | None = None,
+) -> dict[str, Any]:
+    """The PINN controller (controller.solver) and each classical solver, one closed loop each on the same
+    reference and plant; a PINN row that section 2 already ran is reused (same process, same protocol)."""
+    if not available(cfg):
+        raise ValueError(f"classical.enabled=true needs the classical controller's config {CASADI_CONFIG}")
+    from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc
+
+    if abs(system.tau - surrogate.tau) > 1e-12:
+        raise ValueError(f"the system's tau {system.tau} differs from the surrogate's {surrogate.tau}")
+    solver = str(cfg.controller.solver)
+    pinn = (pinn_rows or {}).get(f"pinn_{solver}")
+    if pinn is None:
+        pinn, _ = run_controller(cfg, system, surrogate, ref, solver, record=False)
+        log.info("classical: PINN %s done in %.1f s", solver, pinn["wall_s"])
+    rows = {f"pinn_{solver}": {**pinn, "label": f"PINN-MPC, {solver}", "model": "pinn"}}
+    for name in classical_solvers(cfg):
+        controller = build_casadi_nmpc(classical_cfg(cfg, name), system)  # compiled here, outside the timed loop
+        row = loop_row(cfg, system, controller, None, system.tau, ref)
+        rows[f"classical_{name}"] = {**row, "label": f"classical NMPC, {row['solver']}", "model": "classical"}
+        log.info("classical: %s done in %.1f s", row["solver"], row["wall_s"])
+    return {
+        "reference": ref.name,
+        "horizon": int(cfg.controller.horizon),
+        "shared": [str(k) for k in cfg.classical.shared],
+        "rows": rows,
+    }

@@ -1,0 +1,66 @@
+"""What every section shares, built one way: the plant, the references, controller configs, random states."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from pinnmpc.closed_loop import plant_system, system_reference
+from pinnmpc.plant import ScipyPlant
+from pinnmpc.references import Reference
+from pinnmpc.systems.base import System
+from pinnmpc.training.data import random_pairs
+
+STATUS_CHARS = 40  # a failed loop's status is cut to this many characters in its table cell
+NO_DISTURBANCE = {"gain": 0.0}  # controller.disturbance override: the paper's controller, no offset-free MPC
+
+
+def make_plant(cfg: DictConfig, system: System, tau: float) -> ScipyPlant:
+    """The simulated robot of every closed loop and of the RK45 row, as pinnmpc.closed_loop builds it."""
+    return ScipyPlant(plant_system(system, cfg.plant), tau, cfg.plant.method, cfg.plant.rtol, cfg.plant.atol)
+
+
+def bench_reference(cfg: DictConfig, system: System, tau: float, name: str | None = None) -> Reference:
+    """reference.path (auto: the paper's reference only for a system with the paper's numbers, i.e. a `paper`
+    block; else its built-in), or the built-in `name`, on the grid of tau, as pinnmpc.closed_loop loads it."""
+    path = None if name is not None else cfg.reference.path
+    if str(path) == "auto" and cfg.get("paper") is None:
+        path = None
+    node = OmegaConf.create(
+        {
+            "reference": {"path": path, "name": cfg.reference.name if name is None else name},
+            "system": {"references": OmegaConf.to_container(cfg.system.references, resolve=True)},
+        }
+    )
+    return system_reference(node, system, tau)
+
+
+def controller_cfg(cfg: DictConfig, **changes: Any) -> DictConfig:
+    """The controller section with a few settings swapped (solver, horizon), everything else as configured."""
+    return OmegaConf.merge(cfg.controller, changes)
+
+
+def optimality_solvers(cfg: DictConfig) -> list[str]:
+    """The solvers whose OCPs the optimality section re-solves: as configured, or every PINN row of section 2."""
+    chosen = cfg.optimality.solvers
+    if chosen is None:
+        chosen = cfg.closed_loop.solvers if cfg.closed_loop.enabled else [cfg.controller.solver]
+    return [str(s) for s in chosen]
+
+
+def integrator_h(tau: float, h: float | None) -> float:
+    """A fixed-step baseline's step: as configured, else tau / 10 (the paper's choice)."""
+    return float(h) if h is not None else float(tau) / 10.0
+
+
+def random_states(system: System, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """x0 uniform in the state box and u uniform in the input box (the training box), seeded."""
+    x0, u = random_pairs(system, n, seed)
+    return x0.numpy(), u.numpy()
+
+
+def status_suffix(status: str) -> str:
+    """Label suffix of a loop that did not end ok: its status, cut short."""
+    return "" if status == "ok" else f" ({status[:STATUS_CHARS]})"

@@ -1,0 +1,212 @@
+"""The classical NMPC on the true model (CasADi nlpsol, compiled): the baseline the PINN controller is compared with.
+
+Same cost, bounds, horizon and zero-order hold as NMPC (pinnmpc.controller.nmpc), the same make_step/reset/stats
+interface, the same fallback (a failed solve applies the previous plan shifted) and the same offset-free estimator.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from pinnmpc.controller.casadi_ocp import CasadiOCP, NlpSolver, Solution
+from pinnmpc.controller.nmpc import StepStats
+
+RTI_STATUSES = {"Solve_Succeeded", "Maximum_Iterations_Exceeded"}  # what one SQP step may end with and be used
+
+
+class CasadiNMPC:
+    """Receding-horizon control: solve the OCP from the shifted last solution, apply the first input."""
+
+    def __init__(
+        self,
+        ocp: CasadiOCP,
+        solver: NlpSolver,
+        label: str,
+        warm_start: bool = True,
+        rti: bool = False,
+        cold_solver: NlpSolver | None = None,
+        disturbance_gain: float = 0.0,
+        disturbance_max: Sequence[float] | None = None,
+    ) -> None:
+        self.ocp, self.solver, self.label = ocp, solver, label
+        self.horizon, self.nx, self.nu = ocp.horizon, ocp.nx, ocp.nu
+        self.low, self.high = ocp.low.copy(), ocp.high.copy()
+        self.warm_start, self.rti = bool(warm_start), bool(rti)
+        self.cold_solver = cold_solver or solver  # RTI: a full solve while there is no solution to iterate from
+        self.disturbance_gain = float(disturbance_gain)
+        if not 0.0 <= self.disturbance_gain <= 1.0:
+            raise ValueError(f"disturbance gain must be in [0, 1], got {disturbance_gain}")
+        self._d_max = None if disturbance_max is None else np.array(disturbance_max, dtype=np.float64)
+        if self._d_max is not None and (self._d_max.shape != (self.nx,) or np.any(~(self._d_max >= 0))):
+            got = list(disturbance_max)
+            raise ValueError(f"disturbance max must be {self.nx} non-negative numbers (one per state), got {got}")
+        self.stats: list[StepStats] = []
+        self.reset()
+
+    def describe(self) -> dict[str, Any]:
+        """Solver and offset-free gain, for metrics.json and headlines."""
+        return {
+            "controller": "casadi",
+            "solver": self.label,
+            "disturbance_gain": self.disturbance_gain,
+            "rk4_steps": self.ocp.rk4_steps,
+        }
+
+    def reset(self) -> None:
+        """Forget the warm start, the last applied input, the disturbance estimate and the statistics."""
+        self._U = self._cold_inputs()
+        self._u_prev = self._U[0].copy()
+        self._w: np.ndarray | None = None  # the last solution shifted (None: cold start from the measured state)
+        self._lam: tuple[np.ndarray, np.ndarray] | None = None  # its multipliers shifted (None: zeros)
+        self._last: tuple[np.ndarray, np.ndarray] | None = None  # the last measured state and the input applied
+        self.disturbance: np.ndarray | None = None
+        self.stats = []
+
+    def _cold_inputs(self) -> np.ndarray:
+        """Zero inputs projected onto the box, (H, nu)."""
+        return np.clip(np.zeros((self.horizon, self.nu)), self.low, self.high)
+
+    @property
+    def plan(self) -> np.ndarray:
+        """The inputs the next solve starts from (the last plan shifted by one step), (H, nu)."""
+        return self._U.copy()
+
+    def make_step(self, x: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
+        """Input to apply now, given the measured state (nx,) and the next H reference states (H, nx)."""
+        x0 = np.asarray(x, dtype=np.float64).reshape(-1)
+        ref = np.asarray(x_ref, dtype=np.float64)
+        if x0.shape != (self.nx,):
+            raise ValueError(f"the state must have {self.nx} entries, got shape {np.shape(x)}")
+        if ref.shape != (self.horizon, self.nx):
+            want = (self.horizon, self.nx)
+            raise ValueError(f"x_ref must cover the horizon: expected {want[0]} x {want[1]}, got {ref.shape}")
+        start = time.perf_counter()
+        sol: Solution | None = None
+        try:
+            self._estimate_disturbance(x0)
+            solver = self.solver if self._w is not None else self.cold_solver
+            self._load(solver, x0, ref)
+            sol = solver()
+            ok = self._usable(sol, rti=solver is self.solver and self.rti)
+        except (RuntimeError, FloatingPointError, np.linalg.LinAlgError):  # e.g. an evaluation error on NaN
+            ok = False
+        if ok:
+            U = np.clip(sol.w[self.ocp.iu], self.low, self.high)  # noqa: N806  (an interior point may overshoot 1e-8)
+        else:  # self._U is the previous plan shifted: its first entry is the input planned for now
+            U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self.low, self.high)  # noqa: N806
+        elapsed = time.perf_counter() - start
+        self._shift(sol if ok else None, U)
+        self._u_prev = U[0].copy()
+        self._last = (x0.copy(), self._u_prev)
+        self.stats.append(
+            StepStats(
+                time_s=elapsed,
+                iterations=sol.iterations if sol is not None else 0,
+                cost=sol.cost if ok else float("nan"),
+                converged=bool(ok and sol.success),
+                fallback=not ok,
+            )
+        )
+        return U[0].copy()
+
+    @staticmethod
+    def _usable(sol: Solution, rti: bool) -> bool:
+        """A solve counts when the solver succeeded (RTI: took its one step) and everything is finite."""
+        if not (sol.success or (rti and sol.status in RTI_STATUSES)):
+            return False
+        return bool(np.isfinite(sol.w).all() and np.isfinite(sol.cost))
+
+    def _load(self, s: NlpSolver, x0: np.ndarray, ref: np.ndarray) -> None:
+        """Parameters and starting point into the solver's input buffers."""
+        ocp = self.ocp
+        s.p[ocp.p_x0] = x0
+        s.p[ocp.p_ref] = ref.reshape(-1)
+        s.p[ocp.p_uprev] = self._u_prev
+        s.p[ocp.p_d] = 0.0 if self.disturbance is None else self.disturbance
+        if self._w is None:  # cold: every state at the measured one, the planned (or zero) inputs
+            s.w0[ocp.ix] = x0
+            s.w0[ocp.iu] = self._U
+        else:
+            s.w0[:] = self._w
+            s.w0[ocp.ix[0]] = x0  # the initial-state constraint holds at the start
+        if self._lam is None:
+            s.lam_x0[:] = 0.0
+            s.lam_g0[:] = 0.0
+        else:
+            s.lam_x0[:], s.lam_g0[:] = self._lam
+
+    def _shift(self, sol: Solution | None, U: np.ndarray) -> None:  # noqa: N803
+        """Warm start for the next step: the solution (primal and dual) moved one stage forward, the last stage
+        repeated. After a fallback only the inputs are kept (shifted again) and the states restart cold."""
+        if not self.warm_start:
+            self._U, self._w, self._lam = self._cold_inputs(), None, None
+            return
+        self._U = np.concatenate((U[1:], U[-1:]), axis=0)
+        if sol is None:
+            self._w, self._lam = None, None
+            return
+        ix, iu, nx = self.ocp.ix, self.ocp.iu, self.nx
+        w, lam_x, lam_g = sol.w, sol.lam_x, sol.lam_g
+        nw = np.empty_like(w)
+        nw[ix[:-1]] = w[ix[1:]]
+        nw[ix[-1]] = w[ix[-1]]
+        nw[iu] = self._U
+        lx = np.empty_like(lam_x)
+        lx[ix[:-1]] = lam_x[ix[1:]]
+        lx[ix[-1]] = lam_x[ix[-1]]
+        lx[iu[:-1]] = lam_x[iu[1:]]
+        lx[iu[-1]] = lam_x[iu[-1]]
+        lg = np.empty_like(lam_g)  # g = (initial state, defect 0..H-1), nx each
+        lg[:-nx] = lam_g[nx:]
+        lg[-nx:] = lam_g[-nx:]
+        self._w, self._lam = nw, (lx, lg)
+
+    def _estimate_disturbance(self, x: np.ndarray) -> None:
+        """Offset-free MPC as NMPC's: what the model missed over the last period (x - F(x_prev, u_prev)),
+        filtered by the gain and bounded by disturbance_max, is added to every predicted step."""
+        if self.disturbance_gain == 0.0 or self._last is None:
+            return
+        error = x - self.solver.flow(*self._last)
+        if not np.all(np.isfinite(error)):
+            return
+        d = np.zeros_like(error) if self.disturbance is None else self.disturbance
+        d = d + self.disturbance_gain * (error - d)
+        if self._d_max is not None:
+            d = np.clip(d, -self._d_max, self._d_max)
+        self.disturbance = d
+
+
+def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
+    """CasadiNMPC from conf/controller/casadi.yaml (a DictConfig or a plain dict) for a system of pinnmpc.systems."""
+    if isinstance(cfg, DictConfig):
+        cfg = OmegaConf.to_container(cfg, resolve=True)
+    plugin, rti = str(cfg.get("solver", "sqpmethod")), bool(cfg.get("rti", False))
+    if rti and plugin != "sqpmethod":
+        raise ValueError(f"rti=true takes one SQP step per sample: it needs solver=sqpmethod, got {plugin!r}")
+    low = system.input_box.low if cfg.get("u_low") is None else cfg["u_low"]
+    high = system.input_box.high if cfg.get("u_high") is None else cfg["u_high"]
+    ocp = CasadiOCP(
+        system, cfg["horizon"], cfg["Q"], cfg["R"], cfg.get("R_rate"), low, high, rk4_steps=cfg.get("rk4_steps")
+    )
+    options = dict((cfg.get("solvers") or {}).get(plugin) or {})
+    hessian, codegen = str(cfg.get("hessian", "gauss_newton")), bool(cfg.get("codegen", True))
+    solver = ocp.solver(plugin, options, hessian, codegen)
+    cold_solver = None
+    if rti:  # one full SQP step from the shifted solution; the first step (and any after a fallback) solves fully
+        cold_solver, solver = solver, ocp.solver(plugin, {**options, "max_iter": 1, "max_iter_ls": 0}, hessian, codegen)
+    d = cfg.get("disturbance") or {}
+    return CasadiNMPC(
+        ocp,
+        solver,
+        label=f"casadi-{plugin}" + ("-rti" if rti else ""),
+        warm_start=bool(cfg.get("warm_start", True)),
+        rti=rti,
+        cold_solver=cold_solver,
+        disturbance_gain=float(d.get("gain", 0.0)),
+        disturbance_max=d.get("max_abs"),
+    )

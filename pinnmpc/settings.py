@@ -1,0 +1,271 @@
+"""Validated settings: every key a user passes is checked before any work starts, so a typo is one clear line."""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+Dims = Mapping[str, int]  # {"nx": ..., "nu": ...} of the system the run is for
+Check = Callable[[Any, Dims], str | None]  # None when the value is allowed, else what is allowed
+_ABSENT = object()  # a key a Python caller's config leaves out: nothing to check
+
+
+class SettingError(ValueError):
+    """Bad setting; the message names the key, the value and what is allowed."""
+
+
+def _is_int(v: Any) -> bool:
+    """Integers only: bool is an int to Python but never a count, 2.5 must not silently become 2."""
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_real(v: Any) -> bool:
+    """Finite numbers only: NaN and inf pass every comparison-free check downstream and fail much later."""
+    return (_is_int(v) or isinstance(v, float)) and math.isfinite(v)
+
+
+def _num(v: float) -> str:
+    """4294967295 stays an integer in messages, 0.1 stays short."""
+    return str(v) if _is_int(v) else f"{v:g}"
+
+
+def _range(lo: float | None, hi: float | None, lo_open: bool) -> str:
+    """'>= 0', '> 0', 'in [0, 1]' for the messages."""
+    if lo is not None and hi is not None:
+        return f" in {'(' if lo_open else '['}{_num(lo)}, {_num(hi)}]"
+    if lo is not None:
+        return f" {'>' if lo_open else '>='} {_num(lo)}"
+    return f" <= {_num(hi)}" if hi is not None else ""
+
+
+def _inside(v: float, lo: float | None, hi: float | None, lo_open: bool) -> bool:
+    """Range test matching _range."""
+    return (lo is None or (v > lo if lo_open else v >= lo)) and (hi is None or v <= hi)
+
+
+def integer(lo: int | None = None, hi: int | None = None) -> Check:
+    """An int in [lo, hi]."""
+    allowed = "an integer" + _range(lo, hi, False)
+    return lambda v, _d: None if _is_int(v) and _inside(v, lo, hi, False) else allowed
+
+
+def real(lo: float | None = None, hi: float | None = None, lo_open: bool = False) -> Check:
+    """A finite number in the range (lo excluded with lo_open)."""
+    allowed = "a finite number" + _range(lo, hi, lo_open)
+    return lambda v, _d: None if _is_real(v) and _inside(v, lo, hi, lo_open) else allowed
+
+
+def positive() -> Check:
+    """A finite number > 0."""
+    return real(0.0, lo_open=True)
+
+
+def boolean() -> Check:
+    """true or false."""
+    return lambda v, _d: None if isinstance(v, bool) else "true or false"
+
+
+def text() -> Check:
+    """A non-empty string (paths, names)."""
+    return lambda v, _d: None if isinstance(v, str) and v.strip() else "a non-empty string"
+
+
+def one_of(*choices: str) -> Check:
+    """One of a few names."""
+    return lambda v, _d: None if v in choices else "one of " + ", ".join(choices)
+
+
+def optional(check: Check) -> Check:
+    """null, or what check allows."""
+
+    def _check(v: Any, dims: Dims) -> str | None:
+        bad = None if v is None else check(v, dims)
+        return None if bad is None else f"{bad} or null"
+
+    return _check
+
+
+def _length(n: int | str, dims: Dims) -> int:
+    """A fixed length or the system's nx/nu."""
+    return dims[n] if isinstance(n, str) else n
+
+
+def vector(n: int | str, element: Check | None = None) -> Check:
+    """A list of n entries (n: a number or 'nx'/'nu'), each finite (or what element allows)."""
+    element = element or real()
+
+    def _check(v: Any, dims: Dims) -> str | None:
+        size = _length(n, dims)
+        desc = element(None, dims) or ""
+        ok = isinstance(v, list) and len(v) == size and all(element(e, dims) is None for e in v)
+        return None if ok else f"a list of {size} entries ({n}), each {desc}"
+
+    return _check
+
+
+def listof(element: Check) -> Check:
+    """A non-empty list, each entry allowed by element (grids, layer widths)."""
+
+    def _check(v: Any, dims: Dims) -> str | None:
+        ok = isinstance(v, list) and len(v) > 0 and all(element(e, dims) is None for e in v)
+        return None if ok else f"a non-empty list, each entry {element(None, dims)}"
+
+    return _check
+
+
+def weight(n: str) -> Check:
+    """A cost weight: n non-negative finite numbers (a diagonal) or an n x n symmetric PSD matrix."""
+
+    def _check(v: Any, dims: Dims) -> str | None:
+        size = _length(n, dims)
+        allowed = f"{size} finite numbers >= 0 (the diagonal) or a {size} x {size} symmetric PSD matrix ({n})"
+        if not isinstance(v, list) or len(v) != size:
+            return allowed
+        if all(_is_real(e) for e in v):
+            return None if all(e >= 0 for e in v) else allowed
+        if not all(isinstance(row, list) and len(row) == size and all(_is_real(e) for e in row) for row in v):
+            return allowed
+        m = np.array(v, dtype=np.float64)
+        scale = max(1.0, float(np.abs(m).max()))
+        psd = np.allclose(m, m.T, atol=1e-12 * scale) and np.linalg.eigvalsh(m).min() >= -1e-12 * scale
+        return None if psd else allowed
+
+    return _check
+
+
+def duration() -> Check:
+    """Lightning's wall-time budget DD:HH:MM:SS."""
+    pattern = re.compile(r"\d+:\d\d:\d\d:\d\d")
+    return lambda v, _d: None if isinstance(v, str) and pattern.fullmatch(v.strip()) else "a duration DD:HH:MM:SS"
+
+
+SCIPY_METHODS = ("RK45", "RK23", "DOP853", "Radau", "BDF", "LSODA")
+SEED = integer(0, 2**32 - 1)  # what numpy and Lightning accept
+
+CLOSED_LOOP: dict[str, Check] = {
+    "checkpoint": optional(text()),
+    "tau": optional(positive()),
+    "threads": integer(1),
+    "seed": SEED,
+    "noise_sigma": real(0.0),
+    "max_steps": optional(integer(1)),
+    "progress": boolean(),
+    "plots": boolean(),
+    "animate": boolean(),
+    "allow_inputs_outside_box": boolean(),
+    "failure.max_fallback_fraction": real(0.0, 1.0),
+    "plant.method": one_of(*SCIPY_METHODS),
+    "plant.rtol": positive(),
+    "plant.atol": positive(),
+    "plant.friction_scale": real(0.0),
+    "plant.mass_scale": positive(),
+    "reference.path": optional(text()),
+    "reference.name": text(),
+    # the keys every controller kind shares; the rest is each controller's own to check
+    "controller.horizon": integer(1),
+    "controller.Q": weight("nx"),
+    "controller.R": weight("nu"),
+    "controller.u_low": optional(vector("nu")),
+    "controller.u_high": optional(vector("nu")),
+}
+
+ROBUSTNESS: dict[str, Check] = {
+    **CLOSED_LOOP,
+    "robustness.noise_sigma": listof(real(0.0)),
+    "robustness.friction_scale": listof(real(0.0)),
+    "robustness.mass_scale": listof(positive()),
+    "robustness.bound": positive(),
+}
+
+SELF_LOOP: dict[str, Check] = {
+    "checkpoint": optional(text()),
+    "steps": integer(2),
+    "amplitude": vector("nu"),
+    "x0": vector("nx"),
+    "threads": integer(1),
+    "plots": boolean(),
+}
+
+TRAIN: dict[str, Check] = {
+    "tau": positive(),
+    "t_max": positive(),
+    "seed": SEED,
+    "threads": integer(1),
+    "ckpt_path": optional(text()),
+    "resume": boolean(),
+    "progress": boolean(),
+    "self_loop_figure.every_n_epochs": integer(0),
+    "self_loop_figure.steps": integer(2),
+    "self_loop_figure.amplitude": vector("nu"),
+    "stage.base": optional(text()),
+    "stage.hidden": listof(integer(1)),
+    "stage.error_scale": positive(),
+    "stage.first_layer_gain": positive(),
+    "stage.last_layer_gain": positive(),
+    "stage.samples": integer(1),
+    "stage.h": positive(),
+    "model.hidden": listof(integer(1)),
+    "trainer.max_epochs": integer(-1),
+    "trainer.max_time": optional(duration()),
+    "trainer.check_val_every_n_epoch": optional(integer(1)),
+}
+
+
+def _plain(value: Any) -> Any:
+    """Config nodes as plain lists/dicts, for the checks and the messages."""
+    if OmegaConf.is_config(value):
+        return OmegaConf.to_container(value, resolve=True)
+    return value
+
+
+def validate(cfg: DictConfig, table: Mapping[str, Check], dims: Dims) -> None:
+    """Check every key of table that cfg has; the first bad one raises SettingError naming key, value, allowed."""
+    for key, check in table.items():
+        value = _plain(OmegaConf.select(cfg, key, default=_ABSENT))
+        if value is _ABSENT:
+            continue
+        allowed = check(value, dims)
+        if allowed is not None:
+            raise SettingError(f"{key}={value!r}: expected {allowed}")
+
+
+def _pair(cfg: DictConfig, low_key: str, high_key: str) -> None:
+    """low <= high entry by entry, when both are given."""
+    low, high = (_plain(OmegaConf.select(cfg, k, default=None)) for k in (low_key, high_key))
+    if low is not None and high is not None and any(lo > hi for lo, hi in zip(low, high)):
+        raise SettingError(f"{low_key}={low} exceeds {high_key}={high}: expected low <= high in every entry")
+
+
+def system_dims(system: Any) -> dict[str, int]:
+    """nx and nu of a System (or anything with state and input names)."""
+    return {"nx": len(system.state_names), "nu": len(system.input_names)}
+
+
+def validate_closed_loop(cfg: DictConfig, system: Any, table: Mapping[str, Check] = CLOSED_LOOP) -> None:
+    """closed_loop (and robustness) settings, before the surrogate is loaded."""
+    validate(cfg, table, system_dims(system))
+    _pair(cfg, "controller.u_low", "controller.u_high")
+
+
+def validate_robustness(cfg: DictConfig, system: Any) -> None:
+    """The closed-loop settings plus the grid."""
+    validate_closed_loop(cfg, system, ROBUSTNESS)
+
+
+def validate_self_loop(cfg: DictConfig, system: Any) -> None:
+    """self_loop settings."""
+    validate(cfg, SELF_LOOP, system_dims(system))
+
+
+def validate_train(cfg: DictConfig, system: Any) -> None:
+    """train settings, before any data is drawn."""
+    validate(cfg, TRAIN, system_dims(system))
+    if cfg.t_max < cfg.tau:
+        raise SettingError(
+            f"t_max={cfg.t_max} is below tau={cfg.tau}: expected t_max >= tau (the network predicts x(tau))"
+        )

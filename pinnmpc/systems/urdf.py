@@ -1,0 +1,322 @@
+"""Serial rigid-body arms from a URDF: M(q) dv/dt + h(q, v) = joint torque, plus an actuation law from config.
+
+The rigid-body algorithms come from libraries: adam (torch, batched and differentiable: the public rhs), adam's
+CasADi backend compiled to C (training residuals, the classical NMPC) and Pinocchio (ABA in C++: the plant,
+forward kinematics for drawings, golden checks). Only the actuation and friction law is written here, once,
+over an array namespace, because URDF <dynamics> tags are not read by any of them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import xml.etree.ElementTree as ET
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import torch
+from torch import Tensor
+
+from pinnmpc.systems.base import Box, check_shapes
+
+URDF_DIR = Path(__file__).resolve().parent / "urdf"  # URDFs shipped with the package
+ACTUATIONS = ("torque", "velocity_servo")
+CASADI = SimpleNamespace(tanh=ca.tanh)  # the few functions the actuation law needs, for symbolic arguments
+
+
+def _xp(a: Any) -> Any:
+    """Array namespace of a: torch, numpy or CasADi, so the actuation law is written once."""
+    if isinstance(a, np.ndarray):  # first: the plant asks thousands of times per step
+        return np
+    if isinstance(a, Tensor):
+        return torch
+    if isinstance(a, ca.SX | ca.MX | ca.DM):
+        return CASADI
+    return np
+
+
+def resolve_urdf(path: str | Path) -> Path:
+    """A URDF by absolute path, path relative to the working dir, or file name in the package's urdf folder."""
+    p = Path(path).expanduser()
+    for candidate in (p, URDF_DIR / p):
+        if candidate.is_file():
+            return candidate.resolve()
+    raise FileNotFoundError(f"urdf={path}: no such file (looked in the working dir and {URDF_DIR}); expected a .urdf")
+
+
+def locked_urdf(path: Path, joints: Sequence[str]) -> str:
+    """URDF text with every movable joint not in `joints` made fixed (adam refuses prismatic joints, even
+    unactuated ones, and the controlled arm holds its other joints still)."""
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as e:
+        raise ValueError(f"urdf={path}: not valid XML ({e})") from None
+    movable = {j.get("name"): j for j in root.findall("joint") if j.get("type") not in ("fixed", "floating")}
+    missing = [j for j in joints if j not in movable]
+    if missing:
+        raise ValueError(f"joints={list(joints)}: {missing} not movable joints of {path.name}; it has {list(movable)}")
+    for name, j in movable.items():
+        if name not in joints:
+            j.set("type", "fixed")
+    for dyn in root.iter("dynamics"):  # vendor attributes (Franka's K, D, mu_*) make URDF parsers warn per joint
+        for key in [k for k in dyn.attrib if k not in ("damping", "friction")]:
+            del dyn.attrib[key]
+    return ET.tostring(root, encoding="unicode")
+
+
+def revolute_joints(path: Path) -> list[str]:
+    """Revolute joints in file order: the default joint list."""
+    return [j.get("name") for j in ET.parse(path).getroot().findall("joint") if j.get("type") == "revolute"]
+
+
+@dataclass(frozen=True)
+class RigidArm:
+    """A fixed-base serial arm from a URDF with joint state x = (q, v) and one input per joint.
+
+    actuation='torque': joint torque = u - D v - C tanh(s v) (viscous plus smoothed Coulomb friction).
+    actuation='velocity_servo': joint torque = g(q) + K (u - v), a gravity-compensated velocity servo.
+    mass_scale multiplies M and h (every link's mass and inertia) and friction_scale D and C, or K for a
+    servo: plant mismatch for robustness runs; 1.0 is the nominal arm the surrogate learns.
+    """
+
+    name: str
+    urdf: str
+    tau: float
+    state_box: Box
+    input_box: Box
+    actuation: str = "torque"
+    joints: tuple[str, ...] = ()
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.80665)
+    viscous: tuple[float, ...] = ()
+    coulomb: tuple[float, ...] = ()
+    coulomb_slope: float = 50.0
+    servo_gain: tuple[float, ...] = ()
+    friction_scale: float = 1.0
+    mass_scale: float = 1.0
+    state_units: tuple[str, ...] = ()
+    input_units: tuple[str, ...] = ()
+    tip_frame: str | None = None  # frame drawn as the tool tip (None: the last joint's child link)
+    state_names: tuple[str, ...] = field(init=False)
+    input_names: tuple[str, ...] = field(init=False)
+
+    def __post_init__(self) -> None:
+        path = resolve_urdf(self.urdf)
+        joints = tuple(self.joints) or tuple(revolute_joints(path))
+        n = len(joints)
+        set_ = functools.partial(object.__setattr__, self)
+        set_("joints", joints)
+        set_("urdf", str(path))
+        set_("gravity", tuple(float(g) for g in self.gravity))
+        short = [j.removeprefix(f"{self.name}_") for j in joints]
+        set_("state_names", (*(f"q_{j}" for j in short), *(f"v_{j}" for j in short)))
+        set_("input_names", tuple(f"u_{j}" for j in short))
+        set_("state_units", tuple(self.state_units) or ("rad",) * n + ("rad/s",) * n)
+        if self.actuation not in ACTUATIONS:
+            raise ValueError(f"{self.name}: actuation={self.actuation!r}; expected one of {list(ACTUATIONS)}")
+        default_unit = "N m" if self.actuation == "torque" else "rad/s"
+        set_("input_units", tuple(self.input_units) or (default_unit,) * n)
+        need = ("viscous", "coulomb") if self.actuation == "torque" else ("servo_gain",)
+        for key in ("viscous", "coulomb", "servo_gain"):
+            value = tuple(float(v) for v in getattr(self, key))
+            set_(key, value)
+            if key in need and (len(value) != n or any(not (math.isfinite(v) and v >= 0) for v in value)):
+                raise ValueError(f"{self.name}: {key}={list(value)}; expected {n} finite numbers >= 0, one per joint")
+        for key in ("tau", "coulomb_slope", "mass_scale", "friction_scale"):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"{self.name}: {key}={v!r}; expected a finite number >= 0")
+        if not self.tau > 0 or not self.mass_scale > 0:
+            raise ValueError(f"{self.name}: need tau > 0 and mass_scale > 0, got {self.tau} and {self.mass_scale}")
+        if self.state_box.dim != 2 * n or self.input_box.dim != n:
+            raise ValueError(
+                f"{self.name}: state_box has {self.state_box.dim} and input_box {self.input_box.dim} entries; "
+                f"expected {2 * n} and {n} for joints {list(joints)}"
+            )
+
+    @property
+    def nq(self) -> int:
+        """Number of joints (positions come first in the state)."""
+        return len(self.joints)
+
+    def with_mismatch(self, friction_scale: float = 1.0, mass_scale: float = 1.0) -> RigidArm:
+        """The same arm with scaled friction (or servo gain) and inertia: a plant the controller does not know."""
+        return dataclasses.replace(self, friction_scale=friction_scale, mass_scale=mass_scale)
+
+    # -- the one hand-written law ---------------------------------------------------------------------------
+    def actuation_torque(self, v: Any, u: Any) -> Any:
+        """Joint torque from the input, apart from gravity compensation (any array namespace)."""
+        xp, f = _xp(v), self.friction_scale
+        if self.actuation == "torque":
+            d, c = self._coeffs("viscous", v), self._coeffs("coulomb", v)
+            return u - f * (d * v + c * xp.tanh(self.coulomb_slope * v))
+        return f * self._coeffs("servo_gain", v) * (u - v)
+
+    def _coeffs(self, key: str, like: Any) -> Any:
+        """Per-joint coefficients in like's array type."""
+        if isinstance(like, np.ndarray):
+            return self._numpy_coeffs[key]
+        value = getattr(self, key)
+        if isinstance(like, Tensor):
+            return torch.tensor(value, dtype=like.dtype)
+        return ca.DM(value)
+
+    @functools.cached_property
+    def _numpy_coeffs(self) -> dict[str, np.ndarray]:
+        """Coefficient arrays built once: the plant calls the law thousands of times per step."""
+        return {k: np.asarray(getattr(self, k), dtype=np.float64) for k in ("viscous", "coulomb", "servo_gain")}
+
+    def _bias(self, h: Any, g: Any) -> Any:
+        """What M dv/dt must balance besides the actuation: h, less gravity where the servo compensates it."""
+        return self.mass_scale * (h - g) if self.actuation == "velocity_servo" else self.mass_scale * h
+
+    # -- torch (adam): the public, differentiable rhs ---------------------------------------------------------
+    @functools.cached_property
+    def _adam(self) -> dict[torch.dtype, Any]:
+        """adam KinDynComputations per dtype (gravity passed in that dtype: adam's default is float32)."""
+        return {}
+
+    def _kindyn(self, dtype: torch.dtype) -> Any:
+        """adam's torch model in this dtype, built on first use."""
+        if dtype not in self._adam:
+            from adam.pytorch import KinDynComputations
+
+            g = torch.tensor([*self.gravity, 0.0, 0.0, 0.0], dtype=dtype)
+            text = locked_urdf(Path(self.urdf), self.joints)
+            self._adam[dtype] = KinDynComputations(text, list(self.joints), dtype=dtype, gravity=g, device="cpu")
+        return self._adam[dtype]
+
+    def dynamics_terms(self, q: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """M (B, n, n), h (B, n) and gravity g (B, n) for a flat batch, the joint block of adam's floating base."""
+        kd, b, n = self._kindyn(q.dtype), q.shape[0], self.nq
+        base = torch.eye(4, dtype=q.dtype).expand(b, 4, 4)
+        m = kd.mass_matrix(base, q).reshape(b, n + 6, n + 6)[:, 6:, 6:]
+        h = kd.bias_force(base, q, torch.zeros(b, 6, dtype=q.dtype), v).reshape(b, n + 6)[:, 6:]
+        g = kd.gravity_term(base, q).reshape(b, n + 6)[:, 6:] if self.actuation == "velocity_servo" else 0 * h
+        return self.mass_scale * m, h, g
+
+    def _rhs_torch(self, x: Tensor, u: Tensor) -> Tensor:
+        """dx/dt through adam: differentiable to any order."""
+        lead, n = x.shape[:-1], self.nq
+        x, u = x.reshape(-1, 2 * n), u.reshape(-1, n)
+        q, v = x[:, :n], x[:, n:]
+        m, h, g = self.dynamics_terms(q, v)
+        acc = torch.linalg.solve(m, self.actuation_torque(v, u) - self._bias(h, g))
+        return torch.cat((v, acc), dim=-1).reshape(*lead, 2 * n)
+
+    # -- numpy (Pinocchio): the plant -------------------------------------------------------------------------
+    @functools.cached_property
+    def pinocchio(self) -> tuple[Any, Any]:
+        """Pinocchio model and data of the arm with the other joints locked."""
+        import pinocchio as pin
+
+        model = pin.buildModelFromXML(locked_urdf(Path(self.urdf), self.joints))
+        model.gravity.linear = np.array(self.gravity)
+        return model, model.createData()
+
+    def _rhs_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """dx/dt by Pinocchio's ABA, one state at a time (the plant integrates single states)."""
+        import pinocchio as pin
+
+        model, data = self.pinocchio
+        n = self.nq
+        if x.ndim == 1 and u.ndim == 1:  # the plant's case: no batch bookkeeping
+            q, v = x[:n], x[n:]
+            torque = self.actuation_torque(v, u)
+            if self.actuation == "velocity_servo":
+                torque = torque + self.mass_scale * pin.computeGeneralizedGravity(model, data, q)
+            return np.concatenate((v, pin.aba(model, data, q, v, torque / self.mass_scale)))
+        lead = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
+        xs = np.broadcast_to(x, (*lead, 2 * n)).reshape(-1, 2 * n)
+        us = np.broadcast_to(u, (*lead, n)).reshape(-1, n)
+        out = np.empty_like(xs, dtype=np.float64)
+        for i in range(xs.shape[0]):  # ABA is per state in C++; batches here are small (the plant's one state)
+            q, v = xs[i, :n], xs[i, n:]
+            torque = self.actuation_torque(v, us[i])
+            if self.actuation == "velocity_servo":
+                torque = torque + self.mass_scale * pin.computeGeneralizedGravity(model, data, q)
+            out[i, :n] = v
+            out[i, n:] = pin.aba(model, data, q, v, torque / self.mass_scale)
+        return out.reshape(*lead, 2 * n)
+
+    def rhs(self, x: Tensor | np.ndarray, u: Tensor | np.ndarray) -> Tensor | np.ndarray:
+        """Batched dx/dt: torch (adam, differentiable) for tensors, Pinocchio ABA for numpy arrays."""
+        if isinstance(x, Tensor):
+            check_shapes(self, x, u)
+            return self._rhs_torch(x, torch.as_tensor(u, dtype=x.dtype))
+        x, u = np.asarray(x, dtype=np.float64), np.asarray(u, dtype=np.float64)
+        if x.shape[-1] != 2 * self.nq or u.shape[-1] != self.nq:
+            check_shapes(self, x, u)
+        return self._rhs_numpy(x, u)
+
+    # -- CasADi: the classical NMPC and the compiled training path ----------------------------------------
+    def casadi_rhs(self) -> ca.Function:
+        """dx/dt = f(x, u) as a CasADi SX function (adam's CasADi backend, the joint block of M and h)."""
+        from adam.casadi import KinDynComputations
+
+        n = self.nq
+        kd = KinDynComputations(
+            locked_urdf(Path(self.urdf), self.joints), list(self.joints), gravity=np.array([*self.gravity, 0, 0, 0])
+        )
+        x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
+        q, v = x[:n], x[n:]
+        base = ca.SX.eye(4)
+        m = self.mass_scale * kd.mass_matrix(base, q)[6:, 6:]
+        h = kd.bias_force(base, q, ca.SX.zeros(6), v)[6:]
+        g = kd.gravity_term(base, q)[6:] if self.actuation == "velocity_servo" else 0
+        acc = ca.solve(m, self.actuation_torque(v, u) - self._bias(h, g))
+        return ca.Function(f"{self.name}_rhs", [x, u], [ca.vertcat(v, acc)], {"cse": True})
+
+    @functools.cached_property
+    def compiled(self) -> Any:
+        """The CasADi rhs and its VJP compiled to C (built on first use, cached on disk)."""
+        from pinnmpc.systems.compiled import CompiledRhs
+
+        tag = f"{self.name}_f{self.friction_scale:g}_m{self.mass_scale:g}".replace(".", "p")
+        return CompiledRhs(tag, self.casadi_rhs())
+
+    def fast_rhs(self, x: Tensor, u: Tensor) -> Tensor:
+        """dx/dt for training: the compiled rhs, first-order differentiable (backward through its VJP)."""
+        from pinnmpc.systems.compiled import CasadiRhs
+
+        lead = x.shape[:-1]
+        y = CasadiRhs.apply(x.reshape(-1, 2 * self.nq), u.reshape(-1, self.nq), self.compiled)
+        return y.reshape(*lead, 2 * self.nq)
+
+    def residual(self, x: Tensor, dxdt: Tensor, u: Tensor, form: str = "explicit") -> Tensor:
+        """ODE residual dxdt - f(x, u) through the compiled rhs ('explicit'; the only form for URDF arms)."""
+        if form != "explicit":
+            raise ValueError(f"{self.name}: residual_form={form!r}; URDF arms support 'explicit' only")
+        return dxdt - self.fast_rhs(x, u)
+
+    # -- drawing ---------------------------------------------------------------------------------------------
+    def kinematics(self, q: np.ndarray) -> np.ndarray:
+        """Joint origins and the tip, (N, n + 1, 3) in the base frame, for stick drawings."""
+        import pinocchio as pin
+
+        model, data = self.pinocchio
+        q = np.atleast_2d(np.asarray(q, dtype=np.float64))[:, : self.nq]
+        tip = self.tip_frame
+        tip_id = model.getFrameId(tip) if tip else None
+        out = np.empty((q.shape[0], self.nq + 2, 3))
+        for i, qi in enumerate(q):
+            pin.forwardKinematics(model, data, qi)
+            out[i, 0] = 0.0
+            out[i, 1 : self.nq + 1] = [data.oMi[j].translation for j in range(1, self.nq + 1)]
+            if tip_id is not None:
+                pin.updateFramePlacements(model, data)
+                out[i, -1] = data.oMf[tip_id].translation
+            else:
+                out[i, -1] = out[i, -2] + data.oMi[self.nq].rotation @ self._tip_offset
+        return out
+
+    @functools.cached_property
+    def _tip_offset(self) -> np.ndarray:
+        """Last link's reach for drawing: twice its centre of mass offset in its joint frame."""
+        model, _ = self.pinocchio
+        return 2.0 * np.asarray(model.inertias[self.nq].lever)

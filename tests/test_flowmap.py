@@ -1,0 +1,189 @@
+"""One contract for every flow map (pinnmpc.flowmap.FlowMap): the surrogate, its numpy fast path and the true model
+by RK4 in torch and as compiled C, on the PowerCube and on the planar 3-link arm, each put through the same checks."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from pinnmpc.controller.ocp import HorizonOCP
+from pinnmpc.flow_numpy import NumpyFlow
+from pinnmpc.flowmap import CompiledRK4, FlowMap, RK4Model, check_flow_map, numpy_path
+from pinnmpc.pinn import PINN
+from pinnmpc.surrogate import Surrogate, load_surrogate
+from pinnmpc.systems import load_system
+from pinnmpc.systems.base import System
+
+SYSTEMS = ("powercube", "planar3")
+KINDS = ("surrogate", "numpy", "rk4_torch", "rk4_compiled")
+SLOW = {("planar3", "rk4_torch")}  # autodiff through 40 RK4 steps of the URDF arm's torch rhs: the slow case
+CASES = [
+    pytest.param(name, kind, id=f"{name}-{kind}", marks=[pytest.mark.slow] if (name, kind) in SLOW else [])
+    for name in SYSTEMS
+    for kind in KINDS
+]
+FD_EPS = 1e-6  # central-difference step on inputs scaled to O(1)
+RK4_H = {"powercube": 0.02, "planar3": 0.0025}  # stable RK4 steps of the true-model maps, s
+
+
+@pytest.fixture(scope="module")
+def systems() -> dict[str, System]:
+    return {name: load_system(name) for name in SYSTEMS}
+
+
+def _planar3_surrogate(system: System) -> Surrogate:
+    """A small untrained second-order PINN for the planar arm's boxes (weights seeded): a contract needs no
+    training, and second order with periodic angles takes the numpy path's most involved branch."""
+    torch.manual_seed(0)
+    box, ubox = system.state_box, system.input_box
+    model = PINN(
+        box.low, box.high, ubox.low, ubox.high, t_max=0.125, hidden=[16, 16], activation="silu", ic="gated",
+        time_basis=[0.004, 0.05], second_order=True, periodic=[0, 1, 2],
+    )  # fmt: skip
+    return Surrogate(model, system.tau, system.state_names, system.input_names)
+
+
+@pytest.fixture(scope="module")
+def maps(systems: dict[str, System]) -> dict[tuple[str, str], FlowMap]:
+    """Every implementation for every system; the PowerCube's surrogate is the shipped network."""
+    out: dict[tuple[str, str], FlowMap] = {}
+    for name, system in systems.items():
+        surrogate = load_surrogate() if name == "powercube" else _planar3_surrogate(system)
+        h = RK4_H[name]
+        out[name, "surrogate"] = surrogate
+        out[name, "numpy"] = surrogate.numpy_flow()
+        out[name, "rk4_torch"] = RK4Model(system, system.tau, h)
+        out[name, "rk4_compiled"] = CompiledRK4(system, system.tau, h)
+    return out
+
+
+def _points(system: System, lead: tuple[int, ...], seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """States and inputs in the middle of the boxes, velocities away from zero (the Coulomb tanh is steep there)."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.array(system.state_box.low), np.array(system.state_box.high)
+    x = rng.uniform(0.5 * lo, 0.5 * hi, (*lead, len(lo)))
+    nq = system.nq
+    x[..., nq:] = np.sign(x[..., nq:]) * np.maximum(np.abs(x[..., nq:]), 0.2)
+    ulo, uhi = np.array(system.input_box.low), np.array(system.input_box.high)
+    return x, rng.uniform(0.3 * ulo, 0.3 * uhi, (*lead, len(ulo)))
+
+
+def _caller(model: FlowMap) -> Callable[..., Any]:
+    """Call a method of the map with numpy arrays in and float64 numpy arrays out, whatever its array_api."""
+
+    def call(method: str, x: np.ndarray, u: np.ndarray) -> Any:
+        if model.array_api == "torch":
+            out = getattr(model, method)(torch.from_numpy(x), torch.from_numpy(u))
+            return tuple(o.detach().numpy() for o in out) if isinstance(out, tuple) else out.detach().numpy()
+        return getattr(model, method)(x, u)
+
+    return call
+
+
+@pytest.mark.parametrize(("name", "kind"), CASES)
+def test_facts_and_boxes(maps: dict, systems: dict, name: str, kind: str) -> None:
+    model, system = maps[name, kind], systems[name]
+    assert isinstance(model, FlowMap)
+    check_flow_map(model)
+    assert model.array_api in ("torch", "numpy")
+    assert model.tau == pytest.approx(system.tau, rel=0, abs=1e-15)
+    assert (model.nx, model.nu) == (len(system.state_names), len(system.input_names))
+    assert tuple(model.state_names) == tuple(system.state_names)
+    assert tuple(model.input_names) == tuple(system.input_names)
+    assert model.state_box.dim == model.nx and model.input_box.dim == model.nu
+    if kind.startswith("rk4"):  # the physics: the system's own boxes
+        assert (model.state_box, model.input_box) == (system.state_box, system.input_box)
+    else:  # a network: its training box, the same in torch and numpy
+        assert model.state_box == maps[name, "surrogate"].state_box
+        assert model.input_box == maps[name, "surrogate"].input_box
+
+
+@pytest.mark.parametrize(("name", "kind"), CASES)
+def test_shapes_and_step_matches_step_with_jacobian(maps: dict, systems: dict, name: str, kind: str) -> None:
+    model, call = maps[name, kind], _caller(maps[name, kind])
+    nx, nu = model.nx, model.nu
+    for lead in [(1,), (3,), (2, 3)]:
+        x, u = _points(systems[name], lead, seed=len(lead))
+        x1 = call("step", x, u)
+        y, A, B = call("step_with_jacobian", x, u)
+        assert x1.shape == y.shape == (*lead, nx)
+        assert A.shape == (*lead, nx, nx) and B.shape == (*lead, nx, nu)
+        assert np.all(np.isfinite(x1)) and np.all(np.isfinite(A)) and np.all(np.isfinite(B))
+        np.testing.assert_allclose(y, x1, rtol=1e-12, atol=1e-12)
+        flat = call("step", x.reshape(-1, nx), u.reshape(-1, nu))  # rows are independent problems
+        np.testing.assert_allclose(x1.reshape(-1, nx), flat, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize(("name", "kind"), CASES)
+def test_jacobians_match_finite_differences(maps: dict, systems: dict, name: str, kind: str) -> None:
+    model, call = maps[name, kind], _caller(maps[name, kind])
+    nx, nu = model.nx, model.nu
+    x, u = _points(systems[name], (2,), seed=7)
+    _, A, B = call("step_with_jacobian", x, u)
+    z = np.concatenate((x, u), -1)  # (2, n): perturb every input coordinate of every sample in one batch
+    n = nx + nu
+    scale = np.maximum(np.abs(z), 1.0)
+    dz = FD_EPS * scale[:, None, :] * np.eye(n)  # (2, n, n)
+    zp, zm = z[:, None, :] + dz, z[:, None, :] - dz
+    fp, fm = call("step", zp[..., :nx], zp[..., nx:]), call("step", zm[..., :nx], zm[..., nx:])
+    fd = ((fp - fm) / (2 * FD_EPS * scale[:, :, None])).swapaxes(-1, -2)  # (2, nx, n)
+    jac = np.concatenate((A, B), -1)
+    np.testing.assert_allclose(jac, fd, rtol=1e-5, atol=1e-6 * max(1.0, np.abs(jac).max()))
+
+
+@pytest.mark.parametrize(("name", "kind"), CASES)
+def test_numpy_fast_path_is_the_same_map(maps: dict, systems: dict, name: str, kind: str) -> None:
+    model = maps[name, kind]
+    fast = numpy_path(model)
+    if kind == "rk4_torch":  # the torch baseline keeps its own Jacobians: no fast path
+        assert fast is None
+        return
+    assert fast is not None and fast.array_api == "numpy"
+    assert fast.tau == model.tau and tuple(fast.state_names) == tuple(model.state_names)
+    x, u = _points(systems[name], (4,), seed=3)
+    want = _caller(model)("step_with_jacobian", x, u)
+    for got, ref in zip(fast.step_with_jacobian(x, u), want):
+        np.testing.assert_allclose(got, ref, rtol=1e-11, atol=1e-11)
+
+
+@pytest.mark.parametrize(("name", "kind"), CASES)
+def test_horizon_ocp_takes_every_flow_map(maps: dict, systems: dict, name: str, kind: str) -> None:
+    """The OCP predicts with any map through the interface alone: its rollout and Gauss-Newton Jacobian agree
+    with the map's own steps, and a numpy-only map refuses autograd with a clear error."""
+    model, system, H = maps[name, kind], systems[name], 3
+    ocp = HorizonOCP(model, H, [1.0] * model.nx, [1e-6] * model.nu)
+    x, u = _points(system, (2,), seed=5)
+    U = np.repeat(u[:, None, :], H, axis=1)
+    X = ocp.rollout(x, U)
+    call, xi = _caller(model), x
+    for i in range(H):
+        xi = call("step", xi, U[:, i])
+        np.testing.assert_allclose(X[:, i], xi, rtol=1e-10, atol=1e-10)
+    x_ref, u_prev = np.zeros((2, H, model.nx)), np.zeros((2, model.nu))
+    r, jac = ocp.residuals_and_jacobian(x, U, x_ref, u_prev)
+    assert r.shape == (2, H * (model.nx + model.nu)) and jac.shape == (2, r.shape[1], H * model.nu)
+    Ut = torch.from_numpy(U).requires_grad_(True)
+    if model.array_api == "numpy":
+        with pytest.raises(TypeError, match="numpy arrays only"):
+            ocp.cost(torch.from_numpy(x), Ut, torch.from_numpy(x_ref), torch.from_numpy(u_prev))
+    else:
+        cost = ocp.cost(torch.from_numpy(x), Ut, torch.from_numpy(x_ref), torch.from_numpy(u_prev)).sum()
+        (grad,) = torch.autograd.grad(cost, Ut)  # the torch path stays differentiable
+        want = 2 * np.einsum("bm,bmn->bn", r, jac).reshape(grad.shape)
+        np.testing.assert_allclose(grad.numpy(), want, rtol=1e-6, atol=1e-9)
+
+
+def test_numpy_flow_without_names_gets_generic_ones() -> None:
+    surrogate = load_surrogate()
+    flow = NumpyFlow.from_pinn(surrogate.model, surrogate.tau)
+    assert flow.state_names == ("x0", "x1", "x2", "x3") and flow.input_names == ("u0", "u1")
+    assert flow.state_box == surrogate.state_box and flow.numpy_flow() is flow
+
+
+def test_check_flow_map_names_what_is_missing() -> None:
+    with pytest.raises(TypeError, match="lacks.*step_with_jacobian"):
+        HorizonOCP(object(), 3, [1.0], [1.0])
