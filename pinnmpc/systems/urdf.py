@@ -186,9 +186,10 @@ class RigidArm:
         if dtype not in self._adam:
             from adam.pytorch import KinDynComputations
 
-            g = torch.tensor([*self.gravity, 0.0, 0.0, 0.0], dtype=dtype)
             text = locked_urdf(Path(self.urdf), self.joints)
-            self._adam[dtype] = KinDynComputations(text, list(self.joints), dtype=dtype, gravity=g, device="cpu")
+            with torch.inference_mode(False):  # cached constants must stay usable by later autograd calls
+                g = torch.tensor([*self.gravity, 0.0, 0.0, 0.0], dtype=dtype)
+                self._adam[dtype] = KinDynComputations(text, list(self.joints), dtype=dtype, gravity=g, device="cpu")
         return self._adam[dtype]
 
     def dynamics_terms(self, q: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
