@@ -33,6 +33,7 @@ torch.set_num_threads(1)  # a training job shares this 2-core machine
 pytestmark = pytest.mark.filterwarnings("ignore:Converting a tensor with requires_grad=True to a scalar")
 
 NMPC_YAML = Path(__file__).resolve().parents[1] / "conf" / "controller" / "nmpc.yaml"
+SYSTEM_YAML = Path(__file__).resolve().parents[1] / "conf" / "system" / "powercube.yaml"
 NX, NU = 4, 2
 F64 = torch.float64
 ASYMMETRIC = ([-0.2, -0.5], [0.3, 0.1])
@@ -716,7 +717,10 @@ def test_make_solver_unknown_option() -> None:
 
 
 def _config(**overrides: object) -> DictConfig:
-    cfg = OmegaConf.load(NMPC_YAML)
+    """conf/controller/nmpc.yaml with the PowerCube's defaults (its ${system.*} values) resolved."""
+    root = OmegaConf.create({"system": OmegaConf.load(SYSTEM_YAML), "controller": OmegaConf.load(NMPC_YAML)})
+    OmegaConf.resolve(root)
+    cfg = root.controller
     for key, value in overrides.items():
         OmegaConf.update(cfg, key, value, merge=False)
     return cfg

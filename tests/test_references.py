@@ -7,18 +7,43 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.io
+from omegaconf import OmegaConf
 
+from pinnmpc import load_system
 from pinnmpc.references import (
     BUILTIN_DT,
-    BUILTINS,
     Reference,
     ReferenceError,
-    builtin_reference,
-    load_reference,
+    check_states,
     out_of_box,
-    read_reference,
     resample,
 )
+from pinnmpc.references import builtin_reference as _builtin
+from pinnmpc.references import load_reference as _load
+from pinnmpc.references import read_reference as _read
+from pinnmpc.systems import system_config
+
+CUBE = load_system("powercube")
+NAMES = CUBE.state_names
+SPECS = OmegaConf.to_container(system_config("powercube").references)
+BUILTINS = [k for k, v in SPECS.items() if v["kind"] != "random"]
+POSITIONS = (CUBE.state_box.low[:2], CUBE.state_box.high[:2])
+
+
+def builtin_reference(name: str = "default") -> Reference:
+    """A PowerCube built-in, as the closed loop builds it."""
+    return _builtin(name, SPECS, POSITIONS)
+
+
+def read_reference(path: Path) -> Reference:
+    """A file read for the PowerCube's states."""
+    return _read(path, NAMES)
+
+
+def load_reference(path: Path | None, tau: float, name: str = "default") -> Reference:
+    """What the closed loop loads for the PowerCube."""
+    return _load(path, tau, name, NAMES, SPECS, POSITIONS)
+
 
 PAPER_REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "powercube" / "reference"
 POSITION_LIMIT = 2.5  # rad
@@ -104,6 +129,38 @@ def test_sine_matches_the_formula() -> None:
 def test_unknown_builtin_lists_valid_names() -> None:
     with pytest.raises(ReferenceError, match=r"unknown built-in reference 'square'.*default, reversals, rest, sine"):
         builtin_reference("square")
+
+
+@pytest.mark.parametrize("system", ["planar3", "panda"])
+def test_builtins_of_other_arms_stay_inside_their_box(system: str) -> None:
+    arm = load_system(system)
+    specs = OmegaConf.to_container(system_config(system).references)
+    positions = (arm.state_box.low[: arm.nq], arm.state_box.high[: arm.nq])
+    for name in [*specs, "random-7"]:
+        ref = check_states(_builtin(name, specs, positions), arm.state_names)
+        assert ref.x.shape[1] == 2 * arm.nq
+        assert np.all(ref.x >= np.array(arm.state_box.low)) and np.all(ref.x <= np.array(arm.state_box.high))
+        velocity = np.gradient(ref.x[:, : arm.nq], ref.t, axis=0)
+        np.testing.assert_allclose(ref.x[:, arm.nq :], velocity, atol=GRADIENT_TOL)
+
+
+def test_random_references_differ_by_seed_and_start_at_rest_in_the_middle() -> None:
+    a, b = builtin_reference("random-1"), builtin_reference("random-2")
+    assert a.name == "builtin:random-1" and not np.allclose(a.x, b.x)
+    np.testing.assert_allclose(a.x[0], 0.0, atol=1e-12)
+    np.testing.assert_array_equal(a.x, builtin_reference("random-1").x)
+    with pytest.raises(ReferenceError, match="joint range"):
+        _builtin("random", SPECS)
+
+
+def test_reference_for_another_system_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "three.npz"
+    np.savez(path, t=np.arange(3.0), x=np.zeros((3, 6)))
+    with pytest.raises(ReferenceError, match="6 columns; this system has 4 states"):
+        read_reference(path)
+    planar = load_system("planar3")
+    columns = {"t": np.arange(3.0), **{n: np.zeros(3) for n in planar.state_names}}
+    assert _read(_write_csv(tmp_path / "p3.csv", columns), planar.state_names).x.shape == (3, 6)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -296,9 +353,9 @@ def _bad_garbage_csv(p: Path) -> Path:
     [
         (lambda p: p / "nowhere.npz", "no such file or folder"),
         (lambda p: (p / "ref.txt").write_text("1 2 3") and p / "ref.txt", "unknown reference kind '.txt'.*.npz.*.csv"),
-        (_bad_npz_x, r"x has shape \(5, 3\); expected \(N, 4\)"),
+        (_bad_npz_x, r"x has shape \(5, 3\); expected \(5, nx\)"),
         (_bad_csv_column, "missing column.*dbeta"),
-        (_bad_nan, "non-finite dalpha = nan at sample 4"),
+        (_bad_nan, "non-finite state 2 = nan at sample 4"),
         (_bad_time, "not strictly increasing at sample 3"),
         (_bad_truncated_npz, "cannot read as .npz"),
         (_bad_garbage_npz, "cannot read as .npz"),

@@ -5,16 +5,20 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from pinnmpc.robustness import run_robustness
 from pinnmpc.self_loop import run_self_loop, sine_inputs
 
 
 def test_sine_inputs_are_the_papers():
-    u = sine_inputs(20, 0.5)
+    u = sine_inputs(20, [0.5, -0.5])
     assert u.shape == (20, 2)
     assert np.allclose(u[:, 0], 0.5 * np.sin(np.linspace(0, 2 * np.pi, 20)))
     assert np.allclose(u[:, 1], -u[:, 0])
+    assert sine_inputs(5, [20.0, -8.0, 2.0]).shape == (5, 3)  # one amplitude per input, any nu
+    with pytest.raises(ValueError, match="amplitude"):
+        sine_inputs(5, [float("nan")])
 
 
 def test_self_loop_against_plant(make_cfg, tmp_path):

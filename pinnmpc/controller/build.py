@@ -11,7 +11,6 @@ from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers import make_solver
 from pinnmpc.surrogate import Surrogate
 
-
 OPTIONAL = {  # what a Python caller may leave out (conf/controller/nmpc.yaml sets all of it for the CLIs)
     "R_rate": None,
     "u_low": None,

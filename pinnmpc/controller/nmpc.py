@@ -103,12 +103,12 @@ class NMPC:
         return self.ocp.surrogate
 
     @property
-    def U(self) -> Tensor:
+    def U(self) -> Tensor:  # noqa: N802
         """The plan the next solve starts from (the last solution shifted by one step), (H, nu)."""
         return torch.from_numpy(self._U)
 
     @U.setter
-    def U(self, plan: Tensor | np.ndarray) -> None:
+    def U(self, plan: Tensor | np.ndarray) -> None:  # noqa: N802
         """Seed the next solve's start, e.g. with a plan from elsewhere."""
         plan = np.array(plan, dtype=np.float64)
         if plan.shape != (self.horizon, self.ocp.nu):

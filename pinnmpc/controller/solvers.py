@@ -77,7 +77,7 @@ class RMSpropSolver:
         opt = torch.optim.RMSprop([U], lr=self.lr)
         prev = float("inf")
         it = 0
-        for it in range(1, self.max_iter + 1):
+        for it in range(1, self.max_iter + 1):  # noqa: B007
             opt.zero_grad()
             cost = ocp.cost(x0, U, x_ref, u_prev).sum()
             cost.backward()

@@ -108,6 +108,7 @@ class RigidArm:
     def __post_init__(self) -> None:
         path = resolve_urdf(self.urdf)
         joints = tuple(self.joints) or tuple(revolute_joints(path))
+        locked_urdf(path, joints)  # unknown joint names fail here, with the URDF's list
         n = len(joints)
         set_ = functools.partial(object.__setattr__, self)
         set_("joints", joints)

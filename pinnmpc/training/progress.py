@@ -56,7 +56,7 @@ class BudgetBar(L.Callback):
             desc="training",
             unit="s",
             file=sys.stderr,
-            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} s budget [{elapsed}<{remaining}] {postfix}",
+            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} s [{elapsed}<{remaining}]{postfix}",
             dynamic_ncols=True,
         )
 
@@ -69,7 +69,11 @@ class BudgetBar(L.Callback):
         self.bar.update(max(0, done - self.bar.n))
         m = trainer.callback_metrics
         post = {"epoch": trainer.current_epoch}
-        for key, label in (("train/loss_total", "loss"), ("val/rmse_position", "val q"), ("val/rmse_velocity", "val v")):
+        for key, label in (
+            ("train/loss_total", "loss"),
+            ("val/rmse_position", "val q"),
+            ("val/rmse_velocity", "val v"),
+        ):
             if key in m:
                 post[label] = f"{float(m[key]):.2e}"
         self.bar.set_postfix(post, refresh=True)
