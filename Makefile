@@ -74,7 +74,7 @@ format: install
 	$(VENV)/bin/ruff check --fix pinnmpc tests
 
 contract: install  ## the outside contract checks in ../shared
-	$(PY) ../shared/tools/check_contract.py --closed-loop
+	$(PY) ../shared/tools/check_contract.py --closed-loop --arms --casadi
 
 clean:  ## delete outputs/ (sweeps too: outputs/sweeps/) and caches; keeps run dirs of live runs and shipped checkpoints
 	$(PY) -m pinnmpc.cli clean outputs multirun lightning_logs
