@@ -48,3 +48,20 @@ def make_cfg() -> Callable[..., DictConfig]:
             return compose(config_name=name, overrides=overrides or [])
 
     return _make
+
+
+TINY_TRAIN = [  # a real training run of a few seconds: tiny network, few points, no time budget
+    "data.n_collocation=256",
+    "data.n_data=16",
+    "data.n_val=64",
+    "data.val_h=1e-3",
+    "model.hidden=[16,16]",
+    "model.auto_scale.samples=64",
+    "model.auto_scale.h=1e-2",
+    "module.lbfgs_max_iter=5",
+    "trainer.max_time=null",
+    "trainer.check_val_every_n_epoch=1",
+    "trainer.enable_progress_bar=false",
+    "trainer.enable_model_summary=false",
+    "threads=1",
+]

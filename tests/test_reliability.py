@@ -23,24 +23,9 @@ from pinnmpc.self_loop import run_self_loop
 from pinnmpc.settings import SettingError
 from pinnmpc.surrogate import SHIPPED, load_surrogate
 from pinnmpc.train import train
-from tests.conftest import ROOT
+from tests.conftest import ROOT, TINY_TRAIN
 
-TINY = [
-    "data.n_collocation=256",
-    "data.n_data=16",
-    "data.n_val=64",
-    "data.val_h=1e-3",
-    "model.hidden=[16,16]",
-    "model.auto_scale.samples=64",
-    "model.auto_scale.h=1e-2",
-    "module.lbfgs_max_iter=5",
-    "trainer.max_time=null",
-    "trainer.check_val_every_n_epoch=1",
-    "trainer.enable_progress_bar=false",
-    "trainer.enable_model_summary=false",
-    "self_loop_figure.every_n_epochs=0",
-    "threads=1",
-]
+TINY = [*TINY_TRAIN, "self_loop_figure.every_n_epochs=0"]
 ENDLESS_EPOCH = ["module.lbfgs_max_iter=1000000", "module.lbfgs_tolerance_change=0", "module.lbfgs_tolerance_grad=0"]
 QUICK = ["max_steps=3", "progress=false", "plots=false"]
 

@@ -18,25 +18,9 @@ from pinnmpc.train import build_model, train
 from pinnmpc.training.callbacks import AtomicCheckpoint
 from pinnmpc.training.data import CollocationDataModule, lhs_box
 from pinnmpc.training.module import PINNModule
-from tests.conftest import ROOT
+from tests.conftest import ROOT, TINY_TRAIN
 
-TINY = [
-    "data.n_collocation=256",
-    "data.n_data=16",
-    "data.n_val=64",
-    "data.val_h=1e-3",
-    "model.hidden=[16,16]",
-    "model.auto_scale.samples=64",
-    "model.auto_scale.h=1e-2",
-    "module.lbfgs_max_iter=5",
-    "trainer.max_time=null",
-    "trainer.check_val_every_n_epoch=1",
-    "trainer.enable_progress_bar=false",
-    "trainer.enable_model_summary=false",
-    "self_loop_figure.every_n_epochs=1",
-    "self_loop_figure.steps=3",
-    "threads=1",
-]
+TINY = [*TINY_TRAIN, "self_loop_figure.every_n_epochs=1", "self_loop_figure.steps=3"]
 
 
 def _tiny_module(make_cfg, *overrides: str) -> tuple[PINNModule, CollocationDataModule]:
