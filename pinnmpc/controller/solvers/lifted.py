@@ -1,0 +1,162 @@
+"""Lifted (multiple-shooting) Gauss-Newton: all H network steps in one batched call per iteration."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from pinnmpc.controller.ocp import HorizonOCP
+from pinnmpc.controller.solvers.base import project, result
+from pinnmpc.controller.solvers.gauss_newton import GaussNewtonSolver
+
+
+@dataclass
+class LiftedGaussNewtonSolver(GaussNewtonSolver):
+    """Gauss-Newton on the lifted (multiple-shooting) problem, condensed back to the inputs.
+
+    The states at the start of each horizon step are extra unknowns: every iteration evaluates the
+    network and its Jacobians at all H steps in one batched call instead of H sequential ones,
+    condenses the linearised dynamics into a Gauss-Newton step on U (the defects ride along as
+    offsets) and moves the states to the linearised prediction. At convergence the defects vanish,
+    so the solution is that of the single-shooting problem. The states start from the last solve's
+    predicted trajectory, one step on, when the controller hands it over as prior (a receding-horizon
+    warm start that costs no rollout); otherwise from a rollout of U0. Falls back to single-shooting
+    Gauss-Newton when it does not converge or ends worse than it began.
+    """
+
+    tol_defect: float = 1e-10  # converged also needs every state defect F(s_i, u_i) - s_{i+1} below this
+    fast_ratio: float = 1e-3  # a full step whose predicted decrease fell below this x the one before: see _remaining
+    lifted_max_iter: int = 5  # lifted iterations before single shooting (max_iter more) takes over
+    tol_final_defect: float = 1e-8  # the cost reached is measured by a full rollout where a defect exceeds this
+    accepts_prior: ClassVar[bool] = True
+    prior_kind: ClassVar[str] = "states"
+
+    def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):
+        """Lifted iterations on the numpy surrogate; single shooting when there is none or they fail."""
+        if ocp.flow is None:
+            return (*super()._solve(ocp, x0, U0, x_ref, u_prev, low, high, None)[:4], None)
+        shape, (horizon, nx, nu) = U0.shape, (ocp.horizon, ocp.nx, ocp.nu)
+        n = horizon * nu
+        x0b, refb = x0.reshape(-1, nx), x_ref.reshape(-1, horizon, nx)
+        upb = u_prev.reshape(-1, nu)
+        U = np.clip(U0, low, high).reshape(-1, n)
+        lo, hi = np.broadcast_to(low, shape).reshape(-1, n), np.broadcast_to(high, shape).reshape(-1, n)
+        batch = U.shape[0]
+        nodes = np.empty((batch, horizon, nx))  # s_0 = x0 (fixed), s_1..s_{H-1} lifted
+        nodes[:, 0] = x0b
+        if prior is not None:  # the last plan's states x_2..x_H are this plan's s_1..s_{H-1}
+            nodes[:, 1:] = prior[:, 1:]
+        else:
+            nodes[:, 1:] = ocp.rollout(x0b, U.reshape(-1, horizon, nu))[:, :-1]
+        start_cost = None  # the model's cost of U0 at the first linearisation
+        running = np.ones(batch, dtype=bool)
+        iterations = np.zeros(batch, dtype=np.int64)
+        predictions = np.full((batch, 2), np.nan)  # the two previous predicted decreases, latest first
+        was_cut = np.ones(batch, dtype=bool)  # whether a bound cut the previous step short (none taken yet)
+        for _ in range(self.lifted_max_iter):
+            # the whole batch every time (no row gathering: batch-1 solves are dominated by per-op overhead);
+            # problems that stopped take no further steps, their states only settle onto the prediction
+            pred, sens, defect, chain = self._linearise(ocp, nodes, U)
+            f, jtj, grad = ocp.gauss_newton_model(pred, sens, U, refb, upb)
+            if start_cost is None:
+                start_cost = f
+            delta, pgrad_max, predicted, cut = self._newton_step(jtj, grad, U, lo, hi)
+            small = (pgrad_max < self.tol_grad) | (predicted <= self.tol_cost * f)
+            go = running & ~(small & (defect <= self.tol_defect))
+            # this step is the last when what remains after it, extrapolated from the model's predicted
+            # decreases, is negligible: the cost reached is measured below
+            last = self._remaining(predicted, predictions, ~(cut | was_cut)) <= self.tol_gap * f
+            predictions[:, 1] = predictions[:, 0]
+            predictions[:, 0] = predicted
+            was_cut = cut
+            iterations += go
+            step = np.where(go[:, None], np.clip(U + delta, lo, hi) - U, 0.0)
+            U += step
+            # the states move to the linearised prediction (within the defect tolerance for those that stop)
+            moved = pred.reshape(batch, -1) + (sens @ step[..., None])[..., 0]
+            nodes[:, 1:] = moved.reshape(batch, horizon, nx)[:, :-1]
+            running &= go & ~last
+            if not running.any():
+                break
+        U3 = U.reshape(-1, horizon, nu)
+        X = self._reached(ocp, x0b, nodes, U3, chain)
+        cost = (ocp.residuals(X, U3, refb, upb) ** 2).sum(-1)
+        failed = running | ~np.isfinite(cost) | (cost > start_cost)
+        if failed.any():  # rare: redo those problems by single shooting from the better of start and end
+            rows = np.flatnonzero(failed)
+            start = np.where(
+                (cost[rows] < start_cost[rows])[:, None], U[rows], np.clip(U0, low, high).reshape(-1, n)[rows]
+            )
+            sub = super()._solve(
+                ocp,
+                x0b[rows],
+                start.reshape(-1, horizon, nu),
+                refb[rows],
+                upb[rows],
+                lo[rows].reshape(-1, horizon, nu),
+                hi[rows].reshape(-1, horizon, nu),
+                None,
+            )
+            U[rows], iterations[rows], cost[rows] = sub[0].reshape(-1, n), iterations[rows] + sub[1], sub[2]
+            running[rows] = ~sub[3]
+            X[rows] = ocp.rollout(x0b[rows], U[rows].reshape(-1, horizon, nu))
+        return result(shape, project(U, lo, hi), iterations, cost, ~running, X)
+
+    def _uses_prior(self, ocp: HorizonOCP) -> bool:
+        """The states warm start needs the numpy surrogate."""
+        return ocp.flow is not None
+
+    @staticmethod
+    def _prior_shape(ocp: HorizonOCP, batch: int) -> tuple[int, ...]:
+        """Shape of the prior this solver takes: the last plan's states x_1..x_H."""
+        return (batch, ocp.horizon, ocp.nx)
+
+    @staticmethod
+    def _linearise(ocp, nodes, U):
+        """One batched network call at all nodes, then the linearised predictions x_1..x_H (B, H, nx), their
+        sensitivities to U (B, H*nx, H*nu), the largest defect per problem and the chain matrix.
+
+        The chain x_i = y_i + A_i (x_{i-1} - s_i) over the horizon is one block-triangular solve with the
+        chain matrix I - L (L: the A_i on the block subdiagonal): for the predictions and all H*nu input
+        directions at once.
+        """
+        batch, horizon, nx = nodes.shape
+        nu = ocp.nu
+        y, a, b = ocp.step_with_jacobian(nodes, U.reshape(batch, horizon, nu))
+        chain = _chain_matrix(a)
+        rhs = np.zeros((batch, horizon, nx, horizon * nu + 1))
+        blocks = rhs[..., :-1].reshape(batch, horizon, nx, horizon, nu)
+        diag = np.arange(horizon)
+        blocks[:, diag, :, diag, :] = b.swapaxes(0, 1)  # x_i depends directly on u_i only through B_i
+        rhs[..., -1] = y
+        rhs[:, 1:, :, -1] -= (a[:, 1:] @ nodes[:, 1:, :, None])[..., 0]
+        sol = np.linalg.solve(chain, rhs.reshape(batch, horizon * nx, -1))
+        defect = np.abs(y[:, :-1] - nodes[:, 1:]).reshape(batch, -1).max(-1, initial=0.0)
+        return sol[..., -1].reshape(batch, horizon, nx), sol[..., :-1], defect, chain
+
+    def _reached(self, ocp, x0, nodes, U, chain):
+        """The states U reaches from x0 (B, H, nx): one batched network call at the final nodes, their defects
+        carried through the last linearisation (x_i - y_i = A_i (x_{i-1} - y_{i-1} + gap_{i-1}), exact to
+        second order in the defects, which are tiny at convergence); a full rollout where one is larger
+        than tol_final_defect."""
+        batch, horizon, nx = nodes.shape
+        y = ocp.step(nodes, U)
+        gap = np.zeros((batch, horizon, nx))  # gap_i = F(s_i, u_i) - s_{i+1}: the defect at the end of step i
+        gap[:, :-1] = y[:, :-1] - nodes[:, 1:]
+        X = y + np.linalg.solve(chain, gap.reshape(batch, -1, 1)).reshape(batch, horizon, nx) - gap
+        far = np.flatnonzero(np.abs(gap).reshape(batch, -1).max(-1) > self.tol_final_defect)
+        if far.size:
+            X[far] = ocp.rollout(x0[far], U[far])
+        return X
+
+
+def _chain_matrix(a: np.ndarray) -> np.ndarray:
+    """I - L for step Jacobians a (B, H, nx, nx): L holds A_1..A_{H-1} on the block subdiagonal."""
+    batch, horizon, nx, _ = a.shape
+    chain = np.zeros((batch, horizon, nx, horizon, nx))
+    diag, sub = np.arange(horizon), np.arange(1, horizon)
+    chain[:, diag, :, diag, :] = np.eye(nx)
+    chain[:, sub, :, sub - 1, :] = -a[:, 1:].swapaxes(0, 1)
+    return chain.reshape(batch, horizon * nx, horizon * nx)
