@@ -152,7 +152,12 @@ def simulate(
 
 
 def metrics(
-    ref: Reference, run: dict[str, Any], controller: Controller, plant: ScipyPlant, names: tuple[str, ...]
+    ref: Reference,
+    run: dict[str, Any],
+    controller: Controller,
+    plant: ScipyPlant,
+    names: tuple[str, ...],
+    units: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """metrics.json: tracking error per state (SI units), OCP and plant timings, solver statistics."""
     x = run["x"]
@@ -181,6 +186,7 @@ def metrics(
         "not_converged": sum(not s.converged for s in st),
         "out_of_box_steps": run["out_of_box_steps"],
         "u_abs_max": float(np.abs(run["u"]).max()) if len(run["u"]) else 0.0,
+        "state_units": dict(zip(names, units)),  # for readers of the file (and the headline)
         "fallback_fraction": sum(s.fallback for s in st) / len(st) if st else 0.0,
     }
 
@@ -232,7 +238,7 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
     plant = ScipyPlant(plant_system(system, cfg.plant), tau, cfg.plant.method, cfg.plant.rtol, cfg.plant.atol)
     requested = None if stop is None else (lambda: stop.requested)
     run = simulate(controller, plant, ref, domain, cfg.noise_sigma, cfg.seed, cfg.max_steps, cfg.progress, requested)
-    result = metrics(ref, run, controller, plant, system.state_names)
+    result = metrics(ref, run, controller, plant, system.state_names, system.state_units)
     failure = cfg.get("failure") or {}
     result["status"] = verdict(result, float(failure.get("max_fallback_fraction", 1.0)))
     result["input_bounds_outside_box"] = bool(domain is not None and bounds_outside(cfg, controller_box(controller)))
@@ -281,10 +287,11 @@ def write_plots(
         plots.animate_arm(ref.t[:n], points_ref, points, run_dir / "closed_loop.gif", title=gif_title, error=error)
 
 
-def headline(m: dict[str, Any], names: tuple[str, ...], units: tuple[str, ...], run_dir: Path) -> str:
-    """One line: status, tracking of every joint angle, OCP vs plant time, and everything that went wrong."""
-    nq = len(names) // 2
-    mae = ", ".join(f"{n} {m['mae'][n]:.2e} {u}" for n, u in zip(names[:nq], units[:nq]))
+def headline(m: dict[str, Any], run_dir: Path) -> str:
+    """One line from metrics.json: status, tracking of every joint angle, OCP vs plant time, what went wrong."""
+    names = list(m["mae"])
+    units = m.get("state_units", {})
+    mae = ", ".join(f"{n} {m['mae'][n]:.2e} {units.get(n, '')}".rstrip() for n in names[: len(names) // 2])
     trouble = [
         f"{m[k]} {label}"
         for k, label in (
@@ -310,8 +317,7 @@ def main(cfg: DictConfig) -> None:
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     with StopSignal() as stop:
         m = run_cli(lambda: run_closed_loop(cfg, run_dir, stop), "pinnmpc.closed_loop", run_dir)
-    system = build_system(cfg.system)
-    print(headline(m, system.state_names, system.state_units, run_dir))
+    print(headline(m, run_dir))
     if m["status"] == "interrupted":
         print(f"pinnmpc.closed_loop: interrupted by {stop.name} after {m['steps']} steps", file=sys.stderr)
         sys.exit(stop.exit_code)

@@ -14,7 +14,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.controller.casadi_ocp import CasadiOCP, NlpSolver, Solution
-from pinnmpc.controller.nmpc import StepStats
+from pinnmpc.controller.nmpc import StepStats, disturbance_bound, filtered_disturbance
 
 RTI_STATUSES = {"Solve_Succeeded", "Maximum_Iterations_Exceeded"}  # what one SQP step may end with and be used
 
@@ -39,12 +39,7 @@ class CasadiNMPC:
         self.warm_start, self.rti = bool(warm_start), bool(rti)
         self.cold_solver = cold_solver or solver  # RTI: a full solve while there is no solution to iterate from
         self.disturbance_gain = float(disturbance_gain)
-        if not 0.0 <= self.disturbance_gain <= 1.0:
-            raise ValueError(f"disturbance gain must be in [0, 1], got {disturbance_gain}")
-        self._d_max = None if disturbance_max is None else np.array(disturbance_max, dtype=np.float64)
-        if self._d_max is not None and (self._d_max.shape != (self.nx,) or np.any(~(self._d_max >= 0))):
-            got = list(disturbance_max)
-            raise ValueError(f"disturbance max must be {self.nx} non-negative numbers (one per state), got {got}")
+        self._d_max = disturbance_bound(disturbance_max, self.nx, self.disturbance_gain)
         self.stats: list[StepStats] = []
         self.reset()
 
@@ -172,13 +167,7 @@ class CasadiNMPC:
         if self.disturbance_gain == 0.0 or self._last is None:
             return
         error = x - self.solver.flow(*self._last)
-        if not np.all(np.isfinite(error)):
-            return
-        d = np.zeros_like(error) if self.disturbance is None else self.disturbance
-        d = d + self.disturbance_gain * (error - d)
-        if self._d_max is not None:
-            d = np.clip(d, -self._d_max, self._d_max)
-        self.disturbance = d
+        self.disturbance = filtered_disturbance(self.disturbance, error, self.disturbance_gain, self._d_max)
 
 
 def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:

@@ -27,6 +27,28 @@ class StepStats:
     fallback: bool
 
 
+def disturbance_bound(d_max: Sequence[float] | None, nx: int, gain: float) -> np.ndarray | None:
+    """Validated offset-free settings (gain in [0, 1], nx non-negative bounds); the bound as an array."""
+    if not 0.0 <= gain <= 1.0:
+        raise ValueError(f"disturbance gain must be in [0, 1], got {gain}")
+    bound = None if d_max is None else np.array(d_max, dtype=np.float64)
+    if bound is not None and (bound.shape != (nx,) or np.any(~(bound >= 0))):
+        raise ValueError(f"disturbance max must be {nx} non-negative numbers (one per state), got {list(d_max)}")
+    return bound
+
+
+def filtered_disturbance(
+    d: np.ndarray | None, error: np.ndarray, gain: float, bound: np.ndarray | None
+) -> np.ndarray | None:
+    """Offset-free MPC's estimate after one more prediction error: filtered by the gain, bounded per state; a
+    non-finite error (a model fault) keeps the last estimate."""
+    if not np.all(np.isfinite(error)):
+        return d
+    d = np.zeros_like(error) if d is None else d
+    d = d + gain * (error - d)
+    return d if bound is None else np.clip(d, -bound, bound)
+
+
 class Controller(Protocol):
     """What the closed loop needs of a controller (do-mpc style): make_step(x, x_ref) -> u and its statistics."""
 
@@ -80,12 +102,7 @@ class NMPC:
         if torch.any(self.low > self.high):
             raise ValueError(f"input lower bound {self.low.tolist()} exceeds upper bound {self.high.tolist()}")
         self._low, self._high = self.low.numpy(), self.high.numpy()
-        if not 0.0 <= self.disturbance_gain <= 1.0:
-            raise ValueError(f"disturbance gain must be in [0, 1], got {self.disturbance_gain}")
-        self._d_max = None if self.disturbance_max is None else np.array(self.disturbance_max, dtype=np.float64)
-        if self._d_max is not None and (self._d_max.shape != (self.ocp.nx,) or np.any(~(self._d_max >= 0))):
-            got = list(self.disturbance_max)
-            raise ValueError(f"disturbance max must be {self.ocp.nx} non-negative numbers (one per state), got {got}")
+        self._d_max = disturbance_bound(self.disturbance_max, self.ocp.nx, self.disturbance_gain)
         self.reset()
 
     @property
@@ -225,14 +242,7 @@ class NMPC:
             return
         predicted = self._predicted
         error = self.ocp.prediction_error(*self._last, x) if predicted is None else x - predicted
-        if not np.all(np.isfinite(error)):
-            return  # a surrogate fault: keep the last estimate (the solve's own fallback handles the rest)
-        d = self.ocp.disturbance
-        d = np.zeros_like(error) if d is None else d
-        d = d + self.disturbance_gain * (error - d)
-        if self._d_max is not None:
-            d = np.clip(d, -self._d_max, self._d_max)
-        self.ocp.disturbance = d
+        self.ocp.disturbance = filtered_disturbance(self.ocp.disturbance, error, self.disturbance_gain, self._d_max)
 
     def _planned_next(self, info: SolveInfo) -> np.ndarray | None:
         """The undisturbed prediction of the next state from the plan's own states (saves a network call)."""

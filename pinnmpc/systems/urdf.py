@@ -221,30 +221,26 @@ class RigidArm:
         model.gravity.linear = np.array(self.gravity)
         return model, model.createData()
 
-    def _rhs_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """dx/dt by Pinocchio's ABA, one state at a time (the plant integrates single states)."""
+    def _rhs_state(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """dx/dt of one state by Pinocchio's ABA: the plant's call, thousands of times per step."""
         import pinocchio as pin
 
         model, data = self.pinocchio
+        q, v = x[: self.nq], x[self.nq :]
+        torque = self.actuation_torque(v, u)
+        if self.actuation == "velocity_servo":
+            torque = torque + self.mass_scale * pin.computeGeneralizedGravity(model, data, q)
+        return np.concatenate((v, pin.aba(model, data, q, v, torque / self.mass_scale)))
+
+    def _rhs_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """dx/dt for numpy arrays: ABA runs per state in C++, so a batch is a loop over states."""
+        if x.ndim == 1 and u.ndim == 1:
+            return self._rhs_state(x, u)
         n = self.nq
-        if x.ndim == 1 and u.ndim == 1:  # the plant's case: no batch bookkeeping
-            q, v = x[:n], x[n:]
-            torque = self.actuation_torque(v, u)
-            if self.actuation == "velocity_servo":
-                torque = torque + self.mass_scale * pin.computeGeneralizedGravity(model, data, q)
-            return np.concatenate((v, pin.aba(model, data, q, v, torque / self.mass_scale)))
         lead = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
         xs = np.broadcast_to(x, (*lead, 2 * n)).reshape(-1, 2 * n)
         us = np.broadcast_to(u, (*lead, n)).reshape(-1, n)
-        out = np.empty_like(xs, dtype=np.float64)
-        for i in range(xs.shape[0]):  # ABA is per state in C++; batches here are small (the plant's one state)
-            q, v = xs[i, :n], xs[i, n:]
-            torque = self.actuation_torque(v, us[i])
-            if self.actuation == "velocity_servo":
-                torque = torque + self.mass_scale * pin.computeGeneralizedGravity(model, data, q)
-            out[i, :n] = v
-            out[i, n:] = pin.aba(model, data, q, v, torque / self.mass_scale)
-        return out.reshape(*lead, 2 * n)
+        return np.stack([self._rhs_state(xi, ui) for xi, ui in zip(xs, us)]).reshape(*lead, 2 * n)
 
     def rhs(self, x: Tensor | np.ndarray, u: Tensor | np.ndarray) -> Tensor | np.ndarray:
         """Batched dx/dt: torch (adam, differentiable) for tensors, Pinocchio ABA for numpy arrays."""
