@@ -106,7 +106,7 @@ def read_ckpt(path: str, label: str) -> dict[str, Any]:
         raise ValueError(f"{label} is not a torch file (starts with {head!r}); {EXPECTED_CKPT}")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # noqa: BLE001 - torch raises many types for a file that is not a checkpoint
+    except Exception as e:  # torch raises many types for a file that is not a checkpoint
         detail = str(e).strip().splitlines()[0].split(". ")[0][:100] if str(e).strip() else ""
         reason = f"{type(e).__name__}: {detail}" if detail else type(e).__name__
         raise ValueError(

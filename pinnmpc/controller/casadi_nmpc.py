@@ -91,9 +91,9 @@ class CasadiNMPC:
         except (RuntimeError, FloatingPointError, np.linalg.LinAlgError):  # e.g. an evaluation error on NaN
             ok = False
         if ok:
-            U = np.clip(sol.w[self.ocp.iu], self.low, self.high)  # noqa: N806  (an interior point may overshoot 1e-8)
+            U = np.clip(sol.w[self.ocp.iu], self.low, self.high)  # an interior point may overshoot by 1e-8
         else:  # self._U is the previous plan shifted: its first entry is the input planned for now
-            U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self.low, self.high)  # noqa: N806
+            U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self.low, self.high)
         elapsed = time.perf_counter() - start
         self._shift(sol if ok else None, U)
         self._u_prev = U[0].copy()
@@ -135,7 +135,7 @@ class CasadiNMPC:
         else:
             s.lam_x0[:], s.lam_g0[:] = self._lam
 
-    def _shift(self, sol: Solution | None, U: np.ndarray) -> None:  # noqa: N803
+    def _shift(self, sol: Solution | None, U: np.ndarray) -> None:
         """Warm start for the next step: the solution (primal and dual) moved one stage forward, the last stage
         repeated. After a fallback only the inputs are kept (shifted again) and the states restart cold."""
         if not self.warm_start:

@@ -122,9 +122,9 @@ class CasadiOCP:
         self,
         system: Any,
         horizon: int,
-        Q: Sequence,  # noqa: N803
-        R: Sequence,  # noqa: N803
-        R_rate: Sequence | None,  # noqa: N803
+        Q: Sequence,
+        R: Sequence,
+        R_rate: Sequence | None,
         u_low: Sequence[float],
         u_high: Sequence[float],
         rk4_steps: int | None = None,
