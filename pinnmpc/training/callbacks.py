@@ -15,6 +15,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from pinnmpc.cli import StopSignal
 from pinnmpc.io import atomic_write
 from pinnmpc.plant import ScipyPlant
+from pinnmpc.training.ssbfgs import SSBFGS
 
 
 class AtomicCheckpoint(ModelCheckpoint):
@@ -110,11 +111,11 @@ class GracefulStop(L.Callback):
             trainer.should_stop = True
         for opt in trainer.optimizers:
             inner = getattr(opt, "optimizer", opt)
-            if isinstance(inner, torch.optim.LBFGS):
+            if isinstance(inner, torch.optim.LBFGS | SSBFGS):
                 inner.step = self._guarded_step(inner)  # type: ignore[method-assign]
                 self._wrapped.append(inner)
 
-    def _guarded_step(self, opt: torch.optim.LBFGS) -> Any:
+    def _guarded_step(self, opt: torch.optim.Optimizer) -> Any:
         """L-BFGS's step whose closure reports a zero gradient once a stop is asked for: the line search then
         accepts its next point of sufficient decrease and the gradient test ends the call, so the network stops
         at a point L-BFGS accepted (the true gradient of the next start keeps the history consistent)."""

@@ -11,8 +11,10 @@ from torch import Tensor
 
 from pinnmpc.pinn import PINN
 from pinnmpc.systems.base import System
+from pinnmpc.training.ssbfgs import SSBFGS
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
+OPTIMIZERS = ("lbfgs", "ssbfgs")  # limited-memory BFGS (the paper's) | dense self-scaled BFGS (ssbfgs.py)
 
 
 class PINNModule(L.LightningModule):
@@ -40,11 +42,16 @@ class PINNModule(L.LightningModule):
         stall_rel_tol: float = 0.0,
         stall_redraw: bool = True,
         robust_delta: float | None = None,
+        optimizer: str = "lbfgs",
+        ssbfgs_variant: str = "ssbfgs",
+        hessian_dtype: str = "float64",
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["system", "model"])
         if dtype not in DTYPES:
             raise ValueError(f"unknown dtype {dtype!r}; expected one of {sorted(DTYPES)}")
+        if optimizer not in OPTIMIZERS:
+            raise ValueError(f"module.optimizer={optimizer!r}; expected one of {list(OPTIMIZERS)}")
         if robust_delta is not None and (
             isinstance(robust_delta, bool)
             or not isinstance(robust_delta, int | float)
@@ -125,9 +132,21 @@ class PINNModule(L.LightningModule):
         return out
 
     def configure_optimizers(self) -> list[torch.optim.Optimizer]:
-        """L-BFGS with strong Wolfe line search (the paper), plus an optional Adam warm-up."""
+        """L-BFGS (the paper) or dense self-scaled BFGS, both with strong Wolfe line search, plus an optional Adam
+        warm-up."""
         h = self.hparams
         params = [p for p in self.model.parameters() if p.requires_grad]  # a staged model's base stays frozen
+        if h.optimizer == "ssbfgs":
+            quasi_newton: torch.optim.Optimizer = SSBFGS(
+                params,
+                lr=h.lbfgs_lr,
+                max_iter=h.lbfgs_max_iter,
+                tolerance_grad=h.lbfgs_tolerance_grad,
+                tolerance_change=h.lbfgs_tolerance_change,
+                variant=h.ssbfgs_variant,
+                hessian_dtype=h.hessian_dtype,
+            )
+            return [quasi_newton, torch.optim.Adam(params, lr=h.adam_lr)]
         lbfgs = torch.optim.LBFGS(
             params,
             lr=h.lbfgs_lr,
