@@ -16,6 +16,7 @@ from omegaconf import DictConfig
 
 from pinnmpc.bench import run_bench, run_controller
 from pinnmpc.bench.common import bench_reference
+from pinnmpc.bench.report import md_targets
 from pinnmpc.flowmap import RK4Model
 from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import Surrogate
@@ -237,6 +238,20 @@ def test_targets_sit_next_to_the_measured_numbers(bench: tuple[dict[str, Any], P
     assert not any(w.endswith("MAE dalpha") for w in targets)  # null: no target for velocities
     ratio = targets["OCP median / plant step median"]
     assert ratio["value"] == pytest.approx(row["ratio_ocp_to_plant"]) and ratio["met"] == (ratio["value"] <= 1.0)
+
+
+def test_targets_verdict_says_what_was_missed_and_by_how_much() -> None:
+    targets = [
+        {"what": "one-step RMSE alpha", "value": 1.51e-3, "limit": 1e-3, "met": False},
+        {"what": "one-step RMSE dalpha", "value": 5.34e-3, "limit": 1e-2, "met": True},
+    ]
+    md = md_targets(targets, "the one shipped for powercube (checkpoint=null)")
+    assert "Network: the one shipped for powercube (checkpoint=null)." in md
+    assert "| one-step RMSE alpha | 0.001 | 0.00151 | 1.51x | **no** |" in md
+    assert "| one-step RMSE dalpha | 0.01 | 0.00534 | 0.534x | yes |" in md
+    verdict = "**Verdict: 1 of 2 targets met** (one-step RMSE dalpha); missed: one-step RMSE alpha 0.00151 > 0.001"
+    assert verdict + " (1.51x)." in md
+    assert "**Verdict: the target met.**" in md_targets(targets[1:], "x")
 
 
 def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:

@@ -14,11 +14,16 @@ from torch.func import jacrev, vmap
 
 from pinnmpc.controller import (
     NMPC,
+    NO_WARM,
     SOLVERS,
     GaussNewtonSolver,
+    GaussNewtonWarm,
     HorizonOCP,
     LBFGSSolver,
     LiftedGaussNewtonSolver,
+    LiftedWarm,
+    NoWarm,
+    Problem,
     RMSpropSolver,
     make_solver,
 )
@@ -255,12 +260,15 @@ def test_solver_respects_bounds_on_far_targets(s: Surrogate, name: str, bounds: 
     U0 = _uniform(g, (B, H, NU), low, high)
     u_prev = _uniform(g, (B, NU), low, high)
     solver = make_solver(name, **SOLVER_OPTIONS[name])
-    U, info = solver.solve(ocp, x0, U0, x_ref, u_prev, low, high)
+    U, info, warm = solver.solve(Problem(ocp, x0, x_ref, u_prev, low, high), U0)
     assert U.shape == (B, H, NU)
     assert _within(U, low, high), f"{name} left the box: min {U.amin((0, 1)).tolist()} max {U.amax((0, 1)).tolist()}"
     at_bound = _at_bound(U, low, high)
     assert at_bound.float().mean() > 0.25  # the targets really push against the box
     assert info.cost.shape == (B,)
+    assert isinstance(
+        warm, (GaussNewtonWarm, LiftedWarm) if name in {"gauss_newton", "lifted_gauss_newton"} else NoWarm
+    )
     assert torch.all(info.cost <= ocp.cost(x0, U0, x_ref, u_prev) + 1e-12)  # and the solver did improve
 
 
@@ -336,7 +344,9 @@ def test_gauss_newton_reaches_optimum_feasible(s: Surrogate, seed: int, solver: 
     U_true = _uniform(g, (H, NU), -0.4, 0.4)
     x_ref = ocp.rollout(x0, U_true)  # reachable: only the R-term separates the optimum from zero
     u_prev = torch.zeros(NU, dtype=F64)
-    U, info = solver().solve(ocp, x0[None], torch.zeros(1, H, NU, dtype=F64), x_ref[None], u_prev[None], low, high)
+    U, info, _ = solver().solve(
+        Problem(ocp, x0[None], x_ref[None], u_prev[None], low, high), torch.zeros(1, H, NU, dtype=F64)
+    )
     gn = _assert_optimal(ocp, x0, U[0], x_ref, u_prev, low, high, [torch.zeros(H, NU, dtype=F64), U_true])
     assert gn == pytest.approx(float(info.cost[0]), rel=1e-12)
     assert bool(info.converged[0])
@@ -355,7 +365,7 @@ def test_gauss_newton_reaches_optimum_with_active_bounds(s: Surrogate, seed: int
     x_ref = ocp.rollout(x0, U_true) + 0.2 * torch.randn(H, NX, generator=g, dtype=F64)
     u_prev = _uniform(g, (NU,), low, high)
     U0 = _uniform(g, (1, H, NU), low, high)
-    U, info = solver().solve(ocp, x0[None], U0, x_ref[None], u_prev[None], low, high)
+    U, info, _ = solver().solve(Problem(ocp, x0[None], x_ref[None], u_prev[None], low, high), U0)
     assert _within(U, low, high)
     assert bool(_at_bound(U, low, high).any()), "the bounds were meant to be active"
     _assert_optimal(ocp, x0, U[0], x_ref, u_prev, low, high, [torch.zeros(H, NU, dtype=F64), U_true, U0[0]])
@@ -374,7 +384,7 @@ def test_fast_solvers_reach_optimum_on_unreachable_references(s: Surrogate, seed
     )
     u_prev = torch.zeros(NU, dtype=F64)
     U0 = _uniform(g, (1, H, NU), low, high)
-    U, info = solver().solve(ocp, x0[None], U0, x_ref[None], u_prev[None], low, high)
+    U, info, _ = solver().solve(Problem(ocp, x0[None], x_ref[None], u_prev[None], low, high), U0)
     assert bool(_at_bound(U, low, high).any()), "the inputs were meant to saturate"
     _assert_optimal(ocp, x0, U[0], x_ref, u_prev, low, high, [torch.zeros(H, NU, dtype=F64), U0[0]])
 
@@ -393,9 +403,9 @@ def test_stopping_rules_are_safe_when_convergence_is_slow(s: Surrogate, solver: 
     x_ref[..., 2:] = 0.0
     u_prev = torch.zeros(B, NU, dtype=F64)
     U0 = _uniform(g, (B, H, NU), low, high)
-    args = (ocp, x0, U0, x_ref, u_prev, low, high)
-    _, info = solver().solve(*args)
-    _, full = solver(max_iter=300, tol_grad=0.0, tol_cost=0.0, tol_gap=0.0).solve(*args)
+    problem = Problem(ocp, x0, x_ref, u_prev, low, high)
+    _, info, _ = solver().solve(problem, U0)
+    _, full, _ = solver(max_iter=300, tol_grad=0.0, tol_cost=0.0, tol_gap=0.0).solve(problem, U0)
     gap = torch.where(info.converged, (info.cost - full.cost) / full.cost, 0.0)
     assert float(gap.max()) <= 1e-6, f"worst relative gap {float(gap.max()):.2e} (problem {int(gap.argmax())})"
     assert float(info.converged.double().mean()) >= 0.8  # 57 and 56 of 64 here
@@ -405,43 +415,51 @@ def test_lifted_solver_falls_back_to_single_shooting(s: Surrogate) -> None:
     H, ocp, low, high, g, x0 = _paper_box_problem(s, 31, [1.0, 1.0, 0.0, 0.0])
     x_ref = ocp.rollout(x0, _uniform(g, (H, NU), -0.4, 0.4))
     u_prev, U0 = torch.zeros(NU, dtype=F64), torch.zeros(1, H, NU, dtype=F64)
-    args = (ocp, x0[None], U0, x_ref[None], u_prev[None], low, high)
-    U1, info1 = LiftedGaussNewtonSolver(lifted_max_iter=1).solve(*args)  # one lifted step cannot converge
-    U_gn, info_gn = GaussNewtonSolver().solve(*args)
+    problem = Problem(ocp, x0[None], x_ref[None], u_prev[None], low, high)
+    U1, info1, _ = LiftedGaussNewtonSolver(lifted_max_iter=1).solve(problem, U0)  # one lifted step cannot converge
+    U_gn, info_gn, _ = GaussNewtonSolver().solve(problem, U0)
     assert bool(info1.converged[0]) and int(info1.iterations[0]) > 1  # single shooting finished the job
     assert float(info1.cost[0]) == pytest.approx(float(ocp.cost(x0, U1[0], x_ref, u_prev)), rel=1e-12)
     assert float(info1.cost[0]) <= float(info_gn.cost[0]) * (1 + 1e-6) + 1e-12
 
 
 @pytest.mark.parametrize(
-    ("solver", "kind", "shapes"),
+    ("solver", "warm_type", "kind", "shapes"),
     [
-        (GaussNewtonSolver, "sensitivities", r"\(1, 5, 4, 10\), got \(1, 4, 4, 10\)"),
-        (LiftedGaussNewtonSolver, "states", r"\(1, 5, 4\), got \(1, 4, 4\)"),
+        (GaussNewtonSolver, GaussNewtonWarm, "sensitivities", r"\(1, 5, 4, 10\), got \(1, 4, 4, 10\)"),
+        (LiftedGaussNewtonSolver, LiftedWarm, "states", r"\(1, 5, 4\), got \(1, 4, 4\)"),
     ],
 )
-def test_warm_start_prior_reaches_the_same_optimum(s: Surrogate, solver: type, kind: str, shapes: str) -> None:
+def test_warm_start_reaches_the_same_optimum(
+    s: Surrogate, solver: type, warm_type: type, kind: str, shapes: str
+) -> None:
     H, ocp, low, high, g, x0 = _paper_box_problem(s, 32, [1.0, 1.0, 0.0, 0.0])
     x_ref = ocp.rollout(x0, _uniform(g, (H + 1, NU), -0.4, 0.4)[:H])
     u_prev = torch.zeros(NU, dtype=F64)
     solver = solver()
-    U, info = solver.solve(ocp, x0[None], torch.zeros(1, H, NU, dtype=F64), x_ref[None], u_prev[None], low, high)
-    prior = getattr(info, kind)
+    U0 = torch.zeros(1, H, NU, dtype=F64)
+    U, info, warm0 = solver.solve(Problem(ocp, x0[None], x_ref[None], u_prev[None], low, high), U0)
+    assert type(warm0) is warm_type
+    prior = getattr(warm0, kind)
     if kind == "states":
         torch.testing.assert_close(torch.from_numpy(prior), ocp.rollout(x0[None], U), rtol=0, atol=1e-12)
+        assert info.states is prior  # the plan's prediction, which NMPC uses for the next disturbance estimate
     # the receding-horizon successor, measured off the prediction (a plant that differs from the model)
     x1 = s.step(x0, U[0, 0]) + torch.tensor([3e-3, -2e-3, 1e-2, -1e-2], dtype=F64)
     ref1 = torch.cat((x_ref[1:], x_ref[-1:]))
     U_shift = torch.cat((U[:, 1:], U[:, -1:]), 1)
-    args = (ocp, x1[None], U_shift, ref1[None], U[:, 0], low, high)
-    cold_U, cold = solver.solve(*args)
-    warm_U, warm = solver.solve(*args, prior=prior)
+    problem = Problem(ocp, x1[None], ref1[None], U[:, 0], low, high)
+    cold_U, cold, _ = solver.solve(problem, U_shift)
+    warm_U, warm, _ = solver.solve(problem, U_shift, warm0)
     assert bool(warm.converged[0]) and bool(cold.converged[0])
     assert float(warm.cost[0]) == pytest.approx(float(ocp.cost(x1, warm_U[0], ref1, U[0, 0])), rel=1e-10)
     assert float(warm.cost[0]) == pytest.approx(float(cold.cost[0]), rel=1e-6, abs=1e-12)
     torch.testing.assert_close(warm_U, cold_U, rtol=0, atol=1e-4)
-    with pytest.raises(ValueError, match=rf"prior {kind} must have shape {shapes}"):
-        solver.solve(*args, prior=prior[:, :4])
+    with pytest.raises(ValueError, match=rf"warm {kind} must have shape {shapes}"):
+        solver.solve(problem, U_shift, warm_type(prior[:, :4]))
+    other = LiftedWarm(prior) if warm_type is GaussNewtonWarm else GaussNewtonWarm(prior)
+    with pytest.raises(TypeError, match=rf"takes {warm_type.__name__} or NoWarm as warm, got {type(other).__name__}"):
+        solver.solve(problem, U_shift, other)  # another solver's warm state belongs to that solver's iterates
 
 
 def test_lifted_linearisation_matches_the_rollout_and_its_jacobian(s: Surrogate) -> None:
@@ -468,17 +486,25 @@ def test_lifted_linearisation_matches_the_rollout_and_its_jacobian(s: Surrogate)
 def test_make_step_carries_the_warm_start(s: Surrogate, name: str, kind: str, shape: tuple) -> None:
     H = 5
     nmpc = NMPC(HorizonOCP(s, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6]), make_solver(name), *ASYMMETRIC)
-    assert nmpc.prior is None and nmpc.solver.prior_kind == kind
+    assert nmpc.warm is NO_WARM
     g = _gen(33)
     x = _states(g, 1)[0]
     ref = _far_reference(g, x[None], H)[0].numpy()
     nmpc.make_step(x.numpy(), ref)
-    assert nmpc.prior is not None and nmpc.prior.shape == shape
+    assert getattr(nmpc.warm, kind).shape == shape
     nmpc.U = np.zeros((H, NU))  # a plan from elsewhere: the last solve's warm start no longer belongs to it
-    assert nmpc.prior is None
+    assert nmpc.warm is NO_WARM
     nmpc.make_step(x.numpy(), ref)
+    assert nmpc.warm is not NO_WARM
     nmpc.reset()
-    assert nmpc.prior is None
+    assert nmpc.warm is NO_WARM
+
+
+@pytest.mark.parametrize("name", ["rmsprop", "lbfgs"])
+def test_memoryless_solvers_keep_no_warm_state(s: Surrogate, name: str) -> None:
+    nmpc = NMPC(HorizonOCP(s, 3, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6]), make_solver(name, max_iter=5), *ASYMMETRIC)
+    nmpc.make_step(np.array([0.1, -0.2, 0.0, 0.0]), np.tile([0.3, -0.3, 0.0, 0.0], (3, 1)))
+    assert nmpc.warm is NO_WARM and nmpc.stats[-1].fallback is False
 
 
 D = np.array([2e-3, -1e-3, 5e-3, -4e-3])  # an additive disturbance on every predicted step
@@ -515,7 +541,9 @@ def test_solvers_reach_the_optimum_of_the_disturbed_problem(s: Surrogate, solver
     x_ref = ocp.rollout(x0, _uniform(g, (H, NU), -0.4, 0.4))
     u_prev = torch.zeros(NU, dtype=F64)
     ocp.disturbance = D
-    U, info = solver().solve(ocp, x0[None], torch.zeros(1, H, NU, dtype=F64), x_ref[None], u_prev[None], low, high)
+    U, info, _ = solver().solve(
+        Problem(ocp, x0[None], x_ref[None], u_prev[None], low, high), torch.zeros(1, H, NU, dtype=F64)
+    )
     assert float(info.cost[0]) == pytest.approx(float(ocp.cost(x0, U[0], x_ref, u_prev)), rel=1e-10)
     _assert_optimal(ocp, x0, U[0], x_ref, u_prev, low, high, [torch.zeros(H, NU, dtype=F64)])
 
@@ -582,7 +610,7 @@ def test_warm_start_shifts_solution(s: Surrogate) -> None:
     first_u = None
     for _ in range(3):
         U_start, u_prev = nmpc.U.clone(), nmpc.u_prev.clone()
-        expected, _ = nmpc.solve(x[None], x_ref[None], U_start[None], u_prev[None], prior=nmpc.prior)
+        expected, _, _ = nmpc.solve(x[None], x_ref[None], U_start[None], u_prev[None], nmpc.warm)
         expected = expected[0]
         u = nmpc.make_step(x.numpy(), x_ref.numpy())
         first_u = u if first_u is None else first_u
@@ -623,10 +651,10 @@ def test_batched_and_unbatched_solves_agree(s: Surrogate, solver: type) -> None:
     x_ref = torch.cat((near, _far_reference(g, x0[2:], H)))
     U0 = _uniform(g, (B, H, NU), low, high)
     u_prev = _uniform(g, (B, NU), low, high)
-    U, info = nmpc.solve(x0, x_ref, U0, u_prev)
+    U, info, _ = nmpc.solve(x0, x_ref, U0, u_prev)
     assert U.shape == (B, H, NU) and info.cost.shape == (B,)
     for i in range(B):
-        Ui, info_i = nmpc.solve(x0[i : i + 1], x_ref[i : i + 1], U0[i : i + 1], u_prev[i : i + 1])
+        Ui, info_i, _ = nmpc.solve(x0[i : i + 1], x_ref[i : i + 1], U0[i : i + 1], u_prev[i : i + 1])
         torch.testing.assert_close(U[i], Ui[0], rtol=0, atol=1e-9)
         torch.testing.assert_close(info.cost[i], info_i.cost[0], rtol=1e-9, atol=1e-12)
         assert bool(info.converged[i]) == bool(info_i.converged[0])
@@ -673,7 +701,7 @@ def test_fallback_applies_the_previous_plan(s: Surrogate, nan_surrogate: Surroga
     bad = NMPC(HorizonOCP(nan_surrogate, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6]), GaussNewtonSolver(), *ASYMMETRIC)
     bad.U, bad.u_prev = plan.clone(), torch.from_numpy(u0)
     u = bad.make_step(x, x_ref)
-    assert bad.stats[-1].fallback is True and bad.prior is None  # no Jacobian warm start from a failed solve
+    assert bad.stats[-1].fallback is True and bad.warm is NO_WARM  # no warm start from a failed solve
     np.testing.assert_allclose(u, plan[0].numpy(), rtol=0, atol=1e-12)
     torch.testing.assert_close(bad.U, torch.cat((plan[1:], plan[-1:])), rtol=0, atol=1e-12)
 

@@ -25,8 +25,8 @@ from pinnmpc.bench.timing import as_numpy
 from pinnmpc.closed_loop import metrics, simulate
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
-from pinnmpc.controller.ocp import Array, HorizonOCP
-from pinnmpc.controller.solvers import SolveInfo, Solver
+from pinnmpc.controller.ocp import Array
+from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
 from pinnmpc.flowmap import CompiledRK4, FlowMap, RK4Model
 from pinnmpc.references import Reference
 from pinnmpc.surrogate import Surrogate
@@ -61,36 +61,17 @@ class RecordingSolver:
     @property
     def array_api(self) -> str:
         """The wrapped solver's array library, so the controller hands it its own kind of arrays."""
-        return getattr(self.inner, "array_api", "torch")
+        return self.inner.array_api
 
-    @property
-    def accepts_prior(self) -> bool:
-        """Whether the wrapped solver takes a warm start beyond U0."""
-        return getattr(self.inner, "accepts_prior", False)
-
-    @property
-    def prior_kind(self) -> str:
-        """The SolveInfo field the wrapped solver takes as that warm start."""
-        return getattr(self.inner, "prior_kind", "sensitivities")
-
-    def solve(
-        self,
-        ocp: HorizonOCP,
-        x0: Array,
-        U0: Array,
-        x_ref: Array,
-        u_prev: Array,
-        low: Array,
-        high: Array,
-        **options: Any,
-    ) -> tuple[Array, SolveInfo]:
-        """Delegate, then record each problem of the batch with its projected solution."""
-        U, info = self.inner.solve(ocp, x0, U0, x_ref, u_prev, low, high, **options)
-        Uc = np.clip(np.asarray(U, dtype=np.float64), np.asarray(low), np.asarray(high))
+    def solve(self, problem: Problem, U0: Array, warm: Any = NO_WARM) -> tuple[Array, SolveInfo, Any]:
+        """Delegate (the warm state passes through untouched), then record each problem with its projected solution."""
+        U, info, next_warm = self.inner.solve(problem, U0, warm)
+        Uc = np.clip(np.asarray(U, dtype=np.float64), np.asarray(problem.low), np.asarray(problem.high))
+        ocp, x0, x_ref, u_prev = problem.ocp, problem.x0, problem.x_ref, problem.u_prev
         d = np.zeros(ocp.nx) if ocp.disturbance is None else ocp.disturbance
         for i in range(x0.shape[0]):
             self.raw.append(tuple(as_numpy(a).copy() for a in (x0[i], x_ref[i], u_prev[i], Uc[i], d)))
-        return U, info
+        return U, info, next_warm
 
 
 def loop_row(

@@ -270,12 +270,34 @@ def md_scaling(sc: dict[str, Any]) -> str:
     )
 
 
-def md_targets(targets: list[dict[str, Any]]) -> str:
-    """Section 5 table: target, limit, this run, met or not."""
+def md_targets(targets: list[dict[str, Any]], network: str) -> str:
+    """Section 5: each target next to this run's number and their ratio, then a verdict naming what was met and
+    what was missed by how much, so a miss reads as a distance to the target rather than a bare "no"."""
     rows = [
-        [r["what"], fmt(r["limit"], ".3g"), fmt(r["value"], ".3g"), "yes" if r["met"] else "**no**"] for r in targets
+        [r["what"], fmt(r["limit"], ".3g"), fmt(r["value"], ".3g"), times(r), "yes" if r["met"] else "**no**"]
+        for r in targets
     ]
-    return "\n".join(["## 5. Targets", "", md_table(["target", "limit", "this run", "met"], rows), ""])
+    table = md_table(["target", "limit", "this run", "this run / limit", "met"], rows)
+    return "\n".join(["## 5. Targets", "", f"Network: {network}.", "", table, "", targets_verdict(targets), ""])
+
+
+def times(target: dict[str, Any]) -> str:
+    """This run's number as a multiple of the limit (below 1: met with room)."""
+    return f"{target['value'] / target['limit']:.3g}x"
+
+
+def targets_verdict(targets: list[dict[str, Any]]) -> str:
+    """One line: how many targets were met, which, and for each missed one its number against the limit."""
+    met = [r["what"] for r in targets if r["met"]]
+    missed = [r for r in targets if not r["met"]]
+    if not missed:
+        return "**Verdict: the target met.**" if len(targets) == 1 else f"**Verdict: all {len(targets)} targets met.**"
+    gaps = "; ".join(f"{r['what']} {fmt(r['value'], '.3g')} > {fmt(r['limit'], '.3g')} ({times(r)})" for r in missed)
+    passed = f" ({', '.join(met)})" if met else ""
+    return (
+        f"**Verdict: {len(met)} of {len(targets)} targets met**{passed}; missed: {gaps}. "
+        "The shipped networks trade accuracy against OCP time; the README says which checkpoint meets what."
+    )
 
 
 def md_classical(cl: dict[str, Any], system: dict[str, Any], plant: str) -> str:
@@ -338,7 +360,9 @@ def render_markdown(result: dict[str, Any]) -> str:
     if "scaling" in result:
         parts.append(md_scaling(result["scaling"]))
     if result.get("targets"):
-        parts.append(md_targets(result["targets"]))
+        checkpoint = result["config"].get("checkpoint")
+        network = checkpoint or f"the one shipped for {system['name']} (checkpoint=null)"
+        parts.append(md_targets(result["targets"], network))
     if "classical" in result:
         parts.append(md_classical(result["classical"], system, plant))
     elapsed = ", ".join(f"{k} {v:.1f} s" for k, v in result["elapsed_s"].items())

@@ -34,7 +34,7 @@ def ocp_scaling_point(cfg: DictConfig, surrogate: Surrogate, horizon: int, batch
     iters: list[float] = []
 
     def solve(_i: int) -> None:
-        _, info = nmpc.solve(x0, x_ref, U0, u_prev)
+        _, info, _ = nmpc.solve(x0, x_ref, U0, u_prev)
         iters.append(float(info.iterations.double().mean()))
 
     times = time_calls(solve, int(sc.repeats), int(sc.warmup))

@@ -3,22 +3,34 @@
 from pinnmpc.controller.nmpc import NMPC, StepStats
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers import (
+    NO_WARM,
     SOLVERS,
     GaussNewtonSolver,
+    GaussNewtonWarm,
     LBFGSSolver,
     LiftedGaussNewtonSolver,
+    LiftedWarm,
+    NoWarm,
+    Problem,
     RMSpropSolver,
+    SolveInfo,
     make_solver,
 )
 
 __all__ = [
     "NMPC",
+    "NO_WARM",
     "SOLVERS",
     "GaussNewtonSolver",
+    "GaussNewtonWarm",
     "HorizonOCP",
     "LBFGSSolver",
     "LiftedGaussNewtonSolver",
+    "LiftedWarm",
+    "NoWarm",
+    "Problem",
     "RMSpropSolver",
+    "SolveInfo",
     "StepStats",
     "make_solver",
 ]

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from pinnmpc.controller.ocp import HorizonOCP
-from pinnmpc.controller.solvers import SolveInfo, Solver
+from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
 from pinnmpc.surrogate import Surrogate
 
 
@@ -131,7 +131,7 @@ class NMPC:
         if plan.shape != (self.horizon, self.ocp.nu):
             raise ValueError(f"plan must be ({self.horizon}, {self.ocp.nu}) (horizon, nu), got {plan.shape}")
         self._U = plan
-        self._prior = None  # the last solve's warm start belongs to its own plan, not to this one
+        self._warm = NO_WARM  # the last solve's warm state belongs to its own plan, not to this one
 
     @property
     def u_prev(self) -> Tensor:
@@ -150,7 +150,7 @@ class NMPC:
         """Forget the warm start and the last applied input (start of a new run)."""
         self._U = self._cold_start()
         self._u_prev = self._U[0].copy()
-        self._prior = None  # what the last solve hands the next one beyond U (see Solver.prior_kind)
+        self._warm: Any = NO_WARM  # the solver's own state from the last solve, handed back to the next one
         self._last: tuple[np.ndarray, np.ndarray] | None = None  # the last measured state and the input applied
         self._predicted: np.ndarray | None = None  # the undisturbed surrogate's x after that input, if the plan had it
         self.ocp.disturbance = None
@@ -165,25 +165,23 @@ class NMPC:
         return torch.maximum(torch.minimum(u, self.high), self.low)
 
     def solve(
-        self, x0: Tensor, x_ref: Tensor, U0: Tensor, u_prev: Tensor, prior: np.ndarray | None = None
-    ) -> tuple[Tensor, SolveInfo]:
-        """Batched OCP: x0 (B, nx), x_ref (B, H, nx), U0 (B, H, nu), u_prev (B, nu); prior: see Solver."""
+        self, x0: Tensor, x_ref: Tensor, U0: Tensor, u_prev: Tensor, warm: Any = NO_WARM
+    ) -> tuple[Tensor, SolveInfo, Any]:
+        """Batched OCP: x0 (B, nx), x_ref (B, H, nx), U0 (B, H, nu), u_prev (B, nu); warm: see Solver.
+
+        Returns the inputs, the statistics and the solver's warm state for the shifted problems."""
         if x_ref.shape[-2] != self.horizon:
             raise ValueError(f"x_ref must cover the horizon: got {x_ref.shape[-2]} steps, expected {self.horizon}")
-        args = (self.ocp, x0, self.clip(U0), x_ref, u_prev, self.low, self.high)
-        U, info = self.solver.solve(*args, **self._prior_kwargs(prior))
-        return self.clip(torch.as_tensor(U)), info
+        problem = Problem(self.ocp, x0, x_ref, u_prev, self.low, self.high)
+        U, info, next_warm = self.solver.solve(problem, self.clip(U0), warm)
+        return self.clip(torch.as_tensor(U)), info, next_warm
 
     @property
-    def prior(self) -> np.ndarray | None:
-        """What the next make_step hands the solver as its Jacobian warm start (None: none)."""
-        return self._prior
+    def warm(self) -> Any:
+        """The solver's warm state the next make_step hands back to it (NO_WARM: a cold start)."""
+        return self._warm
 
-    def _prior_kwargs(self, prior: np.ndarray | None) -> dict[str, np.ndarray]:
-        """prior= for solvers that take one."""
-        return {"prior": prior} if prior is not None and getattr(self.solver, "accepts_prior", False) else {}
-
-    def _solve_one(self, x0: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, SolveInfo]:
+    def _solve_one(self, x0: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, SolveInfo, Any]:
         """One problem in the solver's own array library: batch-1 solves are dominated by per-call overhead."""
         if x0.shape != (self.ocp.nx,):
             raise ValueError(f"the state must have {self.ocp.nx} entries, got shape {x0.shape}")
@@ -191,10 +189,11 @@ class NMPC:
             want = (self.horizon, self.ocp.nx)
             raise ValueError(f"x_ref must cover the horizon: expected {want[0]} x {want[1]}, got {x_ref.shape}")
         args = (x0[None], self._U[None], x_ref[None], self._u_prev[None], self._low, self._high)
-        if getattr(self.solver, "array_api", "torch") != "numpy":
+        if self.solver.array_api != "numpy":
             args = tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in args)
-        U, info = self.solver.solve(self.ocp, *args, **self._prior_kwargs(self._prior))
-        return np.clip(np.asarray(U, dtype=np.float64)[0], self._low, self._high), info
+        x0b, U0, refb, u_prev, low, high = args
+        U, info, next_warm = self.solver.solve(Problem(self.ocp, x0b, refb, u_prev, low, high), U0, self._warm)
+        return np.clip(np.asarray(U, dtype=np.float64)[0], self._low, self._high), info, next_warm
 
     def make_step(self, x: np.ndarray | Tensor, x_ref: np.ndarray | Tensor) -> np.ndarray:
         """Input to apply now, given the measured state and the next H reference states."""
@@ -204,18 +203,17 @@ class NMPC:
         fallback = False
         try:
             self._estimate_disturbance(x0)
-            U, info = self._solve_one(x0, ref)
+            U, info, next_warm = self._solve_one(x0, ref)
             ok = bool(np.isfinite(U).all()) and bool(np.isfinite(np.asarray(info.cost)).all())
         except (RuntimeError, FloatingPointError, np.linalg.LinAlgError):  # e.g. a singular solve on NaN outputs
-            ok, info = False, None
+            ok, info, next_warm = False, None, NO_WARM
         if not ok:
             fallback = True
             # self._U is already the previous plan shifted: its first entry is the input planned for now
             U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self._low, self._high)
         elapsed = time.perf_counter() - start
         self._U = self._shifted(U) if self.warm_start else self._cold_start()
-        kind = getattr(self.solver, "prior_kind", "sensitivities")
-        self._prior = getattr(info, kind, None) if self.warm_start and not fallback else None
+        self._warm = next_warm if self.warm_start and not fallback else NO_WARM
         self._u_prev = U[0].copy()
         self._last = (x0.copy(), self._u_prev)
         self._predicted = self._planned_next(info) if not fallback else None
@@ -246,7 +244,7 @@ class NMPC:
 
     def _planned_next(self, info: SolveInfo) -> np.ndarray | None:
         """The undisturbed prediction of the next state from the plan's own states (saves a network call)."""
-        states = getattr(info, "states", None)
+        states = info.states
         if states is None:
             return None
         d = self.ocp.disturbance

@@ -1,18 +1,29 @@
-"""Solvers for the batched box-constrained horizon OCP, one concern per module; make_solver picks one by name."""
+"""Solvers for the batched box-constrained horizon OCP, one per module; make_solver picks one by name.
+
+Each is a settings dataclass with solve(problem, U0, warm) -> (U, info, next_warm), where warm is the
+solver's own frozen warm-start state (NO_WARM: a cold start) that the caller hands back on the next
+receding-horizon solve.
+"""
 
 from __future__ import annotations
 
-from pinnmpc.controller.solvers.base import BOUND_TOL, SolveInfo, Solver, project
-from pinnmpc.controller.solvers.first_order import LBFGSSolver, RMSpropSolver
-from pinnmpc.controller.solvers.gauss_newton import GaussNewtonSolver
-from pinnmpc.controller.solvers.lifted import LiftedGaussNewtonSolver
+from pinnmpc.controller.solvers.base import BOUND_TOL, NO_WARM, NoWarm, Problem, SolveInfo, Solver, project
+from pinnmpc.controller.solvers.gauss_newton import GaussNewtonSolver, GaussNewtonWarm
+from pinnmpc.controller.solvers.lbfgs import LBFGSSolver
+from pinnmpc.controller.solvers.lifted import LiftedGaussNewtonSolver, LiftedWarm
+from pinnmpc.controller.solvers.rmsprop import RMSpropSolver
 
 __all__ = [
     "BOUND_TOL",
+    "NO_WARM",
     "SOLVERS",
     "GaussNewtonSolver",
+    "GaussNewtonWarm",
     "LBFGSSolver",
     "LiftedGaussNewtonSolver",
+    "LiftedWarm",
+    "NoWarm",
+    "Problem",
     "RMSpropSolver",
     "SolveInfo",
     "Solver",
@@ -20,7 +31,7 @@ __all__ = [
     "project",
 ]
 
-SOLVERS = {
+SOLVERS: dict[str, type[Solver]] = {
     "gauss_newton": GaussNewtonSolver,
     "lifted_gauss_newton": LiftedGaussNewtonSolver,
     "rmsprop": RMSpropSolver,

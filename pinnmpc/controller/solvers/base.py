@@ -1,14 +1,18 @@
-"""What every OCP solver shares: the result type, the protocol, and projection onto the input box."""
+"""What every OCP solver shares: the problem, the result, the cold warm state, the protocol, box projection.
+
+A solver is a settings dataclass with one method, solve(problem, U0, warm) -> (U, info, next_warm): the
+warm state is each solver's own frozen dataclass (NoWarm for none), so what carries over from one
+receding-horizon solve to the next is explicit and typed instead of probed for on a shared result.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
-from torch import Tensor
 
-from pinnmpc.controller.ocp import HorizonOCP
+from pinnmpc.controller.ocp import Array, HorizonOCP
 
 BOUND_TOL = 1e-12  # relative to the box width: closer than this to a bound counts as on it
 
@@ -20,42 +24,68 @@ def project(u: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.where(u - lo <= tol, lo, np.where(hi - u <= tol, hi, u))
 
 
-def result(shape: tuple[int, ...], U, iterations, cost, converged, warm):
-    """A solve's outputs in the problems' own batch shape (warm: the next solve's prior, flat batch)."""
+def result(
+    shape: tuple[int, ...],
+    U: np.ndarray,
+    iterations: np.ndarray,
+    cost: np.ndarray,
+    converged: np.ndarray,
+    warm: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """A solve's outputs in the problems' own batch shape (warm: the next solve's warm-start array, flat batch)."""
     lead = shape[:-2]
     return U.reshape(shape), iterations.reshape(lead), cost.reshape(lead), converged.reshape(lead), warm
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """A batch of horizon OCPs in one argument, so every solver sees the same data in the same order.
+
+    Arrays are all torch or all numpy (a solver's array_api says which it works in); the leading batch
+    dimensions (B,) are shared by x0, x_ref, u_prev and the U0 handed to solve.
+    """
+
+    ocp: HorizonOCP  # the cost and the model (its disturbance included)
+    x0: Array  # (B, nx) measured states
+    x_ref: Array  # (B, H, nx) reference states x_1..x_H
+    u_prev: Array  # (B, nu) the inputs applied last (the rate penalty's u_{-1})
+    low: Array  # (nu,) input lower bounds
+    high: Array  # (nu,) input upper bounds
+
+
+@dataclass(frozen=True)
+class NoWarm:
+    """No warm start beyond U0: a cold start, and all that solvers without memory ever return."""
+
+
+NO_WARM = NoWarm()
+
+
+def wrong_warm(solver: object, warm: object, accepted: str) -> TypeError:
+    """The error for a warm state another solver made: it belongs to that solver's own iterates."""
+    return TypeError(f"{type(solver).__name__} takes {accepted} as warm, got {type(warm).__name__}")
+
+
+@dataclass(frozen=True, eq=False)
 class SolveInfo:
     """Per-problem solver statistics, batched like the problems."""
 
-    iterations: Tensor  # (B,) int
-    cost: Tensor  # (B,) float
-    converged: Tensor  # (B,) bool
-    sensitivities: np.ndarray | None = None  # (B, H, nx, H*nu) d x_i / d U near the solution, for the next solve
-    states: np.ndarray | None = None  # (B, H, nx) the states x_1..x_H the solution reaches on the surrogate
+    iterations: Array  # (B,) int
+    cost: Array  # (B,) float
+    converged: Array  # (B,) bool
+    states: np.ndarray | None = None  # (B, H, nx) the states x_1..x_H the solution reaches, if the solver has them
 
 
 class Solver(Protocol):
-    """Minimise the OCP over U (B, H, nu) within [low, high], starting from U0.
+    """Minimise the OCP over U (B, H, nu) within [low, high], starting from U0 and the solver's warm state.
 
-    array_api names the array library the solver works in ("torch" or "numpy"): NMPC.make_step
-    hands it arrays of that kind, so batch-1 solves pay no conversions. Solvers with accepts_prior
-    take prior= (the last solve's SolveInfo field named by their prior_kind) as a warm start beyond U0.
+    array_api names the array library the solver works in ("torch" or "numpy"): NMPC.make_step hands it
+    arrays of that kind, so batch-1 solves pay no conversions. warm is NO_WARM or a warm state this
+    solver returned for the previous receding-horizon problem, whose plan shifted by one step is U0.
     """
 
     array_api: str
 
-    def solve(
-        self,
-        ocp: HorizonOCP,
-        x0: Tensor,
-        U0: Tensor,
-        x_ref: Tensor,
-        u_prev: Tensor,
-        low: Tensor,
-        high: Tensor,
-    ) -> tuple[Tensor, SolveInfo]:
-        """Return the optimised inputs and statistics."""
+    def solve(self, problem: Problem, U0: Array, warm: Any = NO_WARM) -> tuple[Array, SolveInfo, Any]:
+        """The optimised inputs, their statistics and the warm state for the next (shifted) problem."""
         ...

@@ -9,8 +9,28 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pinnmpc.controller.ocp import HorizonOCP
-from pinnmpc.controller.solvers.base import BOUND_TOL, SolveInfo, project, result
+from pinnmpc.controller.ocp import Array, HorizonOCP
+from pinnmpc.controller.solvers.base import (
+    BOUND_TOL,
+    NO_WARM,
+    NoWarm,
+    Problem,
+    SolveInfo,
+    project,
+    result,
+    wrong_warm,
+)
+
+
+@dataclass(frozen=True, eq=False)
+class GaussNewtonWarm:
+    """Gauss-Newton's receding-horizon warm start: the last solution's state sensitivities d x_i / d U.
+
+    Shifted by one step they are the next problem's Jacobian but for its last step, which saves H - 1
+    of the H network Jacobians of the first iteration.
+    """
+
+    sensitivities: np.ndarray  # (B, H, nx, H*nu)
 
 
 @dataclass
@@ -31,49 +51,67 @@ class GaussNewtonSolver:
     step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.01)  # tried first alone, then the rest at once
     reuse_jacobian: bool = True  # receding horizon: the first step reuses the last solve's sensitivities, shifted
     array_api: ClassVar[str] = "numpy"  # also accepts torch tensors (and then returns them)
-    accepts_prior: ClassVar[bool] = True
-    prior_kind: ClassVar[str] = "sensitivities"  # the SolveInfo field the next solve takes as prior
 
     def __post_init__(self) -> None:
         self.alphas = np.asarray(self.step_lengths, dtype=np.float64)
         if self.alphas.ndim != 1 or self.alphas.size == 0 or np.any(self.alphas <= 0):
             raise ValueError(f"step_lengths must be a non-empty list of positive numbers, got {self.step_lengths}")
 
-    def solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior=None):
-        """Accepts torch or numpy; returns the same kind.
+    def solve(
+        self, problem: Problem, U0: Array, warm: GaussNewtonWarm | NoWarm = NO_WARM
+    ) -> tuple[Array, SolveInfo, GaussNewtonWarm | NoWarm]:
+        """Optimised inputs, statistics and the sensitivities for the next solve; torch in, torch out.
 
-        prior: the previous receding-horizon solve's SolveInfo field named by prior_kind, when U0 is its
-        plan shifted by one step: a warm start beyond U0 (see the solver's class docstring).
+        warm: what this solver returned for the previous receding-horizon problem, whose plan shifted by
+        one step is U0: a Jacobian warm start beyond U0 (see the class docstring); NO_WARM: none.
         """
         as_torch = isinstance(U0, Tensor)
         args = [
             a.detach().numpy() if isinstance(a, Tensor) else np.asarray(a, dtype=np.float64)
-            for a in (x0, U0, x_ref, u_prev, low, high)
+            for a in (problem.x0, U0, problem.x_ref, problem.u_prev, problem.low, problem.high)
         ]
-        if prior is not None and not self._uses_prior(ocp):
-            prior = None
-        if prior is not None:
-            prior = np.asarray(prior, dtype=np.float64)
-            want = self._prior_shape(ocp, int(np.prod(U0.shape[:-2])))
-            if prior.shape != want:
-                raise ValueError(f"prior {self.prior_kind} must have shape {want}, got {prior.shape}")
+        lead = tuple(U0.shape[:-2])
+        prior = self._warm_array(warm, problem.ocp, lead)
         with np.errstate(divide="ignore", invalid="ignore"):  # ratios of decreases not formed yet are NaN
-            U, iterations, cost, converged, warm = self._solve(ocp, *args, prior)
-        lead = U.shape[:-2]
-        kind = {self.prior_kind: None if warm is None else warm.reshape(*lead, *warm.shape[1:])}
+            U, iterations, cost, converged, out = self._solve(problem.ocp, *args, prior)
+        out = None if out is None else out.reshape(*lead, *out.shape[1:])
+        next_warm, states = self._next_warm(out)
         if as_torch:
-            info = SolveInfo(torch.from_numpy(iterations), torch.from_numpy(cost), torch.from_numpy(converged), **kind)
-            return torch.from_numpy(U), info
-        return U, SolveInfo(iterations, cost, converged, **kind)
+            info = SolveInfo(torch.from_numpy(iterations), torch.from_numpy(cost), torch.from_numpy(converged), states)
+            return torch.from_numpy(U), info, next_warm
+        return U, SolveInfo(iterations, cost, converged, states), next_warm
 
-    def _uses_prior(self, ocp: HorizonOCP) -> bool:
-        """Whether a prior can help here: the Jacobian warm start needs the numpy surrogate and H >= 2."""
+    def _warm_array(self, warm: object, ocp: HorizonOCP, lead: tuple[int, ...]) -> np.ndarray | None:
+        """The sensitivities of a GaussNewtonWarm as a flat batch, checked against this problem (None: unused)."""
+        if isinstance(warm, NoWarm):
+            return None
+        if not isinstance(warm, GaussNewtonWarm):
+            raise wrong_warm(self, warm, "GaussNewtonWarm or NoWarm")
+        return self._checked(warm.sensitivities, "sensitivities", ocp, lead)
+
+    def _checked(self, array: np.ndarray, name: str, ocp: HorizonOCP, lead: tuple[int, ...]) -> np.ndarray | None:
+        """A warm-start array of the expected shape as a flat batch; None where it cannot help this problem."""
+        if not self._uses_warm(ocp):
+            return None
+        array = np.asarray(array, dtype=np.float64)
+        want = (*lead, *self._warm_shape(ocp))
+        if array.shape != want:
+            raise ValueError(f"warm {name} must have shape {want}, got {array.shape}")
+        return array.reshape(-1, *array.shape[len(lead) :])
+
+    @staticmethod
+    def _next_warm(out: np.ndarray | None) -> tuple[GaussNewtonWarm | NoWarm, None]:
+        """The next solve's warm state from the last sensitivities (none without the numpy surrogate); no states."""
+        return (NO_WARM if out is None else GaussNewtonWarm(out)), None
+
+    def _uses_warm(self, ocp: HorizonOCP) -> bool:
+        """Whether a warm start can help here: the Jacobian warm start needs the numpy surrogate and H >= 2."""
         return self.reuse_jacobian and ocp.flow is not None and ocp.horizon >= 2
 
     @staticmethod
-    def _prior_shape(ocp: HorizonOCP, batch: int) -> tuple[int, ...]:
-        """Shape of the prior this solver takes: the sensitivities d x_i / d U."""
-        return (batch, ocp.horizon, ocp.nx, ocp.horizon * ocp.nu)
+    def _warm_shape(ocp: HorizonOCP) -> tuple[int, ...]:
+        """Shape per problem of the warm array this solver takes: the sensitivities d x_i / d U."""
+        return (ocp.horizon, ocp.nx, ocp.horizon * ocp.nu)
 
     def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):
         """Iterate until every problem has converged or max_iter is reached.

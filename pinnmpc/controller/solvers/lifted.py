@@ -3,13 +3,23 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
 
 import numpy as np
 
-from pinnmpc.controller.ocp import HorizonOCP
-from pinnmpc.controller.solvers.base import project, result
+from pinnmpc.controller.ocp import Array, HorizonOCP
+from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, project, result, wrong_warm
 from pinnmpc.controller.solvers.gauss_newton import GaussNewtonSolver
+
+
+@dataclass(frozen=True, eq=False)
+class LiftedWarm:
+    """The lifted solver's receding-horizon warm start: the states x_1..x_H the last solution reaches.
+
+    One step on they are the next problem's lifted states s_1..s_{H-1}, so the first iteration needs no
+    rollout (H sequential network calls) to start from.
+    """
+
+    states: np.ndarray  # (B, H, nx)
 
 
 @dataclass
@@ -21,7 +31,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     condenses the linearised dynamics into a Gauss-Newton step on U (the defects ride along as
     offsets) and moves the states to the linearised prediction. At convergence the defects vanish,
     so the solution is that of the single-shooting problem. The states start from the last solve's
-    predicted trajectory, one step on, when the controller hands it over as prior (a receding-horizon
+    predicted trajectory, one step on, when the controller hands it back as LiftedWarm (a receding-horizon
     warm start that costs no rollout); otherwise from a rollout of U0. Falls back to single-shooting
     Gauss-Newton when it does not converge or ends worse than it began.
     """
@@ -30,8 +40,25 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     fast_ratio: float = 1e-3  # a full step whose predicted decrease fell below this x the one before: see _remaining
     lifted_max_iter: int = 5  # lifted iterations before single shooting (max_iter more) takes over
     tol_final_defect: float = 1e-8  # the cost reached is measured by a full rollout where a defect exceeds this
-    accepts_prior: ClassVar[bool] = True
-    prior_kind: ClassVar[str] = "states"
+
+    def solve(
+        self, problem: Problem, U0: Array, warm: LiftedWarm | NoWarm = NO_WARM
+    ) -> tuple[Array, SolveInfo, LiftedWarm | NoWarm]:
+        """Optimised inputs, statistics (with the states they reach) and those states as the next warm start."""
+        return super().solve(problem, U0, warm)
+
+    def _warm_array(self, warm: object, ocp: HorizonOCP, lead: tuple[int, ...]) -> np.ndarray | None:
+        """The states of a LiftedWarm as a flat batch, checked against this problem (None: unused)."""
+        if isinstance(warm, NoWarm):
+            return None
+        if not isinstance(warm, LiftedWarm):
+            raise wrong_warm(self, warm, "LiftedWarm or NoWarm")
+        return self._checked(warm.states, "states", ocp, lead)
+
+    @staticmethod
+    def _next_warm(out: np.ndarray | None) -> tuple[LiftedWarm | NoWarm, np.ndarray | None]:
+        """The states the solution reaches: the next solve's warm start, and the plan's prediction for NMPC."""
+        return (NO_WARM if out is None else LiftedWarm(out)), out
 
     def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):
         """Lifted iterations on the numpy surrogate; single shooting when there is none or they fail."""
@@ -104,14 +131,14 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             X[rows] = ocp.rollout(x0b[rows], U[rows].reshape(-1, horizon, nu))
         return result(shape, project(U, lo, hi), iterations, cost, ~running, X)
 
-    def _uses_prior(self, ocp: HorizonOCP) -> bool:
-        """The states warm start needs the numpy surrogate."""
+    def _uses_warm(self, ocp: HorizonOCP) -> bool:
+        """Whether a warm start can help here: the states warm start needs the numpy surrogate."""
         return ocp.flow is not None
 
     @staticmethod
-    def _prior_shape(ocp: HorizonOCP, batch: int) -> tuple[int, ...]:
-        """Shape of the prior this solver takes: the last plan's states x_1..x_H."""
-        return (batch, ocp.horizon, ocp.nx)
+    def _warm_shape(ocp: HorizonOCP) -> tuple[int, ...]:
+        """Shape per problem of the warm array this solver takes: the last plan's states x_1..x_H."""
+        return (ocp.horizon, ocp.nx)
 
     @staticmethod
     def _linearise(ocp, nodes, U):

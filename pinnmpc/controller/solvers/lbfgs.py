@@ -1,0 +1,55 @@
+"""torch.optim.LBFGS on the inputs, projected onto the box between rounds."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import torch
+from torch import Tensor
+
+from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, wrong_warm
+
+
+@dataclass
+class LBFGSSolver:
+    """Quasi-Newton with strong Wolfe line search: a generic reference that needs only autograd gradients."""
+
+    max_iter: int = 20  # L-BFGS iterations per round
+    rounds: int = 5  # projection rounds
+    tol: float = 1e-12  # stop when a round changes the summed cost less than this
+    array_api: ClassVar[str] = "torch"
+
+    def solve(self, problem: Problem, U0: Tensor, warm: NoWarm = NO_WARM) -> tuple[Tensor, SolveInfo, NoWarm]:
+        """Optimised inputs and statistics; no warm state, since the curvature pairs belong to the last problem."""
+        if not isinstance(warm, NoWarm):
+            raise wrong_warm(self, warm, "NoWarm")
+        ocp, x0, x_ref, u_prev = problem.ocp, problem.x0, problem.x_ref, problem.u_prev
+        low, high = problem.low, problem.high
+        U = U0.clone().requires_grad_(True)
+        opt = torch.optim.LBFGS([U], lr=1.0, max_iter=self.max_iter, line_search_fn="strong_wolfe")
+        evals = [0]
+
+        def closure() -> Tensor:
+            opt.zero_grad()
+            cost = ocp.cost(x0, U, x_ref, u_prev).sum()
+            cost.backward()
+            evals[0] += 1
+            return cost
+
+        with torch.no_grad():  # per problem the best feasible point so far: L-BFGS lowers the summed cost, and
+            best_u = torch.maximum(torch.minimum(U0, high), low)  # a projection can undo a round's gain
+            best = ocp.cost(x0, best_u, x_ref, u_prev)
+        prev = float("inf")
+        for _ in range(self.rounds):
+            cost = float(opt.step(closure).detach())
+            with torch.no_grad():
+                U.copy_(torch.maximum(torch.minimum(U, high), low))
+                reached = ocp.cost(x0, U, x_ref, u_prev)
+                better = reached < best
+                best_u[better], best = U[better], torch.where(better, reached, best)
+            if abs(prev - cost) < self.tol * max(1.0, abs(cost)):
+                break
+            prev = cost
+        converged = torch.ones(best.shape, dtype=torch.bool)
+        return best_u, SolveInfo(torch.full(best.shape, evals[0]), best, converged), NO_WARM

@@ -1,0 +1,60 @@
+"""Per-command --help (conf/hydra/help/): each entry point explains the keys a user sets, and only real keys."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from collections.abc import Callable
+from functools import cache
+
+import pytest
+from omegaconf import DictConfig, OmegaConf
+
+from tests.conftest import CONF, ROOT
+
+COMMANDS = {  # module: its primary config
+    "train": "train",
+    "closed_loop": "closed_loop",
+    "self_loop": "self_loop",
+    "robustness": "robustness",
+    "bench": "bench",
+}
+KEY = re.compile(r"^ {2,}([A-Za-z_][\w.]*)=", re.MULTILINE)  # a key at the start of an indented help line
+ABSENT = object()
+
+
+@cache
+def _help(module: str) -> str:
+    """What `python -m pinnmpc.<module> --help` prints, as a user runs it (once: each start imports torch)."""
+    r = subprocess.run(
+        [sys.executable, "-m", f"pinnmpc.{module}", "--help"], capture_output=True, text=True, cwd=ROOT, timeout=120
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    return r.stdout
+
+
+def test_closed_loop_help_names_its_keys_and_not_the_training_groups() -> None:
+    text = _help("closed_loop")
+    assert text.startswith("pinnmpc.closed_loop: ")
+    for key in ("system=", "controller=", "controller.solver=", "checkpoint=", "reference.path=", "hydra.run.dir="):
+        assert key in text, key
+    for key in ("animate=true", "max_steps=", "noise_sigma="):
+        assert key in text, key
+    assert "Examples:" in text and text.count("python -m pinnmpc.closed_loop") >= 4
+    # Hydra's generic page lists every config group of conf/, the training ones too, and dumps the config
+    for generic in ("Configuration groups", "hparams_search", "trainer", "module", "collocation", "_target_"):
+        assert generic not in text, generic
+
+
+@pytest.mark.parametrize("module", sorted(COMMANDS))
+def test_every_key_a_help_names_exists(module: str, make_cfg: Callable[..., DictConfig]) -> None:
+    text = _help(module)
+    assert text.startswith(f"pinnmpc.{module}: ") and "Examples:" in text
+    assert "Configuration groups" not in text
+    cfg = make_cfg(COMMANDS[module])
+    keys = set(KEY.findall(text))
+    assert len(keys) >= 5, keys
+    for key in keys - {"hydra.run.dir"}:
+        group = (CONF / key).is_dir()  # e.g. system=, experiment= (a group whose default is null)
+        assert group or OmegaConf.select(cfg, key, default=ABSENT) is not ABSENT, f"{module} --help names {key}="
