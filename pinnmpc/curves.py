@@ -1,0 +1,120 @@
+"""`python -m pinnmpc.curves RUN_DIR[=LABEL] ... --out FILE.png`: validation accuracy against training wall time.
+
+Reads the TensorBoard scalars every training run writes (`<run dir>/tensorboard/`), so runs of different
+optimisers, sizes or schedules compare on the one axis a user pays for. Time counts from the run's logger start;
+pauses between a killed run and its resume are left out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pinnmpc.io import atomic_write
+
+POSITION, VELOCITY = "val/rmse_position", "val/rmse_velocity"
+MAX_GAP_S = 600.0  # a pause longer than this between two logged epochs is a resume, not training
+
+
+@dataclass
+class Curve:
+    """One run's validation RMSE (worst position, worst velocity) against training minutes."""
+
+    label: str
+    minutes: np.ndarray
+    position: np.ndarray
+    velocity: np.ndarray
+
+
+def read_curve(run_dir: Path, label: str | None = None) -> Curve:
+    """The validation curve of one training run dir (an error naming the dir when it has no validation yet)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    tb = run_dir / "tensorboard"
+    if not tb.is_dir():
+        raise FileNotFoundError(f"{run_dir} has no tensorboard/ folder; expected a pinnmpc.train run dir")
+    acc = EventAccumulator(str(tb), size_guidance={"scalars": 0})
+    acc.Reload()
+    tags = acc.Tags()["scalars"]
+    if POSITION not in tags:
+        raise ValueError(f"{run_dir} has logged no validation yet ({POSITION}); let it run a few epochs")
+    pos, vel = acc.Scalars(POSITION), acc.Scalars(VELOCITY)
+    stamps = np.array([acc.FirstEventTimestamp(), *(e.wall_time for e in pos)])  # the logger starts with training
+    gaps = np.diff(stamps)
+    elapsed = np.cumsum(np.where(gaps > MAX_GAP_S, 0.0, gaps))
+    return Curve(
+        label or run_dir.name,
+        elapsed / 60.0,
+        np.array([e.value for e in pos]),
+        np.array([e.value for e in vel]),
+    )
+
+
+def plot_curves(curves: list[Curve], out: Path, title: str = "") -> None:
+    """Two log-scale panels (positions, velocities) against training minutes, one line per run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharex=True)
+    for c in curves:
+        axes[0].semilogy(c.minutes, c.position, marker=".", label=c.label)
+        axes[1].semilogy(c.minutes, c.velocity, marker=".", label=c.label)
+    axes[0].set_ylabel("one-step RMSE, worst joint angle [rad]")
+    axes[1].set_ylabel("one-step RMSE, worst joint velocity [rad/s]")
+    for ax in axes:
+        ax.set_xlabel("training wall time [min]")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    atomic_write(out, lambda p: fig.savefig(p, dpi=110, format="png"))
+    plt.close(fig)
+
+
+def write_csv(curves: list[Curve], out: Path) -> None:
+    """The plotted points, one row per run and validation."""
+
+    def write(p: Path) -> None:
+        with p.open("w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["run", "minutes", "rmse_position", "rmse_velocity"])
+            for c in curves:
+                w.writerows(
+                    [c.label, f"{m:.3f}", f"{p_:.4e}", f"{v:.4e}"]
+                    for m, p_, v in zip(c.minutes, c.position, c.velocity)
+                )
+
+    atomic_write(out, write)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI: plot the runs named on the command line."""
+    parser = argparse.ArgumentParser(prog="python -m pinnmpc.curves", description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", help="training run dirs, each optionally DIR=LABEL")
+    parser.add_argument("--out", type=Path, required=True, help="PNG to write (a CSV of the points goes beside it)")
+    parser.add_argument("--title", default="", help="figure title")
+    args = parser.parse_args(argv)
+    curves = []
+    for spec in args.runs:
+        path, _, label = spec.partition("=")
+        try:
+            curves.append(read_curve(Path(path), label or None))
+        except (FileNotFoundError, ValueError) as e:
+            print(f"pinnmpc.curves: {e}", file=sys.stderr)
+            return 2
+    plot_curves(curves, args.out, args.title)
+    write_csv(curves, args.out.with_suffix(".csv"))
+    print(f"wrote {args.out} and {args.out.with_suffix('.csv')}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,28 @@
+"""Accuracy-against-time plots read a real training run's TensorBoard log."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pinnmpc.curves import main, read_curve
+from pinnmpc.train import train
+from tests.conftest import TINY_TRAIN
+
+
+def test_a_training_run_gives_a_curve_plot_and_csv(make_cfg, tmp_path):
+    run = tmp_path / "run"
+    train(make_cfg("train", [*TINY_TRAIN, "trainer.max_epochs=3"]), run)
+    curve = read_curve(run, "tiny")
+    assert len(curve.minutes) == 3 and np.all(np.diff(curve.minutes) >= 0) and curve.minutes[0] > 0
+    assert np.all(curve.position > 0) and np.all(curve.velocity > 0)
+    out = tmp_path / "curves.png"
+    assert main([f"{run}=tiny", "--out", str(out)]) == 0
+    assert out.read_bytes().startswith(b"\x89PNG")
+    rows = out.with_suffix(".csv").read_text().splitlines()
+    assert rows[0] == "run,minutes,rmse_position,rmse_velocity" and len(rows) == 4
+
+
+def test_a_dir_that_is_no_training_run_is_named_in_the_error(tmp_path, capsys):
+    assert main([str(tmp_path), "--out", str(tmp_path / "x.png")]) == 2
+    assert f"{tmp_path} has no tensorboard/ folder" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()
