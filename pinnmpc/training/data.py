@@ -110,7 +110,7 @@ class CollocationDataModule(L.LightningDataModule):
         """LHS points, or with adaptive_pool the RAR-D draw (Wu et al. 2023) from a larger LHS pool.
 
         Density ~ r^k / mean(r^k) + c over the pool (r: squared residual of the current model), so points
-        gather where the physics is still violated (friction switching at dbeta = 0, small t) while c keeps
+        gather where the physics is still violated (where a joint velocity crosses zero and friction switches, small t) while c keeps
         the whole box covered.
         """
         scorer = self._scorer()
