@@ -54,7 +54,14 @@ def flow_scale(system: System, t_max: float, n: int, h: float, quantile: float, 
 
 
 class CollocationDataModule(L.LightningDataModule):
-    """Full-batch training points (redrawn at `resample_epochs`) and one-step validation rollouts."""
+    """Full-batch training points (redrawn at `resample_epochs`) and one-step validation rollouts.
+
+    Under DDP (N processes) every process makes the same global draw and keeps its rows rank::N, so the shards are
+    disjoint, together they are the one-process draw, and each redraw is the same on every process; its batch then
+    carries `share` = N x shard size / n_collocation, which makes the mean over the processes of each shard's
+    weighted physics loss the mean over all points. The data points at t = 0 and the validation set are the same on
+    every process.
+    """
 
     def __init__(
         self,
@@ -100,6 +107,12 @@ class CollocationDataModule(L.LightningDataModule):
         self.val: dict[str, Tensor] = {}
         self._drawn_for_epoch = -1
 
+    def shard(self) -> tuple[int, int]:
+        """(rank, number of processes) of this process in the trainer's strategy; (0, 1) without a trainer."""
+        if self.trainer is None:
+            return 0, 1
+        return int(self.trainer.global_rank), int(self.trainer.world_size)
+
     def _scorer(self) -> Scorer | None:
         """The training module's pointwise residual, once there is a trained model to ask (not for the first draw)."""
         if not self.adaptive_pool or self.draws == 0 or self.trainer is None:
@@ -110,27 +123,53 @@ class CollocationDataModule(L.LightningDataModule):
         """LHS points, or with adaptive_pool the RAR-D draw (Wu et al. 2023) from a larger LHS pool.
 
         Density ~ r^k / mean(r^k) + c over the pool (r: squared residual of the current model), so points
-        gather where the physics is still violated (where a joint velocity crosses zero and friction switches, small t) while c keeps
-        the whole box covered.
+        gather where the physics is still violated (small t; where a joint velocity crosses zero and friction
+        switches) while c keeps the whole box covered.
         """
         scorer = self._scorer()
         if scorer is None:
             return lhs_box(self.n_collocation, low, high, seed)
         pool = lhs_box(self.adaptive_pool * self.n_collocation, low, high, seed)
-        nx = self.system.state_box.dim
-        r = scorer(pool[:, :1], pool[:, 1 : 1 + nx], pool[:, 1 + nx :]).pow(self.adaptive_k)
+        r = self._score(scorer, pool).pow(self.adaptive_k)
         weights = r / r.mean().clamp_min(torch.finfo(r.dtype).tiny) + self.adaptive_c
         generator = torch.Generator().manual_seed(seed)
         return pool[torch.multinomial(weights, self.n_collocation, replacement=False, generator=generator)]
 
+    def _score(self, scorer: Scorer, pool: Tensor) -> Tensor:
+        """The residual at every pool point (on the CPU); under DDP each process scores its rows rank::N and all
+        gather them, so every process holds the same scores."""
+        nx = self.system.state_box.dim
+        rank, world = self.shard()
+        if world == 1:
+            return scorer(pool[:, :1], pool[:, 1 : 1 + nx], pool[:, 1 + nx :]).cpu()
+        mine = pool[rank::world]
+        r = scorer(mine[:, :1], mine[:, 1 : 1 + nx], mine[:, 1 + nx :])
+        padded = r.new_zeros(-(-len(pool) // world))  # all_gather wants the same size on every process
+        padded[: len(r)] = r
+        gathered = self.trainer.strategy.all_gather(padded).cpu()  # (world, padded size)
+        scores = torch.empty(len(pool), dtype=gathered.dtype)
+        for k in range(world):
+            scores[k::world] = gathered[k, : len(range(k, len(pool), world))]
+        return scores
+
     def draw(self) -> None:
-        """Draw a fresh set of collocation and data points; the k-th plain-LHS draw is fixed by (seed, k)."""
+        """Draw a fresh set of collocation and data points; the k-th plain-LHS draw is fixed by (seed, k). Under
+        DDP this process keeps its shard of the collocation points (rows rank::N of the same draw)."""
         s = self.system
         seed = self.seed + 7919 * self.draws
         low, high = collocation_box(s, self.t_high)
         pts = self._collocation(low, high, seed)
+        rank, world = self.shard()
+        if world > self.n_collocation:
+            raise ValueError(
+                f"data.n_collocation={self.n_collocation}: expected at least one point per process ({world})"
+            )
+        if world > 1:
+            pts = pts[rank::world].clone()  # a copy: the global draw is not kept
         nx = s.state_box.dim
         batch = {"t": pts[:, :1], "x0": pts[:, 1 : 1 + nx], "u": pts[:, 1 + nx :]}
+        if world > 1:  # the weight that makes the mean over processes of the shard means the mean over all points
+            batch["share"] = torch.tensor(world * len(pts) / self.n_collocation, dtype=torch.float64)
         if self.n_data:
             data = lhs_box(self.n_data, low[1:], high[1:], seed + 1)
             batch.update(data_x0=data[:, :nx], data_u=data[:, nx:])
