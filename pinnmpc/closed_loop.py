@@ -205,8 +205,9 @@ def verdict(m: dict[str, Any], max_fallback_fraction: float) -> str:
 
 
 def system_reference(cfg: DictConfig, system: System, tau: float) -> Reference:
-    """reference.path if given, else the system's built-in reference.name, on the grid of tau."""
-    box = system.state_box
+    """reference.path if given, else the system's built-in reference.name, on the grid of tau; refused when it
+    leaves the system's joint limits."""
+    box, limits = system.state_box, getattr(system, "joint_limits", None)
     return load_reference(
         resolve_reference_path(cfg.reference.path),
         tau,
@@ -214,6 +215,7 @@ def system_reference(cfg: DictConfig, system: System, tau: float) -> Reference:
         system.state_names,
         OmegaConf.to_container(cfg.system.references, resolve=True),
         (box.low[: system.nq], box.high[: system.nq]),
+        None if limits is None else (limits.low, limits.high),
     )
 
 

@@ -338,25 +338,56 @@ def load_reference(
     state_names: Sequence[str],
     builtins: dict[str, Any],
     position_box: tuple[Sequence[float], Sequence[float]] | None = None,
+    joint_limits: tuple[Sequence[float], Sequence[float]] | None = None,
 ) -> Reference:
     """What the closed-loop CLI needs: a file if given, else the named built-in, on the controller's grid.
 
-    builtins is the system's `references:` config; position_box its joint range, for random references."""
+    builtins is the system's `references:` config; position_box its joint range, for random references;
+    joint_limits (low, high) its joint position limits: a reference that leaves them is refused."""
     if path is None:
         ref = check_states(builtin_reference(name, builtins, position_box), state_names)
     else:
         ref = read_reference(path, state_names)
+    if joint_limits is not None:
+        check_joint_limits(ref, *joint_limits, state_names)
     return resample(ref, tau)
+
+
+def excursions(ref: Reference, low: Sequence[float], high: Sequence[float], columns: int | None = None) -> np.ndarray:
+    """How far each sample lies past the box (0 inside), (N, columns): the first `columns` states (None: all)."""
+    n = ref.x.shape[1] if columns is None else columns
+    lo, hi = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+    if lo.shape != (n,) or hi.shape != lo.shape:
+        raise ReferenceError(f"box low {lo.shape}, high {hi.shape}; expected {n} bounds each")
+    if np.any(lo > hi):
+        raise ReferenceError(f"box low {lo.tolist()} exceeds high {hi.tolist()}; expected low <= high")
+    x = ref.x[:, :n]
+    return np.maximum(lo - x, x - hi).clip(min=0.0)
 
 
 def out_of_box(ref: Reference, low: Sequence[float], high: Sequence[float]) -> float:
     """Largest per-coordinate excursion past the box, to warn when a reference leaves the surrogate's training box."""
-    lo, hi = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
-    if lo.shape != (ref.x.shape[1],) or hi.shape != lo.shape:
-        raise ReferenceError(f"box low {lo.shape}, high {hi.shape}; expected {ref.x.shape[1]} bounds each")
-    if np.any(lo > hi):
-        raise ReferenceError(f"box low {lo.tolist()} exceeds high {hi.tolist()}; expected low <= high")
-    return float(np.max(np.maximum(lo - ref.x, ref.x - hi).clip(min=0.0)))
+    return float(np.max(excursions(ref, low, high)))
+
+
+def check_joint_limits(
+    ref: Reference, low: Sequence[float], high: Sequence[float], state_names: Sequence[str] = ()
+) -> Reference:
+    """Refuse a reference with any position sample outside the joint limits [low, high] (one per joint, positions
+    first in the state), naming the joint, the worst sample's time and value, and the limit it passes."""
+    beyond = excursions(ref, low, high, len(low))
+    if not beyond.any():
+        return ref
+    i, j = np.unravel_index(int(np.argmax(beyond)), beyond.shape)
+    q, lo, hi = ref.x[i, j], float(low[j]), float(high[j])
+    side, limit = ("above its upper", hi) if q > hi else ("below its lower", lo)
+    joint = state_names[j] if j < len(state_names) else f"joint {j}"
+    count = int(np.count_nonzero(beyond.any(axis=1)))
+    raise ReferenceError(
+        f"{ref.name}: reference leaves the joint limits: {joint} = {q:.6g} at t={ref.t[i]:g} s (sample {i}, worst of "
+        f"{count} samples outside) is {beyond[i, j]:.3g} {side} limit {limit:g}; expected every position in "
+        f"[{lo:g}, {hi:g}]"
+    )
 
 
 def resolve_reference_path(path: str | Path | None) -> str | None:

@@ -19,16 +19,18 @@ OPTIONAL = {  # what a Python caller may leave out (conf/controller/nmpc.yaml se
     "solver": "lifted_gauss_newton",
     "solvers": {},
     "disturbance": {},
+    "joint_limits": None,
 }
 
 
 def build_nmpc(cfg: Any, surrogate: Surrogate) -> NMPC:
-    """NMPC from conf/controller: horizon, weights, bounds (null: the surrogate's input box), solver."""
+    """NMPC from conf/controller: horizon, weights, soft joint limits, bounds (null: the surrogate's input box),
+    solver."""
     if isinstance(cfg, DictConfig):
         cfg = OmegaConf.to_container(cfg, resolve=True)  # plain values: config objects are slow in hot loops
     cfg = {**OPTIONAL, **cfg}
     solver = make_solver(cfg["solver"], **((cfg["solvers"] or {}).get(cfg["solver"]) or {}))
-    ocp = HorizonOCP(surrogate, cfg["horizon"], cfg["Q"], cfg["R"], cfg["R_rate"])
+    ocp = HorizonOCP(surrogate, cfg["horizon"], cfg["Q"], cfg["R"], cfg["R_rate"], cfg["joint_limits"])
     low = surrogate.input_box.low if cfg["u_low"] is None else cfg["u_low"]
     high = surrogate.input_box.high if cfg["u_high"] is None else cfg["u_high"]
     d = cfg["disturbance"] or {}

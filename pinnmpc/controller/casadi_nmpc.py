@@ -1,7 +1,8 @@
 """The classical NMPC on the true model (CasADi nlpsol, compiled): the baseline the PINN controller is compared with.
 
-Same cost, bounds, horizon and zero-order hold as NMPC (pinnmpc.controller.nmpc), the same make_step/reset/stats
-interface, the same fallback (a failed solve applies the previous plan shifted) and the same offset-free estimator.
+Same cost, soft joint limits, bounds, horizon and zero-order hold as NMPC (pinnmpc.controller.nmpc), the same
+make_step/reset/stats interface, the same fallback (a failed solve applies the previous plan shifted) and the same
+offset-free estimator.
 """
 
 from __future__ import annotations
@@ -180,7 +181,15 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
     low = system.input_box.low if cfg.get("u_low") is None else cfg["u_low"]
     high = system.input_box.high if cfg.get("u_high") is None else cfg["u_high"]
     ocp = CasadiOCP(
-        system, cfg["horizon"], cfg["Q"], cfg["R"], cfg.get("R_rate"), low, high, rk4_steps=cfg.get("rk4_steps")
+        system,
+        cfg["horizon"],
+        cfg["Q"],
+        cfg["R"],
+        cfg.get("R_rate"),
+        low,
+        high,
+        rk4_steps=cfg.get("rk4_steps"),
+        joint_limits=cfg.get("joint_limits"),
     )
     options = dict((cfg.get("solvers") or {}).get(plugin) or {})
     hessian, codegen = str(cfg.get("hessian", "gauss_newton")), bool(cfg.get("codegen", True))

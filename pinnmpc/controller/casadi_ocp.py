@@ -4,7 +4,8 @@ Variables w = (x_0, u_0, x_1, u_1, ..., x_{H-1}, u_{H-1}, x_H) and constraints g
 x_1 - F(x_0, u_0) - d, ..., x_H - F(x_{H-1}, u_{H-1}) - d) are ordered stage by stage (fatrop's
 structure detection needs that); the cost is the PINN controller's (pinnmpc.controller.ocp.HorizonOCP):
 sum_{k=1..H} |x_k - xref_k|_Q^2 + sum_{k=0..H-1} |u_k|_R^2 + |u_k - u_{k-1}|_{R_rate}^2 with u_{-1} the
-input applied last. Parameters p = (x_meas, xref_1..xref_H, u_prev, d).
+input applied last, plus the same soft joint-limit penalty on x_1..x_H (JointLimits). Parameters
+p = (x_meas, xref_1..xref_H, u_prev, d).
 
 With codegen, every function the solver evaluates (and F itself) is generated as C in one library
 (pinnmpc.systems.compiled) and the solver is rebuilt on it: a solve is then the solver's own C/C++ loop
@@ -14,14 +15,14 @@ calling compiled code.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import casadi as ca
 import numpy as np
 
-from pinnmpc.controller.ocp import psd_sqrt
+from pinnmpc.controller.ocp import JointLimits, psd_sqrt
 from pinnmpc.systems.compiled import compile_functions
 
 SOLVERS = ("ipopt", "sqpmethod", "fatrop")  # nlpsol plugins this controller knows how to configure
@@ -128,6 +129,7 @@ class CasadiOCP:
         u_low: Sequence[float],
         u_high: Sequence[float],
         rk4_steps: int | None = None,
+        joint_limits: JointLimits | Mapping | None = None,
     ) -> None:
         if int(horizon) < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
@@ -148,6 +150,12 @@ class CasadiOCP:
         self.R_rate = None if R_rate is None else weight(R_rate, self.nu, "R_rate")
         if self.R_rate is not None and not np.any(self.R_rate):
             self.R_rate = None
+        self.joint_limits = JointLimits.from_config(joint_limits, self.nx // 2)
+        self._limit_sides: list[tuple[int, float, float]] = []  # (joint, sign, where its penalty starts) per side
+        if self.joint_limits is not None:
+            for j, lo, hi in zip(self.joint_limits.joints, *self.joint_limits.inner):
+                self._limit_sides += [(int(j), -1.0, lo)] if math.isfinite(lo) else []
+                self._limit_sides += [(int(j), 1.0, hi)] if math.isfinite(hi) else []
         self.F, self.F_sens = rk4_flow(rhs, self.tau, self.rk4_steps)
         self._layout()
         self._build()
@@ -190,7 +198,8 @@ class CasadiOCP:
         ws, ps = ca.SX.sym("x", self.nw), ca.SX.sym("p", self.np)
         lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", self.ng)
         xss, uss, _, refs, u_prevs, _ = self._split(ws, ps)
-        hess = ca.triu(ca.sparsify(ca.evalf(ca.hessian(self._cost(xss, uss, refs, u_prevs), ws)[0])))
+        hess = ca.sparsify(ca.evalf(ca.hessian(self._tracking_cost(xss, uss, refs, u_prevs), ws)[0]))
+        hess = ca.triu(hess + self._limit_hessian(xss)) if self._limit_sides else ca.triu(hess)
         self.gauss_newton = ca.Function(
             "nlp_hess_l", [ws, ps, lam_f, lam_g], [lam_f * hess], ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"]
         )
@@ -209,7 +218,30 @@ class CasadiOCP:
         return self._cost(xs, us, ref, u_prev), g, ca.vertcat(*rows)
 
     def _cost(self, xs: list, us: list, ref: Any, u_prev: Any) -> Any:
-        """The PINN controller's horizon cost on symbols (MX or SX)."""
+        """The PINN controller's horizon cost on symbols (MX or SX), joint-limit penalty included."""
+        cost = self._tracking_cost(xs, us, ref, u_prev)
+        return cost + self._limit_cost(xs) if self._limit_sides else cost  # no limits: the very same expression
+
+    def _limit_cost(self, xs: list) -> Any:
+        """The soft joint limits of JointLimits on x_1..x_H: weight * (excess past limit - margin)^2 per side."""
+        cost = 0
+        for k in range(1, self.horizon + 1):
+            for j, sign, edge in self._limit_sides:
+                cost += self.joint_limits.weight * ca.fmax(0, sign * (xs[k][j] - edge)) ** 2
+        return cost
+
+    def _limit_hessian(self, xs: list) -> Any:
+        """Gauss-Newton Hessian of the limit penalty (SX, nw x nw): 2 weight on the diagonal of each position past
+        where its penalty starts, zero elsewhere (the penalty's residuals are piecewise linear)."""
+        hess = ca.SX(self.nw, self.nw)
+        for k in range(1, self.horizon + 1):
+            for j, sign, edge in self._limit_sides:
+                i = int(self.ix[k, j])
+                hess[i, i] += 2.0 * self.joint_limits.weight * (sign * (xs[k][j] - edge) > 0)
+        return hess
+
+    def _tracking_cost(self, xs: list, us: list, ref: Any, u_prev: Any) -> Any:
+        """The quadratic part of the cost: tracking, input and input-rate weights."""
         cost = 0
         for k in range(self.horizon):
             e = xs[k + 1] - ref[:, k]
@@ -237,7 +269,7 @@ class CasadiOCP:
         if plugin == "fatrop":
             opts.setdefault("structure_detection", "auto")  # stage-wise variables and constraints
             opts.setdefault("equality", [True] * self.ng)
-        if gauss_newton and plugin == "ipopt":
+        if gauss_newton and plugin == "ipopt" and not self._limit_sides:  # the limits' Hessian is piecewise constant
             opts["ipopt"].setdefault("hessian_constant", "yes")
         if codegen:
             return self._compiled(plugin, opts, gauss_newton)

@@ -7,7 +7,9 @@ pinnmpc.flowmap.FlowMap: the surrogate, its numpy fast path or the true model by
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from types import ModuleType
 
 import numpy as np
@@ -46,8 +48,72 @@ def psd_sqrt(matrix: Sequence[Sequence[float]] | Sequence[float], n: int, name: 
     return vec @ torch.diag(eig.clamp_min(0).sqrt()) @ vec.T
 
 
+LIMIT_KEYS = ("low", "high", "weight", "margin")
+
+
+@dataclass(frozen=True)
+class JointLimits:
+    """Soft joint position limits on every predicted state (both controllers take the same ones).
+
+    Per predicted state x_i and limited joint j (positions come first in the state) the residual is
+    sqrt(weight) * (q_j - clip(q_j, low_j + margin, high_j - margin)): zero, with a zero Jacobian, while the joint
+    keeps `margin` from both limits, so the problem is unchanged until a plan comes that close; beyond, the cost
+    grows with the square of the excess. An infinite bound is no limit on that side; a joint with neither is
+    not limited.
+    """
+
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    weight: float
+    margin: float = 0.0
+
+    def __post_init__(self) -> None:
+        low, high = tuple(float(v) for v in self.low), tuple(float(v) for v in self.high)
+        weight, margin = float(self.weight), float(self.margin)
+        if len(low) != len(high):
+            raise ValueError(f"joint_limits: low has {len(low)} entries, high {len(high)}; expected one per joint")
+        if not (math.isfinite(weight) and weight > 0):
+            raise ValueError(f"joint_limits.weight={self.weight!r}: expected a finite number > 0")
+        if not (math.isfinite(margin) and margin >= 0):
+            raise ValueError(f"joint_limits.margin={self.margin!r}: expected a finite number >= 0")
+        for j, (lo, hi) in enumerate(zip(low, high)):
+            if math.isnan(lo) or math.isnan(hi) or not lo + margin < hi - margin:
+                raise ValueError(
+                    f"joint_limits: joint {j} has low {lo:g}, high {hi:g} and margin {margin:g}; "
+                    "expected low + margin < high - margin"
+                )
+        for name, value in (("low", low), ("high", high), ("weight", weight), ("margin", margin)):
+            object.__setattr__(self, name, value)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping | JointLimits | None, nq: int) -> JointLimits | None:
+        """The limits of a config node {low, high, weight, margin} (None: none) for an arm with nq joints."""
+        if cfg is None:
+            return None
+        if not isinstance(cfg, JointLimits):
+            missing = [k for k in LIMIT_KEYS if k not in cfg]
+            if missing:
+                raise ValueError(f"joint_limits={dict(cfg)} lacks {missing}; expected {{{', '.join(LIMIT_KEYS)}}}")
+            cfg = cls(*(cfg[k] for k in LIMIT_KEYS))
+        if len(cfg.low) != nq:
+            raise ValueError(f"joint_limits has {len(cfg.low)} entries in low and high; this arm has {nq} joints")
+        return cfg
+
+    @property
+    def joints(self) -> np.ndarray:
+        """Indices of the joints with a finite limit on at least one side."""
+        return np.flatnonzero(np.isfinite(self.low) | np.isfinite(self.high))
+
+    @property
+    def inner(self) -> tuple[np.ndarray, np.ndarray]:
+        """Where the penalty starts, (low + margin, high - margin), for the limited joints."""
+        j = self.joints
+        return np.asarray(self.low)[j] + self.margin, np.asarray(self.high)[j] - self.margin
+
+
 class HorizonOCP:
-    """min_U sum_i ||W_q (x_i - x_ref_i)||^2 + ||W_r u_i||^2 + ||W_d (u_i - u_{i-1})||^2, x_{i+1} = F.step(x_i, u_i)."""
+    """min_U sum_i ||W_q (x_i - x_ref_i)||^2 + ||W_r u_i||^2 + ||W_d (u_i - u_{i-1})||^2 (+ the joint-limit
+    penalty of JointLimits on every x_i), x_{i+1} = F.step(x_i, u_i)."""
 
     def __init__(
         self,
@@ -56,6 +122,7 @@ class HorizonOCP:
         Q: Sequence,
         R: Sequence,
         R_rate: Sequence | None = None,
+        joint_limits: JointLimits | Mapping | None = None,
     ) -> None:
         if int(horizon) < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
@@ -69,6 +136,15 @@ class HorizonOCP:
             w_d = None
         self.weights = {torch: (psd_sqrt(Q, nx, "Q"), psd_sqrt(R, nu, "R"), w_d)}
         self.weights[np] = tuple(None if w is None else w.numpy() for w in self.weights[torch])
+        self.joint_limits = JointLimits.from_config(joint_limits, nx // 2)
+        self._limits: dict[ModuleType, tuple] | None = None  # per namespace: joints, where penalties start, sqrt(w)
+        if self.joint_limits is not None and self.joint_limits.joints.size:
+            joints, (lo, hi) = self.joint_limits.joints, self.joint_limits.inner
+            scale = math.sqrt(self.joint_limits.weight)
+            self._limits = {
+                np: (joints, lo, hi, scale),
+                torch: (torch.from_numpy(joints), torch.from_numpy(lo), torch.from_numpy(hi), scale),
+            }
         self._jac_u: dict[ModuleType, Array] = {}
         self._normal_u: tuple[np.ndarray, np.ndarray] | None = None
         self.differentiable = getattr(model, "array_api", "torch") == "torch"  # torch calls keep autograd
@@ -102,9 +178,14 @@ class HorizonOCP:
         return self.weights[np][2] is not None
 
     @property
+    def n_limits(self) -> int:
+        """Joints with a soft position limit (0: none)."""
+        return 0 if self._limits is None else self.joint_limits.joints.size
+
+    @property
     def n_residuals(self) -> int:
-        """Length of the stacked residual vector per problem."""
-        return self.horizon * (self.nx + self.nu + (self.nu if self.has_rate else 0))
+        """Length of the stacked residual vector per problem: states, inputs (and rates), joint limits."""
+        return self.horizon * (self.nx + self.nu + (self.nu if self.has_rate else 0) + self.n_limits)
 
     @property
     def disturbance(self) -> np.ndarray | None:
@@ -176,10 +257,32 @@ class HorizonOCP:
         return xp_of(x0).stack(xs, -2)
 
     def residuals(self, X: Array, U: Array, x_ref: Array, u_prev: Array) -> Array:
-        """Stacked weighted residuals (..., m); the cost is their squared norm."""
+        """Stacked weighted residuals (..., m): states, inputs (and rates), joint limits; the cost is their squared
+        norm."""
         w_q = self.weights[xp_of(U)][0]
         lead = U.shape[:-2]
-        return cat([((X - x_ref) @ w_q.T).reshape(*lead, -1), self.input_residuals(U, u_prev)], -1)
+        parts = [((X - x_ref) @ w_q.T).reshape(*lead, -1), self.input_residuals(U, u_prev)]
+        if self._limits is not None:
+            parts.append(self.limit_residuals(X).reshape(*lead, -1))
+        return cat(parts, -1)
+
+    def limit_residuals(self, X: Array) -> Array:
+        """The joint-limit residuals (..., H, n_limits) of predicted states X (..., H, nx): sqrt(w) times how far
+        each limited position lies beyond [low + margin, high - margin] (see JointLimits)."""
+        xp = xp_of(X)
+        joints, lo, hi, scale = self._limits[xp]
+        q = X[..., joints]
+        return scale * (q - xp.clip(q, lo, hi))
+
+    def limit_jacobian(self, X: Array, sens: Array) -> Array:
+        """d(limit residuals)/dU (..., H*n_limits, H*nu) from predicted states X (..., H, nx) and their sensitivities
+        sens (..., H, nx, H*nu): sqrt(w) times the position's sensitivity where a penalty is active, else zero."""
+        joints, lo, hi, scale = self._limits[xp_of(X)]
+        q = X[..., joints]
+        active = (q < lo) | (q > hi)
+        gain = scale * (active.to(q.dtype) if isinstance(active, Tensor) else active.astype(q.dtype))
+        rows = gain[..., None] * sens[..., joints, :]
+        return rows.reshape(*rows.shape[:-3], -1, rows.shape[-1])
 
     def input_residuals(self, U: Array, u_prev: Array) -> Array:
         """The input (and input-rate) part of the residuals (..., m_u): linear in U, no model involved."""
@@ -208,8 +311,17 @@ class HorizonOCP:
         jtj += jtj_u
         grad = (st @ rx[..., None])[..., 0]
         grad += ru @ jac_u
+        cost = np.einsum("bm,bm->b", rx, rx) + np.einsum("bm,bm->b", ru, ru)
+        if self._limits is not None:
+            X3 = X.reshape(batch, horizon, nx)
+            rl = self.limit_residuals(X3).reshape(batch, -1)
+            if rl.any():  # a penalty is active somewhere (else its residuals and Jacobian rows are all zero)
+                jl = self.limit_jacobian(X3, sens.reshape(batch, horizon, nx, -1))
+                jtj += jl.swapaxes(-1, -2) @ jl
+                grad += (rl[:, None, :] @ jl)[:, 0]
+                cost = cost + np.einsum("bm,bm->b", rl, rl)
         grad *= 2.0
-        return np.einsum("bm,bm->b", rx, rx) + np.einsum("bm,bm->b", ru, ru), jtj, grad
+        return cost, jtj, grad
 
     def _input_normal(self) -> tuple[np.ndarray, np.ndarray]:
         """The constant input Jacobian and its J^T J (numpy), computed once."""
@@ -237,10 +349,14 @@ class HorizonOCP:
             sens[..., :, i * self.nu : (i + 1) * self.nu] += b
             xs.append(x)
             sens_list.append(sens)
-        r = self.residuals(xp.stack(xs, -2), U, x_ref, u_prev)
-        jac_x = (w_q @ xp.stack(sens_list, -3)).reshape(*lead, self.horizon * self.nx, n_var)
+        X, S = xp.stack(xs, -2), xp.stack(sens_list, -3)
+        r = self.residuals(X, U, x_ref, u_prev)
+        jac_x = (w_q @ S).reshape(*lead, self.horizon * self.nx, n_var)
         jac_u = self._input_jacobian(xp)  # constant: the input and input-rate residuals are linear in U
-        return r, cat([jac_x, xp.broadcast_to(jac_u, (*lead, *jac_u.shape))], -2)
+        parts = [jac_x, xp.broadcast_to(jac_u, (*lead, *jac_u.shape))]
+        if self._limits is not None:
+            parts.append(self.limit_jacobian(X, S))
+        return r, cat(parts, -2)
 
     def _residuals_and_jacobian_numpy(
         self, x0: np.ndarray, U: np.ndarray, x_ref: np.ndarray, u_prev: np.ndarray
@@ -294,7 +410,11 @@ class HorizonOCP:
         )
         jac = np.empty((batch, r.shape[-1], n_var))
         np.matmul(self.weights[np][0], sens, out=jac[:, : horizon * nx].reshape(batch, horizon, nx, n_var))
-        jac[:, horizon * nx :] = self._input_jacobian(np)
+        jac_u = self._input_jacobian(np)
+        end = horizon * nx + jac_u.shape[0]
+        jac[:, horizon * nx : end] = jac_u
+        if self._limits is not None:
+            jac[:, end:] = self.limit_jacobian(X, sens)
         return r, jac
 
     def _input_jacobian(self, xp: ModuleType) -> Array:

@@ -57,6 +57,7 @@ class System(Protocol):
     input_units: tuple[str, ...]
     state_box: Box
     input_box: Box
+    joint_limits: Box | None  # joint position limits (nq entries; None: none, e.g. joints that turn all the way round)
 
     def rhs(self, x: Any, u: Any) -> Any:
         """dx/dt for x (..., nx), u (..., nu): torch tensors (differentiable) or numpy arrays (the plant)."""

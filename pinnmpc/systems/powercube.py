@@ -143,6 +143,7 @@ class PowerCube:
     params: PowerCubeParams = field(default_factory=PowerCubeParams)
     state_box: Box = Box((-math.pi, -math.pi, -2.5, -2.5), (math.pi, math.pi, 2.5, 2.5))
     input_box: Box = Box((-0.5, -0.5), (0.5, 0.5))
+    joint_limits: Box | None = None  # none: both joints turn all the way round
     tau: float = 0.2  # control period of the paper, s
     link_lengths: tuple[float, float] = (0.5, 0.4)  # m, for drawings only (not part of the identified model)
     name: str = "powercube"

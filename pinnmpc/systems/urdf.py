@@ -70,6 +70,17 @@ def locked_urdf(path: Path, joints: Sequence[str]) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
+def urdf_joint_limits(path: Path, joints: Sequence[str]) -> Box:
+    """The <limit lower upper> of each joint (-inf/inf where a joint has none, e.g. a continuous one)."""
+    found = {j.get("name"): j for j in ET.parse(path).getroot().findall("joint")}
+    low, high = [], []
+    for name in joints:
+        limit = found[name].find("limit") if found[name].get("type") != "continuous" else None
+        low.append(-math.inf if limit is None or limit.get("lower") is None else float(limit.get("lower")))
+        high.append(math.inf if limit is None or limit.get("upper") is None else float(limit.get("upper")))
+    return Box(tuple(low), tuple(high))
+
+
 def revolute_joints(path: Path) -> list[str]:
     """Revolute joints in file order: the default joint list."""
     return [j.get("name") for j in ET.parse(path).getroot().findall("joint") if j.get("type") == "revolute"]
@@ -102,6 +113,7 @@ class RigidArm:
     state_units: tuple[str, ...] = ()
     input_units: tuple[str, ...] = ()
     tip_frame: str | None = None  # frame drawn as the tool tip (None: the last joint's child link)
+    joint_limits: Box | None = None  # joint position limits, nq entries (None: none; see urdf_limits for the URDF's)
     state_names: tuple[str, ...] = field(init=False)
     input_names: tuple[str, ...] = field(init=False)
 
@@ -134,6 +146,8 @@ class RigidArm:
                 raise ValueError(f"{self.name}: {key}={v!r}; expected a finite number >= 0")
         if not self.tau > 0 or not self.mass_scale > 0:
             raise ValueError(f"{self.name}: need tau > 0 and mass_scale > 0, got {self.tau} and {self.mass_scale}")
+        if self.joint_limits is not None and self.joint_limits.dim != n:
+            raise ValueError(f"{self.name}: joint_limits has {self.joint_limits.dim} entries; expected {n} (joints)")
         if self.state_box.dim != 2 * n or self.input_box.dim != n:
             raise ValueError(
                 f"{self.name}: state_box has {self.state_box.dim} and input_box {self.input_box.dim} entries; "
@@ -144,6 +158,11 @@ class RigidArm:
     def nq(self) -> int:
         """Number of joints (positions come first in the state)."""
         return len(self.joints)
+
+    @property
+    def urdf_limits(self) -> Box:
+        """The URDF's own position limits of the joints (what `joint_limits` of a URDF arm should repeat)."""
+        return urdf_joint_limits(Path(self.urdf), self.joints)
 
     def with_mismatch(self, friction_scale: float = 1.0, mass_scale: float = 1.0) -> RigidArm:
         """The same arm with scaled friction (or servo gain) and inertia: a plant the controller does not know."""
