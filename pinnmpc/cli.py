@@ -61,6 +61,7 @@ class RunDirState:
     hydra_files: dict[str, bytes] | None = None  # .hydra/* as it was (Hydra overwrites it); None: no .hydra
     lock_fd: int | None = None
     late: bool = False  # guarded after Hydra wrote into it (no RunDirGuard in the config): no record of before
+    helper: bool = False  # a DDP process of rank > 0: rank 0 holds the dir; this one neither locks nor deletes
 
 
 _STATE: dict[Path, RunDirState] = {}  # run dirs this process guards
@@ -152,11 +153,25 @@ def _release_all() -> None:
 atexit.register(_release_all)
 
 
+RANK_VARIABLES = ("RANK", "LOCAL_RANK", "NODE_RANK", "SLURM_PROCID")  # torchrun, Lightning's DDP children, srun
+
+
+def launched_rank() -> int:
+    """This process's rank as the launcher that started it says (Lightning re-runs the command for DDP ranks > 0
+    with LOCAL_RANK set, torchrun sets RANK, srun SLURM_PROCID); 0 for a process started by hand."""
+    ranks = [os.environ.get(name, "0") for name in RANK_VARIABLES]
+    return max((int(r) for r in ranks if r.strip().isdigit()), default=0)
+
+
 def guard(run_dir: Path, job: str) -> RunDirState:
     """Before Hydra writes into run_dir: check it can be a run dir, note what it holds, and lock it.
-    Raises ValueError with a one-line message when it cannot, RuntimeError when a live run holds it."""
+    Raises ValueError with a one-line message when it cannot, RuntimeError when a live run holds it.
+    A DDP process of rank > 0 shares rank 0's run dir: it takes no lock and never removes anything."""
     run_dir = absolute(run_dir)
     if run_dir in _STATE:
+        return _STATE[run_dir]
+    if launched_rank() > 0:
+        _STATE[run_dir] = RunDirState(run_dir, job, existed=True, helper=True)
         return _STATE[run_dir]
     if run_dir.exists() and not run_dir.is_dir():
         raise ValueError(f"hydra.run.dir={run_dir} is a file; expected a directory (new or existing) for the outputs")
@@ -224,6 +239,8 @@ def discard_own_files(run_dir: Path | None) -> None:
         return
     run_dir = absolute(run_dir)
     state = _STATE.get(run_dir)
+    if state is not None and state.helper:
+        return
     release(run_dir)
     if state is None or state.late:
         _discard_unguarded(run_dir)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import shlex
 import sys
 import time
@@ -11,6 +12,9 @@ from typing import Any
 import hydra
 import lightning as L
 import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.errors import InstantiationException
+from hydra.types import RunMode
 from hydra.utils import instantiate
 from lightning.pytorch.callbacks import Timer
 from omegaconf import DictConfig, OmegaConf
@@ -24,6 +28,7 @@ from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import build_system
 from pinnmpc.training.callbacks import AtomicCheckpoint, GracefulStop, SelfLoopFigure, SurrogateFacts
 from pinnmpc.training.data import flow_scale
+from pinnmpc.training.pipeline import base_training_time, train_in_stages
 from pinnmpc.training.progress import BudgetBar, quiet_lightning
 from pinnmpc.training.stage import staged_model
 
@@ -132,6 +137,58 @@ def check_fits(ckpt: dict[str, Any], label: str, module: L.LightningModule) -> N
         )
 
 
+def check_launcher(trainer: L.Trainer) -> None:
+    """Lightning starts the other DDP processes by running this command again, which inside a Hydra multirun
+    would run the whole sweep again in every process: refuse that (on SLURM, srun starts them instead)."""
+    launcher = getattr(trainer.strategy, "launcher", None)
+    if trainer.world_size <= 1 or launcher is None or not HydraConfig.initialized():
+        return
+    if HydraConfig.get().mode == RunMode.MULTIRUN:
+        raise ValueError(
+            f"{type(trainer.strategy).__name__} over {trainer.world_size} processes inside a multirun (-m): "
+            "Lightning would start the whole sweep again in each process; train one run per command, or sweep on "
+            "SLURM (hparams_search=slurm hydra.launcher.tasks_per_node=<trainer.devices>, docs/training.md)"
+        )
+
+
+def build_trainer(cfg: DictConfig, callbacks: list[L.Callback], logger: Any, run_dir: Path) -> L.Trainer:
+    """The Lightning Trainer of cfg.trainer; settings Lightning refuses (e.g. trainer.accelerator=gpu on a machine
+    without one) are one line, and so is DDP inside a local multirun."""
+    try:
+        trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=logger, default_root_dir=str(run_dir))
+    except InstantiationException as e:
+        reason = str(e.__cause__ or e).strip().splitlines()[0]
+        where = ", ".join(
+            f"trainer.{k}={cfg.trainer[k]}" for k in ("accelerator", "devices", "strategy") if k in cfg.trainer
+        )
+        raise ValueError(f"the trainer settings ({where}) were refused: {reason}") from None
+    check_launcher(trainer)
+    return trainer
+
+
+def sha256(tensors: list[torch.Tensor]) -> str:
+    """Checksum of the exact values (as float64) of some tensors, in order."""
+    flat = torch.cat([t.detach().reshape(-1).cpu().double() for t in tensors])
+    return hashlib.sha256(flat.numpy().tobytes()).hexdigest()
+
+
+def ddp_record(trainer: L.Trainer, module: L.LightningModule, datamodule: L.LightningDataModule) -> dict[str, Any]:
+    """Per process: its shard of points, redraws, stalls and a checksum of the parameters, gathered from every
+    process (a collective: all of them call it); the proof that the processes trained on different points and
+    kept identical parameters."""
+    mine = {
+        "rank": trainer.global_rank,
+        "points": len(datamodule.batch["t"]),
+        "points_sha256": sha256([datamodule.batch[k] for k in ("t", "x0", "u")]),
+        "params_sha256": sha256(list(module.parameters())),
+        "draws": int(datamodule.draws),
+        "stalls": int(getattr(module, "stalls", 0)),
+    }
+    ranks: list[Any] = [None] * trainer.world_size
+    torch.distributed.all_gather_object(ranks, mine)
+    return {"strategy": type(trainer.strategy).__name__, "world_size": trainer.world_size, "ranks": ranks}
+
+
 def resume_command(cfg_overrides: list[str], run_dir: Path) -> str:
     """The command that continues this run from its last.ckpt."""
     skip = ("resume=", "ckpt_path=", "hydra.run.dir=", "+resume=", "+ckpt_path=")
@@ -180,14 +237,17 @@ def train(
     if stop is not None:
         callbacks.append(GracefulStop(stop))
     logger = L.pytorch.loggers.TensorBoardLogger(save_dir=str(run_dir), name="tensorboard", version="")
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=logger, default_root_dir=str(run_dir))
-    start = time.perf_counter()
+    trainer = build_trainer(cfg, callbacks, logger, run_dir)
+    start, finished = time.perf_counter(), False
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path)
+        finished = True
     except (KeyboardInterrupt, SystemExit):  # a second signal: stop at once, keep the last epoch's checkpoint
         if stop is None or not stop.requested:
             raise
     wall = time.perf_counter() - start
+    # DDP: every process that finished fit gathers the record (one stopped at once by a second signal does not)
+    distributed = ddp_record(trainer, module, datamodule) if trainer.world_size > 1 and finished else None
     interrupted = stop is not None and stop.requested
     source = best.best_model_path or last.best_model_path
     meta = {
@@ -195,11 +255,16 @@ def train(
         "config": OmegaConf.to_container(cfg, resolve=True),
         "status": f"interrupted by {stop.name}" if interrupted and stop is not None else "ok",
         "wall_time_s": wall,
-        "training_time_s": training_time(trainer, wall),
+        # every network inside this one counts: a stage's frozen base too
+        "training_time_s": training_time(trainer, wall) + base_training_time(cfg.stage.base),
         "epochs": trainer.current_epoch,
         "best_val_rmse_position": float(best.best_model_score) if best.best_model_score is not None else None,
         "final_metrics": {k: float(v) for k, v in trainer.callback_metrics.items()},
     }
+    if distributed is not None:
+        meta["distributed"] = distributed
+    if not trainer.is_global_zero:  # DDP: rank 0 writes the run's files
+        return {**meta, "best_checkpoint": source or None, "rank": trainer.global_rank}
     if source and Path(source).is_file():
         surrogate = load_surrogate(source)
         surrogate.meta = meta
@@ -215,6 +280,22 @@ def train(
     return summary
 
 
+def train_command(
+    cfg: DictConfig,
+    run_dir: Path,
+    command: str = "python -m pinnmpc.train",
+    stop: StopSignal | None = None,
+    overrides: list[str] | None = None,
+) -> dict[str, Any]:
+    """What `python -m pinnmpc.train` runs: one network, or with stage.split a base and a correction stage on it."""
+    return train_in_stages(
+        cfg,
+        run_dir,
+        lambda c, d: train(c, d, command, stop, overrides),
+        resume_command(overrides or [], run_dir),
+    )
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 def main(cfg: DictConfig) -> float:
     """CLI: returns the best validation position RMSE, so Optuna sweeps can minimise it."""
@@ -223,10 +304,12 @@ def main(cfg: DictConfig) -> float:
     overrides = list(hydra_cfg.overrides.task)
     command = " ".join(["python -m pinnmpc.train", *overrides])
     with StopSignal() as stop:
-        summary = run_cli(lambda: train(cfg, run_dir, command, stop, overrides), "pinnmpc.train", run_dir)
+        summary = run_cli(lambda: train_command(cfg, run_dir, command, stop, overrides), "pinnmpc.train", run_dir)
+    score = summary["best_val_rmse_position"]
+    if summary.get("rank", 0) > 0:  # a DDP process of rank > 0: rank 0 reports
+        return float("inf") if score is None else score
     if summary["status"] == "interrupted":
         exit_interrupted(summary, run_dir, stop)
-    score = summary["best_val_rmse_position"]
     if score is None:  # the run ended before its first validation epoch
         every = cfg.trainer.check_val_every_n_epoch
         print(f"no validation ran (trainer.check_val_every_n_epoch={every}); outputs in {run_dir}")

@@ -3,18 +3,24 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
 import time
+from types import SimpleNamespace
 
 import lightning as L
 import pytest
 import torch
+from hydra.utils import instantiate
 
+from pinnmpc import cli
+from pinnmpc.cli import LOCK_NAME, discard_own_files, guard, launched_rank, release
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems import PowerCube
-from pinnmpc.train import build_model, train
+from pinnmpc.systems.registry import build_system
+from pinnmpc.train import build_model, sha256, train
 from pinnmpc.training.callbacks import AtomicCheckpoint
 from pinnmpc.training.data import CollocationDataModule, lhs_box
 from pinnmpc.training.module import PINNModule
@@ -319,3 +325,122 @@ def test_a_stage_on_a_base_for_another_tau_is_refused(make_cfg, tmp_path):
     cfg = make_cfg("train", [*TINY, f"stage.base={tmp_path / 'surrogate.pt'}", "stage.samples=8", "tau=0.1"])
     with pytest.raises(ValueError, match="trained for tau=0.2; this run has tau=0.1"):
         build_model(cfg, PowerCube())
+
+
+# ---------------------------------------------------------------------------------------------- DDP (trainer=ddp)
+
+
+def _as_rank(dm: CollocationDataModule, rank: int, world: int) -> CollocationDataModule:
+    """The data module as DDP process `rank` of `world` sees it (shard() asks the trainer only for these two)."""
+    dm.trainer = SimpleNamespace(global_rank=rank, world_size=world)
+    return dm
+
+
+def test_ddp_shards_are_disjoint_slices_weighted_to_the_global_mean(make_cfg):
+    module, _ = _tiny_module(make_cfg)
+    system, n = PowerCube(), 257  # not a multiple of the 2 processes: shards of 129 and 128 points
+    kwargs = dict(n_collocation=n, n_data=8, n_val=8, val_h=1e-2, seed=3)
+    full = CollocationDataModule(system, 0.2, 0.25, **kwargs)
+    full.draw()
+    shards = [_as_rank(CollocationDataModule(system, 0.2, 0.25, **kwargs), r, 2) for r in (0, 1)]
+    for dm in shards:
+        dm.draw()
+    pts = [torch.cat([dm.batch["t"], dm.batch["x0"], dm.batch["u"]], dim=1) for dm in shards]
+    whole = torch.cat([full.batch["t"], full.batch["x0"], full.batch["u"]], dim=1)
+    assert [len(p) for p in pts] == [129, 128]
+    assert torch.equal(pts[0], whole[0::2]) and torch.equal(pts[1], whole[1::2])  # one draw, sliced: disjoint
+    assert all(torch.equal(dm.batch["data_x0"], full.batch["data_x0"]) for dm in shards)  # data points: shared
+    assert [float(dm.batch["share"]) for dm in shards] == [2 * 129 / n, 2 * 128 / n]
+    with torch.no_grad():  # the mean over processes (what the closure all-reduces) is the loss over all points
+        per_rank = [module.losses(dm.batch) for dm in shards]
+        want = module.losses(full.batch)
+    for key in ("physics", "total"):
+        torch.testing.assert_close((per_rank[0][key] + per_rank[1][key]) / 2, want[key], rtol=1e-5, atol=0)
+    for dm in shards:  # a redraw moves every process to its slice of the same next draw
+        dm.draw()
+    full.draw()
+    assert torch.equal(shards[1].batch["x0"], full.batch["x0"][1::2])
+    with pytest.raises(ValueError, match="at least one point per process"):
+        _as_rank(CollocationDataModule(system, 0.2, 0.25, n_collocation=1), 0, 2).draw()
+
+
+def test_a_ddp_process_of_rank_above_zero_shares_the_run_dir_and_removes_nothing(tmp_path, monkeypatch):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / ".hydra").mkdir()
+    try:
+        guard(run_dir, "train")  # rank 0 holds the dir
+        monkeypatch.setenv("LOCAL_RANK", "1")  # what Lightning sets for the process it starts for rank 1
+        helper_dir = tmp_path / "elsewhere"
+        helper_dir.mkdir()
+        (helper_dir / ".hydra").mkdir()
+        state = guard(helper_dir, "train_ddp_process_1")
+        assert state.helper and state.lock_fd is None and not (helper_dir / LOCK_NAME).exists()
+        discard_own_files(helper_dir)  # bad input in rank 1 leaves rank 0's files alone
+        assert (helper_dir / ".hydra").is_dir()
+    finally:
+        for path in (run_dir, tmp_path / "elsewhere"):
+            release(path)
+            cli._STATE.pop(cli.absolute(path), None)
+    assert launched_rank() == 1
+    monkeypatch.setenv("LOCAL_RANK", "0")
+    assert launched_rank() == 0
+
+
+@pytest.mark.slow
+def test_ddp_two_gloo_processes_train_on_their_shards_with_identical_parameters(make_cfg, tmp_path):
+    tiny = [
+        *TINY_TRAIN,
+        "trainer.max_epochs=3",
+        "module.stall_min_evals=100",  # every epoch (<= 6 evaluations) stalls: history reset and redraw each time
+        "self_loop_figure.every_n_epochs=1",
+        "self_loop_figure.steps=3",
+        "progress=false",
+    ]
+    ddp = ["trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2"]
+    cmd = [sys.executable, "-m", "pinnmpc.train", *ddp, *tiny, f"hydra.run.dir={tmp_path}"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "GLOBAL_RANK: 1, MEMBER: 2/2" in proc.stderr and "distributed_backend=gloo" in proc.stderr
+    for name in ("surrogate.pt", "train_metrics.json", "checkpoints/best.ckpt", "checkpoints/last.ckpt"):
+        assert (tmp_path / name).is_file(), name
+    assert not (tmp_path / LOCK_NAME).exists()  # released by rank 0; rank 1 never took it
+    metrics = json.loads((tmp_path / "train_metrics.json").read_text())
+    record = metrics["distributed"]
+    assert record["world_size"] == 2 and metrics["epochs"] == 3
+    ranks = record["ranks"]
+    assert [r["rank"] for r in ranks] == [0, 1]
+    assert ranks[0]["params_sha256"] == ranks[1]["params_sha256"]  # bit-identical parameters on both processes
+    assert ranks[0]["stalls"] == ranks[1]["stalls"] == 3  # the same stall decisions ...
+    assert ranks[0]["draws"] == ranks[1]["draws"] == 4  # ... and redraws (the first draw plus one per stall)
+
+    cfg = make_cfg("train", tiny)
+    system = build_system(cfg.system)
+    data = instantiate(cfg.data, _partial_=True, _convert_="all")
+    for r in ranks:  # each process held exactly its half of the same global draw: different points
+        dm = _as_rank(data(system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed), r["rank"], 2)
+        dm.draws = r["draws"] - 1
+        dm.draw()
+        assert r["points"] == 128 and r["points_sha256"] == sha256([dm.batch[k] for k in ("t", "x0", "u")])
+    assert ranks[0]["points_sha256"] != ranks[1]["points_sha256"]
+
+    L.seed_everything(cfg.seed, verbose=False)  # the network train() starts from (same seed, same construction)
+    start = build_model(cfg, system)
+    trained = load_surrogate(tmp_path / "checkpoints" / "last.ckpt").model
+    assert sha256([p for p in trained.parameters()]) == ranks[0]["params_sha256"]  # rank 0's network was saved
+    first = data(system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed)
+    first.draw()  # all the points of the first epoch (both shards)
+    module = instantiate(cfg.module, _partial_=True, _convert_="all")
+    with torch.no_grad():
+        before = float(module(system=system, model=start, tau=cfg.tau).losses(first.batch)["total"])
+        after = float(module(system=system, model=trained, tau=cfg.tau).losses(first.batch)["total"])
+    assert after < 0.5 * before  # the loss fell
+
+
+@pytest.mark.skipif(torch.cuda.is_available() or torch.backends.mps.is_available(), reason="this machine has a GPU")
+def test_a_gpu_trainer_without_a_gpu_is_one_line_and_trainer_gpu_falls_back_to_the_cpu(make_cfg, tmp_path):
+    with pytest.raises(ValueError, match=r"trainer.accelerator=gpu.*were refused: No supported gpu backend"):
+        train(make_cfg("train", [*TINY, "trainer=gpu", "trainer.accelerator=gpu"]), tmp_path / "forced")
+    summary = train(make_cfg("train", [*TINY, "trainer=gpu", "trainer.max_epochs=1"]), tmp_path / "auto")
+    assert summary["epochs"] == 1 and "distributed" not in summary

@@ -99,17 +99,15 @@ class CasadiRhs(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: Tensor, u: Tensor, compiled: CompiledRhs) -> Tensor:
-        """dx/dt for x (B, nx), u (B, nu) in x's dtype."""
+        """dx/dt for x (B, nx), u (B, nu) in x's dtype and on its device (the C code runs on the CPU)."""
         ctx.compiled = compiled
         ctx.save_for_backward(x, u)
-        (y,) = compiled.rhs(x.detach().double().numpy(), u.detach().double().numpy())
-        return torch.from_numpy(y).to(x.dtype)
+        (y,) = compiled.rhs(x.detach().cpu().double().numpy(), u.detach().cpu().double().numpy())
+        return torch.from_numpy(y).to(device=x.device, dtype=x.dtype)
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, Tensor | None, None]:
         """x-bar, u-bar from the compiled VJP."""
         x, u = ctx.saved_tensors
-        gx, gu = ctx.compiled.vjp(
-            x.detach().double().numpy(), u.detach().double().numpy(), grad.detach().double().numpy()
-        )
-        return torch.from_numpy(gx).to(x.dtype), torch.from_numpy(gu).to(u.dtype), None
+        gx, gu = ctx.compiled.vjp(*(a.detach().cpu().double().numpy() for a in (x, u, grad)))
+        return torch.from_numpy(gx).to(x.device, x.dtype), torch.from_numpy(gu).to(u.device, u.dtype), None

@@ -22,8 +22,14 @@ class AtomicCheckpoint(ModelCheckpoint):
     """ModelCheckpoint whose files appear whole or not at all: a killed run never leaves a truncated .ckpt."""
 
     def _save_checkpoint(self, trainer: L.Trainer, filepath: str) -> None:
-        """Lightning's save, through a temporary file and a rename."""
-        atomic_write(filepath, lambda tmp: trainer.save_checkpoint(str(tmp), self.save_weights_only), suffix=".ckpt")
+        """Lightning's save, through a temporary file and a rename by the process that writes (global rank 0; the
+        other DDP processes take part in the save, which writes nothing there, and must not rename)."""
+        if trainer.is_global_zero:
+            atomic_write(
+                filepath, lambda tmp: trainer.save_checkpoint(str(tmp), self.save_weights_only), suffix=".ckpt"
+            )
+        else:
+            trainer.save_checkpoint(filepath, self.save_weights_only)
         self._last_global_step_saved = trainer.global_step
         self._last_checkpoint_saved = filepath
         if trainer.is_global_zero:
@@ -57,10 +63,10 @@ class SelfLoopFigure(L.Callback):
         self.reference: dict[str, np.ndarray] = {}
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        """The plant side of the test is fixed: compute it once."""
+        """The plant side of the test is fixed: compute it once (on the process that logs)."""
         from pinnmpc.self_loop import rollout_plant, sine_inputs
 
-        if self.every_n_epochs <= 0:
+        if self.every_n_epochs <= 0 or not trainer.is_global_zero:
             return
         u = sine_inputs(self.steps, self.amplitude)
         box = pl_module.system.state_box
@@ -73,15 +79,18 @@ class SelfLoopFigure(L.Callback):
 
         if self.every_n_epochs <= 0 or (trainer.current_epoch + 1) % self.every_n_epochs or trainer.logger is None:
             return
+        if not trainer.is_global_zero:
+            return
         experiment = getattr(trainer.logger, "experiment", None)
         if not hasattr(experiment, "add_figure"):
             return
-        model, u = pl_module.model, torch.as_tensor(self.reference["u"], dtype=pl_module.res_scale.dtype)
-        xs = [torch.as_tensor(self.reference["x"][0], dtype=u.dtype)]
+        like = pl_module.res_scale
+        model, u = pl_module.model, torch.as_tensor(self.reference["u"], dtype=like.dtype, device=like.device)
+        xs = [torch.as_tensor(self.reference["x"][0], dtype=u.dtype, device=u.device)]
         with torch.no_grad():
             for uk in u:
-                xs.append(model(torch.full((1,), pl_module.tau, dtype=u.dtype), xs[-1], uk))
-        x_pinn = torch.stack(xs).double().numpy()
+                xs.append(model(torch.full((1,), pl_module.tau, dtype=u.dtype, device=u.device), xs[-1], uk))
+        x_pinn = torch.stack(xs).double().cpu().numpy()
         t = pl_module.tau * np.arange(len(u) + 1)
         fig = plots.self_loop_figure(
             t,
@@ -97,7 +106,8 @@ class SelfLoopFigure(L.Callback):
 class GracefulStop(L.Callback):
     """On SIGTERM/SIGINT (a StopSignal): end training after the current epoch, cutting its L-BFGS call short, so
     the epoch-end checkpoint is written and the run resumes from it (Lightning's own SIGTERM path exits 0 mid-epoch
-    without a checkpoint)."""
+    without a checkpoint). Under DDP a signal may reach one process only (`kill` of rank 0): every process asks all
+    the others at each loss evaluation and each epoch end, so they cut the same L-BFGS call short and stop together."""
 
     def __init__(self, stop: StopSignal) -> None:
         self.stop = stop
@@ -105,17 +115,34 @@ class GracefulStop(L.Callback):
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Take the signals back from Lightning (it restores ours at teardown), and guard the L-BFGS closures."""
-        self.stop.hooks.append(lambda: setattr(trainer, "should_stop", True))
+        if trainer.world_size == 1:  # with several processes only the agreed stop of on_train_batch_end counts
+            self.stop.hooks.append(lambda: setattr(trainer, "should_stop", True))
         self.stop.install()
-        if self.stop.requested:  # the signal came during setup
+        if self._agreed(trainer):  # the signal came during setup
             trainer.should_stop = True
         for opt in trainer.optimizers:
             inner = getattr(opt, "optimizer", opt)
             if isinstance(inner, torch.optim.LBFGS | SSBFGS):
-                inner.step = self._guarded_step(inner)  # type: ignore[method-assign]
+                inner.step = self._guarded_step(inner, trainer)  # type: ignore[method-assign]
                 self._wrapped.append(inner)
 
-    def _guarded_step(self, opt: torch.optim.Optimizer) -> Any:
+    def _agreed(self, trainer: L.Trainer) -> bool:
+        """Whether any process was asked to stop (a collective under DDP: every process must call it alike); a
+        process that was not signalled itself takes on the signal, so it stops and reports as the others do."""
+        if trainer.world_size == 1:
+            return self.stop.requested
+        mine = torch.tensor(self.stop.signum or 0, device=trainer.strategy.root_device)
+        signum = int(trainer.strategy.reduce(mine, reduce_op="max"))
+        if signum and not self.stop.requested:
+            self.stop.signum = signum
+        return signum > 0
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
+        """Under DDP: stop after this epoch on every process once any of them was asked to."""
+        if trainer.world_size > 1 and self._agreed(trainer):
+            trainer.should_stop = True
+
+    def _guarded_step(self, opt: torch.optim.Optimizer, trainer: L.Trainer) -> Any:
         """L-BFGS's step whose closure reports a zero gradient once a stop is asked for: the line search then
         accepts its next point of sufficient decrease and the gradient test ends the call, so the network stops
         at a point L-BFGS accepted (the true gradient of the next start keeps the history consistent)."""
@@ -127,7 +154,7 @@ class GracefulStop(L.Callback):
 
             def closure_checked() -> Any:
                 loss = closure()
-                if self.stop.requested:
+                if self._agreed(trainer):
                     for group in opt.param_groups:
                         for p in group["params"]:
                             if p.grad is not None:

@@ -18,7 +18,12 @@ OPTIMIZERS = ("lbfgs", "ssbfgs")  # limited-memory BFGS (the paper's) | dense se
 
 
 class PINNModule(L.LightningModule):
-    """Data loss at t = 0 plus ODE-residual loss at collocation points, minimised full-batch."""
+    """Data loss at t = 0 plus ODE-residual loss at collocation points, minimised full-batch.
+
+    Under DDP each process holds a shard of the points (CollocationDataModule); every loss the optimiser or the
+    stall test sees is the mean over the processes (so all of them take the same line-search and stall decisions)
+    and DDP averages the gradients in manual_backward: the parameters stay identical on every process.
+    """
 
     def __init__(
         self,
@@ -95,8 +100,9 @@ class PINNModule(L.LightningModule):
         return w
 
     def _cast(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        """Training dtype (float32 is ~2x faster on CPU; the surrogate runs in float64 later)."""
-        return {k: v.to(self.res_scale.dtype) for k, v in batch.items()}
+        """Training dtype (float32 is ~2x faster on CPU; the surrogate runs in float64 later), on the module's
+        device."""
+        return {k: v.to(device=self.res_scale.device, dtype=self.res_scale.dtype) for k, v in batch.items()}
 
     def _scaled_residual(self, b: dict[str, Tensor]) -> Tensor:
         """ODE residual per point and state, in the units the physics loss weighs."""
@@ -105,7 +111,8 @@ class PINNModule(L.LightningModule):
 
     @torch.no_grad()
     def pointwise_residual(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
-        """Squared residual per point: where residual-adaptive sampling puts the next collocation points."""
+        """Squared residual per point (on the module's device): where residual-adaptive sampling puts the next
+        collocation points."""
         b = self._cast({"t": t, "x0": x0, "u": u})
         return self._scaled_residual(b).square().sum(dim=-1).double()
 
@@ -122,6 +129,8 @@ class PINNModule(L.LightningModule):
         """Physics, data and total loss for one full batch."""
         b = self._cast(batch)
         out = {"physics": self._penalty(self._scaled_residual(b)).mean()}
+        if "share" in b:  # a DDP shard: weighted so that the mean over the processes is the mean over all points
+            out["physics"] = out["physics"] * b["share"]
         total = self.hparams.weight_physics * out["physics"]
         if "data_x0" in b and self.hparams.weight_data > 0:
             x0 = b["data_x0"]
@@ -167,13 +176,15 @@ class PINNModule(L.LightningModule):
         def closure() -> Tensor:
             opt.zero_grad()
             loss = self.losses(batch)["total"]
-            self.manual_backward(loss)
-            return loss
+            self.manual_backward(loss)  # under DDP: gradients averaged over the processes
+            return self._across_processes(loss)
 
         evals_before = self._lbfgs_evals(lbfgs)
         start_loss = float(opt.step(closure=closure).detach())  # torch optimizers return the first closure value
         with torch.no_grad():
             parts = self.losses(batch)
+        if self.trainer.world_size > 1:  # one collective for all terms: the same numbers on every process
+            parts = dict(zip(parts, self._across_processes(torch.stack(list(parts.values())))))
         if not math.isfinite(float(parts["total"])):
             raise FloatingPointError(
                 f"training loss became {float(parts['total'])} at epoch {self.current_epoch}; "
@@ -182,9 +193,18 @@ class PINNModule(L.LightningModule):
         if not use_adam and self._stalled(start_loss, float(parts["total"]), self._lbfgs_evals(lbfgs) - evals_before):
             self._recover_from_stall(lbfgs)
         for name, value in parts.items():
-            self.log(f"train/loss_{name}", value, prog_bar=name == "total", on_step=False, on_epoch=True, batch_size=1)
-        self.log("train/stalls", float(self.stalls), on_step=False, on_epoch=True, batch_size=1)
+            self.log(
+                f"train/loss_{name}", value, prog_bar=name == "total", on_step=False, on_epoch=True, batch_size=1,
+                sync_dist=True,
+            )  # fmt: skip
+        self.log("train/stalls", float(self.stalls), on_step=False, on_epoch=True, batch_size=1, sync_dist=True)
         return parts["total"]
+
+    def _across_processes(self, value: Tensor) -> Tensor:
+        """The mean over the DDP processes of a (detached) loss; the value itself with one process."""
+        if self.trainer.world_size == 1:
+            return value
+        return self.trainer.strategy.reduce(value.detach().clone(), reduce_op="mean")  # in place: a copy
 
     def _stalled(self, start_loss: float, end_loss: float, evals: int) -> bool:
         """Too few evaluations (a tolerance was hit), or no progress at all (float32 line searches that find
@@ -214,8 +234,8 @@ class PINNModule(L.LightningModule):
         t = torch.full_like(b["x0"][..., :1], self.tau)
         err = self.model(t, b["x0"], b["u"]) - b["x1"]
         rmse = err.double().square().mean(dim=0).sqrt()
-        for name, value in zip(self.system.state_names, rmse):
-            self.log(f"val/rmse_{name}", value, batch_size=1)
+        for name, value in zip(self.system.state_names, rmse):  # sync_dist: the same set on every DDP process
+            self.log(f"val/rmse_{name}", value, batch_size=1, sync_dist=True)
         n_pos = len(self.system.state_names) // 2
-        self.log("val/rmse_position", rmse[:n_pos].max(), prog_bar=True, batch_size=1)
-        self.log("val/rmse_velocity", rmse[n_pos:].max(), batch_size=1)
+        self.log("val/rmse_position", rmse[:n_pos].max(), prog_bar=True, batch_size=1, sync_dist=True)
+        self.log("val/rmse_velocity", rmse[n_pos:].max(), batch_size=1, sync_dist=True)

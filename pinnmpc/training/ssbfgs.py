@@ -127,7 +127,7 @@ class SSBFGS(torch.optim.Optimizer):
             tau = min(1.0, ys / step.slope)
         a = 1.0 / ys
         # H+ = H/tau + [s Hy] M [s Hy]' with this 2 x 2 M (the v v' term expanded)
-        m = torch.tensor([[(yhy * a * a) / tau + a, -a / tau], [-a / tau, 0.0]], dtype=H.dtype)
+        m = torch.tensor([[(yhy * a * a) / tau + a, -a / tau], [-a / tau, 0.0]], dtype=H.dtype, device=H.device)
         U = torch.stack([s, hy], dim=1)
         Um = U @ m
         H.addmm_(Um, U.T, beta=1.0 / tau)
@@ -175,7 +175,7 @@ class SSBFGS(torch.optim.Optimizer):
             if H is None or hg is None:  # the first curvature pair scales the identity (Nocedal and Wright 6.20)
                 ys = float(y @ s)
                 scale = ys / float(y @ y) if ys > 0 else 1.0
-                H = torch.eye(self.n, dtype=self.hessian_dtype).mul_(scale)
+                H = torch.eye(self.n, dtype=self.hessian_dtype, device=g.device).mul_(scale)
                 hg = scale * g.to(H.dtype)
             g64 = g_new.to(H.dtype)
             hg_new = H @ g64
