@@ -29,6 +29,7 @@ from pinnmpc.controller import (
 )
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.ocp import psd_sqrt
+from pinnmpc.controller.shooting import linearise
 from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import Surrogate, load_surrogate
 
@@ -470,12 +471,12 @@ def test_lifted_linearisation_matches_the_rollout_and_its_jacobian(s: Surrogate)
     nodes = np.concatenate((x0n[:, None], X[:, :-1]), 1)
     # off the trajectory by a few defects: the linearised chain must carry them (first order)
     shaken = nodes + np.concatenate((np.zeros((1, 1, NX)), 1e-6 * _uniform(g, (1, H - 1, NX), -1, 1).numpy()), 1)
-    pred, sens, defect, _ = LiftedGaussNewtonSolver._linearise(ocp, shaken, U.reshape(1, -1))
+    pred, sens, defect, _ = linearise(ocp, shaken, U.reshape(1, -1))
     _, _, sens_ref = ocp.jacobian_rollout(x0n, U, ocp.rollout(x0n, U), np.zeros((1, NU)))
     np.testing.assert_allclose(pred, X, rtol=0, atol=1e-10)  # second order in 1e-6 defects
     np.testing.assert_allclose(sens.reshape(sens_ref.shape), sens_ref, rtol=0, atol=1e-4)
     assert 1e-8 < float(defect[0]) < 1e-5
-    pred0, sens0, defect0, _ = LiftedGaussNewtonSolver._linearise(ocp, nodes, U.reshape(1, -1))
+    pred0, sens0, defect0, _ = linearise(ocp, nodes, U.reshape(1, -1))
     np.testing.assert_allclose(pred0, X, rtol=0, atol=1e-13)
     np.testing.assert_allclose(sens0.reshape(sens_ref.shape), sens_ref, rtol=0, atol=1e-12)
     assert float(defect0[0]) < 1e-13

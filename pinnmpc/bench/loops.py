@@ -23,9 +23,9 @@ from pinnmpc.bench.common import (
 )
 from pinnmpc.bench.timing import as_numpy
 from pinnmpc.closed_loop import metrics, simulate
+from pinnmpc.controller.arrays import Array
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
-from pinnmpc.controller.ocp import Array
 from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
 from pinnmpc.flowmap import CompiledRK4, FlowMap, RK4Model
 from pinnmpc.references import Reference

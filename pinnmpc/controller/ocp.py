@@ -1,7 +1,9 @@
 """The horizon optimal control problem as a batched nonlinear least-squares problem on a flow map.
 
-Everything here works on torch tensors (autograd, for the torch.optim solvers) and on
-numpy arrays (the fast Gauss-Newton path), with the same formulas. The model is any
+The problem: weights, cost, residuals, joint limits, and the one Jacobian path that turns the state
+sensitivities of pinnmpc.controller.shooting into the residuals' Jacobian (the box-constrained step is in
+pinnmpc.controller.box_step). Everything here works on torch tensors (autograd, for the torch.optim
+solvers) and on numpy arrays (the fast Gauss-Newton path), with the same formulas. The model is any
 pinnmpc.flowmap.FlowMap: the surrogate, its numpy fast path or the true model by RK4.
 """
 
@@ -16,19 +18,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pinnmpc.controller import shooting
+from pinnmpc.controller.arrays import Array, cat, xp_of
 from pinnmpc.flowmap import FlowMap, check_flow_map, numpy_path
 
-Array = Tensor | np.ndarray
-
-
-def xp_of(a: Array) -> ModuleType:
-    """Array namespace of a (torch or numpy)."""
-    return torch if isinstance(a, Tensor) else np
-
-
-def cat(parts: list[Array], axis: int) -> Array:
-    """Concatenate in either namespace."""
-    return torch.cat(parts, axis) if isinstance(parts[0], Tensor) else np.concatenate(parts, axis)
+__all__ = ["LIMIT_KEYS", "Array", "HorizonOCP", "JointLimits", "cat", "psd_sqrt", "xp_of"]
 
 
 def psd_sqrt(matrix: Sequence[Sequence[float]] | Sequence[float], n: int, name: str) -> Tensor:
@@ -250,11 +244,7 @@ class HorizonOCP:
 
     def rollout(self, x0: Array, U: Array) -> Array:
         """Predicted states x_1..x_H (..., H, nx) by self-loop of the model."""
-        xs, x = [], x0
-        for i in range(self.horizon):
-            x = self.step(x, U[..., i, :])
-            xs.append(x)
-        return xp_of(x0).stack(xs, -2)
+        return shooting.rollout(self, x0, U)
 
     def residuals(self, X: Array, U: Array, x_ref: Array, u_prev: Array) -> Array:
         """Stacked weighted residuals (..., m): states, inputs (and rates), joint limits; the cost is their squared
@@ -341,15 +331,7 @@ class HorizonOCP:
         xp = xp_of(x0)
         w_q = self.weights[xp][0]
         lead, n_var = x0.shape[:-1], self.horizon * self.nu
-        sens = xp.zeros((*lead, self.nx, n_var), dtype=xp.float64)  # d x_i / d U
-        xs, sens_list, x = [], [], x0
-        for i in range(self.horizon):
-            x, a, b = self.step_with_jacobian(x, U[..., i, :])
-            sens = a @ sens
-            sens[..., :, i * self.nu : (i + 1) * self.nu] += b
-            xs.append(x)
-            sens_list.append(sens)
-        X, S = xp.stack(xs, -2), xp.stack(sens_list, -3)
+        X, S = shooting.sensitivities(self, x0, U)  # d x_i / d U
         r = self.residuals(X, U, x_ref, u_prev)
         jac_x = (w_q @ S).reshape(*lead, self.horizon * self.nx, n_var)
         jac_u = self._input_jacobian(xp)  # constant: the input and input-rate residuals are linear in U
@@ -372,30 +354,10 @@ class HorizonOCP:
         """Residuals (B, m), Jacobian (B, m, H*nu) and state sensitivities d x_i / d U (B, H, nx, H*nu), numpy.
 
         prior: the sensitivities of the previous receding-horizon solve, whose plan shifted by one step
-        is U. Steps 1..H-1 of the new rollout then repeat steps 2..H of the old one, so their
-        sensitivities are reused (an approximation: the state moved on) and only the last step needs
-        a Jacobian: about half the cost of an exact rollout.
+        is U: see shooting.sensitivities_numpy.
         """
-        (horizon, nx, nu), batch = (self.horizon, self.nx, self.nu), x0.shape[0]
-        n_var = horizon * nu
-        Ub = U.reshape(batch, horizon, nu)
-        X = np.empty((batch, horizon, nx))
-        sens = np.zeros((batch, horizon, nx, n_var))  # only inputs before step i act on x_i
-        x = x0
-        if prior is not None:
-            for i in range(horizon - 1):
-                x = X[:, i] = self.step(x, Ub[:, i])
-            sens[:, :-1, :, :-nu] = prior[:, 1:, :, nu:]
-            first = horizon - 1
-        else:
-            first = 0
-        for i in range(first, horizon):
-            x, a, b = self.step_with_jacobian(x, Ub[:, i])
-            X[:, i] = x
-            if i:
-                np.matmul(a, sens[:, i - 1, :, : i * nu], out=sens[:, i, :, : i * nu])
-            sens[:, i, :, i * nu : (i + 1) * nu] = b
-        r, jac = self.least_squares(X, sens, Ub, x_ref, u_prev)
+        X, sens = shooting.sensitivities_numpy(self, x0, U, prior)
+        r, jac = self.least_squares(X, sens, U, x_ref, u_prev)
         return r, jac, sens
 
     def least_squares(

@@ -12,9 +12,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from pinnmpc.controller.ocp import Array, HorizonOCP
+from pinnmpc.controller.arrays import Array
+from pinnmpc.controller.box_step import BOUND_TOL
+from pinnmpc.controller.ocp import HorizonOCP
 
-BOUND_TOL = 1e-12  # relative to the box width: closer than this to a bound counts as on it
+__all__ = ["BOUND_TOL", "NO_WARM", "NoWarm", "Problem", "SolveInfo", "Solver", "project", "result", "wrong_warm"]
 
 
 def project(u: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

@@ -1,4 +1,8 @@
-"""Projected Gauss-Newton on the horizon OCP's least-squares structure (single shooting), batched, in numpy."""
+"""Projected Gauss-Newton on the horizon OCP's least-squares structure (single shooting), batched, in numpy.
+
+The iteration (Jacobians, line search, stopping tests) lives here; the step within the box is
+pinnmpc.controller.box_step's, the rollouts and sensitivities pinnmpc.controller.shooting's (via HorizonOCP).
+"""
 
 from __future__ import annotations
 
@@ -9,17 +13,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pinnmpc.controller.ocp import Array, HorizonOCP
-from pinnmpc.controller.solvers.base import (
-    BOUND_TOL,
-    NO_WARM,
-    NoWarm,
-    Problem,
-    SolveInfo,
-    project,
-    result,
-    wrong_warm,
-)
+from pinnmpc.controller.arrays import Array
+from pinnmpc.controller.box_step import newton_step, normal_equations
+from pinnmpc.controller.ocp import HorizonOCP
+from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, project, result, wrong_warm
 
 
 @dataclass(frozen=True, eq=False)
@@ -138,7 +135,8 @@ class GaussNewtonSolver:
             # views while every problem runs (the batch-1 case), copies of the running rows otherwise
             idx = slice(None) if running.all() else np.flatnonzero(running)
             u_i, f = U[idx], cost[idx].copy()  # f must survive the update of cost below
-            delta, pgrad_max, predicted, _ = self._step(r[idx], jac[idx], u_i, lo[idx], hi[idx])
+            jtj, grad = normal_equations(r[idx], jac[idx])
+            delta, pgrad_max, predicted, _ = newton_step(jtj, grad, u_i, lo[idx], hi[idx], self.damping)
             done = (pgrad_max < self.tol_grad) | (predicted <= self.tol_cost * np.maximum(f, 1e-300))
             if k == 0 and prior is not None:
                 done[:] = False  # an approximate Jacobian cannot certify convergence
@@ -202,65 +200,6 @@ class GaussNewtonSolver:
         if fast is not None:
             rho = np.where(fast & (latest <= self.fast_ratio) & (before == before), latest, rho)
         return np.where(rho < 1.0, decrease * rho / (1.0 - rho), np.inf)
-
-    def _step(self, r, jac, u, lo, hi):
-        """Gauss-Newton step within the box for residuals r and their Jacobian: see _newton_step."""
-        jt = jac.swapaxes(-1, -2)
-        return self._newton_step(jt @ jac, 2.0 * np.matmul(jt, r[..., None])[..., 0], u, lo, hi)
-
-    def _newton_step(self, jtj, grad, u, lo, hi):
-        """Gauss-Newton step within the box, by a primal active set on the (convex) Gauss-Newton model
-        1/2 d^T (2 J^T J) d + grad^T d.
-
-        Variables at a bound with the gradient pointing out start fixed. From there the free variables
-        move along the model's Newton direction until one of them meets a bound; that one is fixed and
-        the path goes on, until a full Newton step stays inside (at most n segments, usually one).
-        The model decreases along every segment. Returns the step, the projected gradient's max-norm,
-        the cost decrease the model predicts for the step and whether a bound cut the Newton step short.
-        """
-        tol = BOUND_TOL * (hi - lo)  # "at a bound" up to rounding: steps aimed at a bound land within it
-        fixed = ((u - lo <= tol) & (grad > 0)) | ((hi - u <= tol) & (grad < 0))
-        pgrad_max = np.abs(np.where(fixed, 0.0, grad)).max(-1)
-        hess = jtj.copy()
-        diagonal = np.einsum("bii->bi", hess)  # a writable view
-        diagonal += self.damping * np.maximum(diagonal.mean(-1, keepdims=True), 1e-30)
-        delta = self._masked_solve(hess, grad, fixed)
-        moved = u + delta
-        cut = (~fixed & ((moved > hi) | (moved < lo))).any(-1)
-        if cut.any():
-            delta = self._active_set_path(hess, grad, fixed, u, lo, hi)
-        # ||r||^2 - ||r + J delta||^2 = -(grad . delta + delta^T J^T J delta)
-        predicted = -np.einsum("bi,bi->b", delta, grad + np.matmul(jtj, delta[..., None])[..., 0])
-        return delta, pgrad_max, predicted, cut
-
-    def _active_set_path(self, hess, grad, fixed, u, lo, hi):
-        """Piecewise-linear path of the primal active-set method: Newton direction on the free variables,
-        cut at the first bound it meets, which joins the fixed ones."""
-        delta, fixed, done = np.zeros_like(u), fixed.copy(), np.zeros(u.shape[0], dtype=bool)
-        for _ in range(u.shape[-1] + 1):
-            model_grad = grad + 2.0 * np.matmul(hess, delta[..., None])[..., 0]
-            direction = np.where(done[:, None], 0.0, self._masked_solve(hess, model_grad, fixed))
-            room = np.where(direction > 0, hi - u - delta, lo - u - delta)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.where(~fixed & (direction != 0), np.maximum(room / direction, 0.0), np.inf)
-            first = ratio.min(-1)
-            length = np.minimum(first, 1.0)
-            delta += length[:, None] * direction
-            fixed |= (ratio <= first[:, None]) & (first < 1.0)[:, None]
-            done |= first >= 1.0
-            if done.all():
-                break
-        return delta
-
-    @staticmethod
-    def _masked_solve(hess, grad, fixed):
-        """Newton direction of the model 1/2 d^T (2 hess) d + grad^T d on the free variables (0 on the fixed)."""
-        if not fixed.any():
-            return np.linalg.solve(hess, -0.5 * grad[..., None])[..., 0]
-        free = ~fixed
-        m = hess * (free[:, :, None] & free[:, None, :])
-        np.einsum("bii->bi", m)[...] += fixed
-        return np.linalg.solve(m, np.where(fixed, 0.0, -0.5 * grad)[..., None])[..., 0]
 
     def _line_search(self, ocp, x0, x_ref, u_prev, u, delta, f, lo, hi, with_jacobian):
         """The first step length alone (usually the full step, which near the optimum always wins), then the

@@ -1,4 +1,8 @@
-"""Lifted (multiple-shooting) Gauss-Newton: all H network steps in one batched call per iteration."""
+"""Lifted (multiple-shooting) Gauss-Newton: all H network steps in one batched call per iteration.
+
+The iteration lives here; the linearisation at the lifted states is pinnmpc.controller.shooting's, the step
+within the box pinnmpc.controller.box_step's.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pinnmpc.controller.ocp import Array, HorizonOCP
+from pinnmpc.controller.arrays import Array
+from pinnmpc.controller.box_step import newton_step
+from pinnmpc.controller.ocp import HorizonOCP
+from pinnmpc.controller.shooting import linearise, reached
 from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, project, result, wrong_warm
 from pinnmpc.controller.solvers.gauss_newton import GaussNewtonSolver
 
@@ -85,11 +92,11 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         for _ in range(self.lifted_max_iter):
             # the whole batch every time (no row gathering: batch-1 solves are dominated by per-op overhead);
             # problems that stopped take no further steps, their states only settle onto the prediction
-            pred, sens, defect, chain = self._linearise(ocp, nodes, U)
+            pred, sens, defect, chain = linearise(ocp, nodes, U)
             f, jtj, grad = ocp.gauss_newton_model(pred, sens, U, refb, upb)
             if start_cost is None:
                 start_cost = f
-            delta, pgrad_max, predicted, cut = self._newton_step(jtj, grad, U, lo, hi)
+            delta, pgrad_max, predicted, cut = newton_step(jtj, grad, U, lo, hi, self.damping)
             small = (pgrad_max < self.tol_grad) | (predicted <= self.tol_cost * f)
             go = running & ~(small & (defect <= self.tol_defect))
             # this step is the last when what remains after it, extrapolated from the model's predicted
@@ -108,7 +115,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             if not running.any():
                 break
         U3 = U.reshape(-1, horizon, nu)
-        X = self._reached(ocp, x0b, nodes, U3, chain)
+        X = reached(ocp, x0b, nodes, U3, chain, self.tol_final_defect)
         cost = (ocp.residuals(X, U3, refb, upb) ** 2).sum(-1)
         failed = running | ~np.isfinite(cost) | (cost > start_cost)
         if failed.any():  # rare: redo those problems by single shooting from the better of start and end
@@ -139,51 +146,3 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     def _warm_shape(ocp: HorizonOCP) -> tuple[int, ...]:
         """Shape per problem of the warm array this solver takes: the last plan's states x_1..x_H."""
         return (ocp.horizon, ocp.nx)
-
-    @staticmethod
-    def _linearise(ocp, nodes, U):
-        """One batched network call at all nodes, then the linearised predictions x_1..x_H (B, H, nx), their
-        sensitivities to U (B, H*nx, H*nu), the largest defect per problem and the chain matrix.
-
-        The chain x_i = y_i + A_i (x_{i-1} - s_i) over the horizon is one block-triangular solve with the
-        chain matrix I - L (L: the A_i on the block subdiagonal): for the predictions and all H*nu input
-        directions at once.
-        """
-        batch, horizon, nx = nodes.shape
-        nu = ocp.nu
-        y, a, b = ocp.step_with_jacobian(nodes, U.reshape(batch, horizon, nu))
-        chain = _chain_matrix(a)
-        rhs = np.zeros((batch, horizon, nx, horizon * nu + 1))
-        blocks = rhs[..., :-1].reshape(batch, horizon, nx, horizon, nu)
-        diag = np.arange(horizon)
-        blocks[:, diag, :, diag, :] = b.swapaxes(0, 1)  # x_i depends directly on u_i only through B_i
-        rhs[..., -1] = y
-        rhs[:, 1:, :, -1] -= (a[:, 1:] @ nodes[:, 1:, :, None])[..., 0]
-        sol = np.linalg.solve(chain, rhs.reshape(batch, horizon * nx, -1))
-        defect = np.abs(y[:, :-1] - nodes[:, 1:]).reshape(batch, -1).max(-1, initial=0.0)
-        return sol[..., -1].reshape(batch, horizon, nx), sol[..., :-1], defect, chain
-
-    def _reached(self, ocp, x0, nodes, U, chain):
-        """The states U reaches from x0 (B, H, nx): one batched network call at the final nodes, their defects
-        carried through the last linearisation (x_i - y_i = A_i (x_{i-1} - y_{i-1} + gap_{i-1}), exact to
-        second order in the defects, which are tiny at convergence); a full rollout where one is larger
-        than tol_final_defect."""
-        batch, horizon, nx = nodes.shape
-        y = ocp.step(nodes, U)
-        gap = np.zeros((batch, horizon, nx))  # gap_i = F(s_i, u_i) - s_{i+1}: the defect at the end of step i
-        gap[:, :-1] = y[:, :-1] - nodes[:, 1:]
-        X = y + np.linalg.solve(chain, gap.reshape(batch, -1, 1)).reshape(batch, horizon, nx) - gap
-        far = np.flatnonzero(np.abs(gap).reshape(batch, -1).max(-1) > self.tol_final_defect)
-        if far.size:
-            X[far] = ocp.rollout(x0[far], U[far])
-        return X
-
-
-def _chain_matrix(a: np.ndarray) -> np.ndarray:
-    """I - L for step Jacobians a (B, H, nx, nx): L holds A_1..A_{H-1} on the block subdiagonal."""
-    batch, horizon, nx, _ = a.shape
-    chain = np.zeros((batch, horizon, nx, horizon, nx))
-    diag, sub = np.arange(horizon), np.arange(1, horizon)
-    chain[:, diag, :, diag, :] = np.eye(nx)
-    chain[:, sub, :, sub - 1, :] = -a[:, 1:].swapaxes(0, 1)
-    return chain.reshape(batch, horizon * nx, horizon * nx)

@@ -1,0 +1,21 @@
+"""Torch-or-numpy helpers shared by the problem and the shooting code, so neither imports the other for them."""
+
+from __future__ import annotations
+
+from types import ModuleType
+
+import numpy as np
+import torch
+from torch import Tensor
+
+Array = Tensor | np.ndarray
+
+
+def xp_of(a: Array) -> ModuleType:
+    """Array namespace of a (torch or numpy)."""
+    return torch if isinstance(a, Tensor) else np
+
+
+def cat(parts: list[Array], axis: int) -> Array:
+    """Concatenate in either namespace."""
+    return torch.cat(parts, axis) if isinstance(parts[0], Tensor) else np.concatenate(parts, axis)
