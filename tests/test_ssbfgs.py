@@ -101,3 +101,13 @@ def test_an_unknown_optimizer_is_refused():
                  t_max=0.25, hidden=[8], activation="silu", ic="hard")  # fmt: skip
     with pytest.raises(ValueError, match="module.optimizer='adamw'"):
         PINNModule(system, model, tau=0.2, optimizer="adamw")
+
+
+def test_trial_steps_into_overflow_are_shortened_not_taken():
+    def nan_beyond_ten(x: torch.Tensor) -> torch.Tensor:  # a network that overflows for far-off parameters
+        loss = ((x - 3.0) ** 2).sum() + 0.1 * (x**4).sum()
+        return torch.where(x.abs().max() > 10, torch.full_like(loss, float("nan")), loss)
+
+    x, opt = _minimise(nan_beyond_ten, torch.zeros(6, dtype=torch.float64), max_iter=50, lr=100.0)
+    assert torch.isfinite(x).all() and float(nan_beyond_ten(x)) < float(nan_beyond_ten(torch.full((6,), 2.0)))
+    assert "H" in opt.state[opt._params[0]]

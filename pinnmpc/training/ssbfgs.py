@@ -68,6 +68,7 @@ class SSBFGS(torch.optim.Optimizer):
         self.tolerance_change = float(tolerance_change)
         self.variant = variant
         self.hessian_dtype = HESSIAN_DTYPES[hessian_dtype]
+        self._ceiling = math.inf
 
     # -- flat views of the parameters ---------------------------------------------------------------------------
     def _flat_grad(self) -> Tensor:
@@ -88,11 +89,16 @@ class SSBFGS(torch.optim.Optimizer):
             offset += n
 
     def _evaluate(self, closure: Callable[[], Tensor], x: Tensor, t: float, d: Tensor) -> tuple[float, Tensor]:
-        """Loss and gradient at x + t d (what the line search asks for)."""
+        """Loss and gradient at x + t d (what the line search asks for). A trial step so long that the network
+        overflows reads as a huge finite loss with zero slope, so the line search shortens the step instead of
+        carrying NaN into the parameters and the inverse Hessian."""
         self._set_params(x + t * d)
         with torch.enable_grad():
             loss = float(closure().detach())
-        return loss, self._flat_grad()
+        g = self._flat_grad()
+        if not (math.isfinite(loss) and bool(torch.isfinite(g).all())):
+            return self._ceiling, torch.zeros_like(g)
+        return loss, g
 
     # -- state ---------------------------------------------------------------------------------------------------
     @property
@@ -150,6 +156,7 @@ class SSBFGS(torch.optim.Optimizer):
         H: Tensor | None = state.get("H")
         hg = None if H is None else H @ g.to(H.dtype)  # H g, carried from iteration to iteration
         x = self._flat_params()
+        self._ceiling = abs(loss) * 1e12 + 1e12  # stands for a non-finite trial loss
         for _ in range(self.max_iter):
             if H is None or hg is None:
                 d = -g
@@ -168,6 +175,11 @@ class SSBFGS(torch.optim.Optimizer):
             )
             state["func_evals"] += int(ls_evals)
             state["n_iter"] += 1
+            if not loss_new < loss:  # the line search found no decrease (or only overflowing steps): stay, reset H
+                self._set_params(x)
+                state["rejected"] = state.get("rejected", 0) + 1
+                H = hg = None
+                break
             s = t * d
             x = x + s
             self._set_params(x)
