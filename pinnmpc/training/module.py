@@ -100,7 +100,7 @@ class PINNModule(L.LightningModule):
         return w
 
     def _cast(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        """Training dtype (float32 is ~2x faster on CPU; the surrogate runs in float64 later), on the module's
+        """Training dtype (float32 is the faster on CPU; the surrogate runs in float64 later), on the module's
         device."""
         return {k: v.to(device=self.res_scale.device, dtype=self.res_scale.dtype) for k, v in batch.items()}
 
