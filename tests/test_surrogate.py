@@ -76,7 +76,8 @@ def test_shipped_second_order_network_is_accurate_and_consistent() -> None:
     np.testing.assert_allclose(x1, second.step(x0, u).numpy(), rtol=0, atol=1e-12)  # the controller's fast path
 
 
-def test_shipped_staged_network_is_merged_more_accurate_than_its_base_and_fast_path_exact(s: Surrogate) -> None:
+def test_shipped_staged_network_is_merged_more_accurate_than_its_base_and_fast_path_exact() -> None:
+    s = load_surrogate(SHIPPED.parent / "powercube-lbfgs.pt", nx=NX, nu=NU)  # the stage's base: 120 min of L-BFGS
     staged = load_surrogate(SHIPPED.parent / "powercube-staged.pt", nx=NX, nu=NU)
     assert staged.model.config["hidden"] == [a + 64 for a in s.model.config["hidden"]]  # base + a 4 x 64 stage
     x0, u = _points(256, seed=12)
