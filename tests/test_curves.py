@@ -9,9 +9,11 @@ from pinnmpc.train import train
 from tests.conftest import TINY_TRAIN
 
 
-def test_a_training_run_gives_a_curve_plot_and_csv(make_cfg, tmp_path):
+def test_a_training_run_logs_each_epoch_and_gives_a_curve_plot_and_csv(make_cfg, tmp_path):
     run = tmp_path / "run"
     train(make_cfg("train", [*TINY_TRAIN, "trainer.max_epochs=3"]), run)
+    log = (run / "train.log").read_text().splitlines()  # the run's history, in its run dir
+    assert "optimizer ssbfgs" in log[0] and any("epoch 2 " in line and "val rmse alpha=" in line for line in log)
     curve = read_curve(run, "tiny")
     assert len(curve.minutes) == 3 and np.all(np.diff(curve.minutes) >= 0) and curve.minutes[0] > 0
     assert np.all(curve.position > 0) and np.all(curve.velocity > 0)

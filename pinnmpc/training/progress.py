@@ -10,10 +10,14 @@ from __future__ import annotations
 import logging
 import sys
 import warnings
+from collections.abc import Sequence
+from pathlib import Path
 
 import lightning as L
 from lightning.pytorch.callbacks import Timer
 from tqdm.auto import tqdm
+
+from pinnmpc.training.pipeline import duration
 
 NOISE = ("💡 Tip", "GPU available", "TPU available", "HPU available")  # Lightning start-up lines with no news
 
@@ -83,3 +87,68 @@ class BudgetBar(L.Callback):
         if self.bar is not None:
             self.bar.close()
             self.bar = None
+
+
+class EpochLog(L.Callback):
+    """One line per epoch in the run dir's train.log (loss, validation RMSE per state, training time), written
+    to the file only: the terminal has the bar, the log keeps the history a killed or remote run leaves behind."""
+
+    def __init__(self, path: Path, state_names: Sequence[str]) -> None:
+        self.path = path
+        self.state_names = list(state_names)
+        self.logger = logging.getLogger(f"pinnmpc.train.epochs.{id(self)}")
+        self.logger.propagate = False
+        self.logger.setLevel(logging.INFO)
+        self.handler: logging.Handler | None = None
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """Open train.log for appending (rank 0 only) and say what runs."""
+        if not trainer.is_global_zero:
+            return
+        self.handler = logging.FileHandler(self.path, mode="a", encoding="utf-8")
+        self.handler.setFormatter(logging.Formatter("[%(asctime)s] %(message)s", "%Y-%m-%d %H:%M:%S"))
+        self.logger.addHandler(self.handler)
+        h = pl_module.hparams
+        self.logger.info(
+            "training from epoch %d: optimizer %s, %d parameters, budget %s",
+            trainer.current_epoch,
+            h.get("optimizer", "lbfgs"),
+            sum(p.numel() for p in pl_module.parameters() if p.requires_grad),
+            _budget(trainer),
+        )
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """Loss, validation RMSE per state (when this epoch validated) and training time so far."""
+        if self.handler is None:
+            return
+        m = trainer.callback_metrics
+        timer = next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
+        elapsed = f"{timer.time_elapsed('train'):.0f} s" if timer is not None else "?"
+        val = " ".join(f"{n}={float(m[f'val/rmse_{n}']):.3e}" for n in self.state_names if f"val/rmse_{n}" in m)
+        loss = f"{float(m['train/loss_total']):.3e}" if "train/loss_total" in m else "?"
+        self.logger.info("epoch %d  time %s  loss %s  val rmse %s", trainer.current_epoch, elapsed, loss, val or "-")
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """Say where training ended, then close the file."""
+        if self.handler is not None:
+            self.logger.info("training ended after epoch %d", trainer.current_epoch)
+        self._close()
+
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        """Say how the run ended, then close the file."""
+        if self.handler is not None:
+            self.logger.info("stopped by %s: %s", type(exception).__name__, exception)
+        self._close()
+
+    def _close(self) -> None:
+        """Detach and close the file handler."""
+        if self.handler is not None:
+            self.logger.removeHandler(self.handler)
+            self.handler.close()
+            self.handler = None
+
+
+def _budget(trainer: L.Trainer) -> str:
+    """The wall-time budget Lightning's Timer holds, as DD:HH:MM:SS, or 'none'."""
+    timer = next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
+    return duration(float(timer._duration)) if timer is not None and timer._duration else "none"
