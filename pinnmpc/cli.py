@@ -341,6 +341,23 @@ class StopSignal:
 # ---------------------------------------------------------------------------------------------- the body
 
 
+def job_log(run_dir: Path, prog: str) -> Path:
+    """The run dir's log file Hydra opened for this job (`<job name>.log`)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    name = HydraConfig.get().job.name if HydraConfig.initialized() else prog.rsplit(".", 1)[-1]
+    return run_dir / f"{name}.log"
+
+
+def say(message: str, run_dir: Path | None, prog: str, err: bool = False) -> None:
+    """Print a command's closing line and keep it in the run dir's log, so the log says how the run ended."""
+    print(message, file=sys.stderr if err else sys.stdout)
+    if run_dir is not None and run_dir.is_dir():
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+        with job_log(run_dir, prog).open("a", encoding="utf-8") as f:
+            f.write(f"[{stamp}] {message}\n")
+
+
 def run_cli(body: Callable[[], T], prog: str, run_dir: Path | None = None) -> T:
     """Call body; a user error or failed run becomes `prog: error: message` on stderr and exit code 2 or 1;
     after bad input, what this process added to run_dir is removed (the dir too, if this process made it)."""
@@ -357,7 +374,8 @@ def run_cli(body: Callable[[], T], prog: str, run_dir: Path | None = None) -> T:
         if verbose():
             raise
         message = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        print(f"{prog}: error: {message} (HYDRA_FULL_ERROR=1 for a traceback)", file=sys.stderr)
+        kept = run_dir if isinstance(e, RUN_FAILURES) else None  # after bad input the run dir is gone or not ours
+        say(f"{prog}: error: {message} (HYDRA_FULL_ERROR=1 for a traceback)", kept, prog, err=True)
         sys.exit(EXIT_RUN_FAILED if isinstance(e, RUN_FAILURES) else EXIT_BAD_INPUT)
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
-from pinnmpc.cli import StopSignal, run_cli
+from pinnmpc.cli import StopSignal, run_cli, say
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
 from pinnmpc.io import save_json, save_npz
@@ -319,7 +319,7 @@ def main(cfg: DictConfig) -> None:
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     with StopSignal() as stop:
         m = run_cli(lambda: run_closed_loop(cfg, run_dir, stop), "pinnmpc.closed_loop", run_dir)
-    print(headline(m, run_dir))
+    say(headline(m, run_dir), run_dir, "pinnmpc.closed_loop")
     if m["status"] == "interrupted":
         print(f"pinnmpc.closed_loop: interrupted by {stop.name} after {m['steps']} steps", file=sys.stderr)
         sys.exit(stop.exit_code)

@@ -10,7 +10,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from pinnmpc.cli import run_cli
+from pinnmpc.cli import run_cli, say
 from pinnmpc.closed_loop import run_closed_loop
 from pinnmpc.io import atomic_write, save_json
 from pinnmpc.report import md_table
@@ -75,7 +75,7 @@ def main(cfg: DictConfig) -> None:
     """CLI: print the table."""
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     run_cli(lambda: run_robustness(cfg, run_dir), "pinnmpc.robustness", run_dir)
-    print((run_dir / "robustness.md").read_text() + f"outputs in {run_dir}")
+    say((run_dir / "robustness.md").read_text() + f"outputs in {run_dir}", run_dir, "pinnmpc.robustness")
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from pinnmpc.cli import run_cli
+from pinnmpc.cli import run_cli, say
 from pinnmpc.io import save_json, save_npz
 from pinnmpc.plant import ScipyPlant
 from pinnmpc.settings import validate_self_loop
@@ -91,7 +91,7 @@ def main(cfg: DictConfig) -> None:
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     m = run_cli(lambda: run_self_loop(cfg, run_dir), "pinnmpc.self_loop", run_dir)
     mae = ", ".join(f"{k} {v:.2e}" for k, v in m["mae"].items())
-    print(f"self-loop {m['steps']} steps, MAE vs plant: {mae}; outputs in {run_dir}")
+    say(f"self-loop {m['steps']} steps, MAE vs plant: {mae}; outputs in {run_dir}", run_dir, "pinnmpc.self_loop")
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import Timer
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.cli import StopSignal, run_cli
+from pinnmpc.cli import StopSignal, run_cli, say
 from pinnmpc.io import save_json
 from pinnmpc.pinn import PINN, StagedPINN
 from pinnmpc.settings import validate_train
@@ -281,20 +281,11 @@ def train(
     return summary
 
 
-def train_command(
-    cfg: DictConfig,
-    run_dir: Path,
-    command: str = "python -m pinnmpc.train",
-    stop: StopSignal | None = None,
-    overrides: list[str] | None = None,
-) -> dict[str, Any]:
-    """What `python -m pinnmpc.train` runs: one network, or with stage.split a base and a correction stage on it."""
-    return train_in_stages(
-        cfg,
-        run_dir,
-        lambda c, d: train(c, d, command, stop, overrides),
-        resume_command(overrides or [], run_dir),
-    )
+def train_command(cfg: DictConfig, run_dir: Path, **kwargs: Any) -> dict[str, Any]:
+    """What `python -m pinnmpc.train` runs: one network, or with stage.split a base and a correction stage on it
+    (kwargs: train's command, stop and overrides)."""
+    resume = resume_command(kwargs.get("overrides") or [], run_dir)
+    return train_in_stages(cfg, run_dir, lambda c, d: train(c, d, **kwargs), resume)
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
@@ -305,7 +296,8 @@ def main(cfg: DictConfig) -> float:
     overrides = list(hydra_cfg.overrides.task)
     command = " ".join(["python -m pinnmpc.train", *overrides])
     with StopSignal() as stop:
-        summary = run_cli(lambda: train_command(cfg, run_dir, command, stop, overrides), "pinnmpc.train", run_dir)
+        run = lambda: train_command(cfg, run_dir, command=command, stop=stop, overrides=overrides)  # noqa: E731
+        summary = run_cli(run, "pinnmpc.train", run_dir)
     score = summary["best_val_rmse_position"]
     if summary.get("rank", 0) > 0:  # a DDP process of rank > 0: rank 0 reports
         return float("inf") if score is None else score
@@ -315,7 +307,7 @@ def main(cfg: DictConfig) -> float:
         every = cfg.trainer.check_val_every_n_epoch
         print(f"no validation ran (trainer.check_val_every_n_epoch={every}); outputs in {run_dir}")
         return float("inf")
-    print(f"best val RMSE (positions) {score:.3e} rad; surrogate: {run_dir / 'surrogate.pt'}")
+    say(f"best val RMSE (positions) {score:.3e} rad; surrogate: {run_dir / 'surrogate.pt'}", run_dir, "pinnmpc.train")
     return score
 
 

@@ -95,6 +95,7 @@ def test_cli_writes_metrics(tmp_path):
     )
     assert r.returncode == 0, r.stderr[-2000:]
     assert "MAE alpha" in r.stdout
+    assert "MAE alpha" in (tmp_path / "closed_loop.log").read_text()  # the log says how the run ended
     _check_metrics(json.loads((tmp_path / "metrics.json").read_text()))
 
 

@@ -145,27 +145,19 @@ class PINNModule(L.LightningModule):
         warm-up."""
         h = self.hparams
         params = [p for p in self.model.parameters() if p.requires_grad]  # a staged model's base stays frozen
-        if h.optimizer == "ssbfgs":
-            quasi_newton: torch.optim.Optimizer = SSBFGS(
-                params,
-                lr=h.lbfgs_lr,
-                max_iter=h.lbfgs_max_iter,
-                tolerance_grad=h.lbfgs_tolerance_grad,
-                tolerance_change=h.lbfgs_tolerance_change,
-                variant=h.ssbfgs_variant,
-                hessian_dtype=h.hessian_dtype,
-            )
-            return [quasi_newton, torch.optim.Adam(params, lr=h.adam_lr)]
-        lbfgs = torch.optim.LBFGS(
-            params,
+        common = dict(
             lr=h.lbfgs_lr,
             max_iter=h.lbfgs_max_iter,
-            history_size=h.lbfgs_history,
             tolerance_grad=h.lbfgs_tolerance_grad,
             tolerance_change=h.lbfgs_tolerance_change,
-            line_search_fn="strong_wolfe",
         )
-        return [lbfgs, torch.optim.Adam(params, lr=h.adam_lr)]
+        if h.optimizer == "ssbfgs":
+            qn: torch.optim.Optimizer = SSBFGS(
+                params, **common, variant=h.ssbfgs_variant, hessian_dtype=h.hessian_dtype
+            )
+        else:
+            qn = torch.optim.LBFGS(params, **common, history_size=h.lbfgs_history, line_search_fn="strong_wolfe")
+        return [qn, torch.optim.Adam(params, lr=h.adam_lr)]
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         """One optimiser call over the full batch; recover from an L-BFGS stall."""

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
+from torch import Tensor
 
 from pinnmpc.controller.arrays import Array
 from pinnmpc.controller.box_step import BOUND_TOL
@@ -66,6 +67,13 @@ NO_WARM = NoWarm()
 def wrong_warm(solver: object, warm: object, accepted: str) -> TypeError:
     """The error for a warm state another solver made: it belongs to that solver's own iterates."""
     return TypeError(f"{type(solver).__name__} takes {accepted} as warm, got {type(warm).__name__}")
+
+
+def cold_inputs(solver: object, U0: Tensor, warm: object) -> Tensor:
+    """A leaf copy of U0 for the autograd solvers, which keep no warm state (one given is another solver's)."""
+    if not isinstance(warm, NoWarm):
+        raise wrong_warm(solver, warm, "NoWarm")
+    return U0.clone().requires_grad_(True)
 
 
 @dataclass(frozen=True, eq=False)

@@ -48,6 +48,8 @@ class GaussNewtonSolver:
     step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.01)  # tried first alone, then the rest at once
     reuse_jacobian: bool = True  # receding horizon: the first step reuses the last solve's sensitivities, shifted
     array_api: ClassVar[str] = "numpy"  # also accepts torch tensors (and then returns them)
+    warm_type: ClassVar[type] = GaussNewtonWarm  # the warm state this solver hands on and takes back
+    warm_field: ClassVar[str] = "sensitivities"  # ... and its array
 
     def __post_init__(self) -> None:
         self.alphas = np.asarray(self.step_lengths, dtype=np.float64)
@@ -79,12 +81,13 @@ class GaussNewtonSolver:
         return U, SolveInfo(iterations, cost, converged, states), next_warm
 
     def _warm_array(self, warm: object, ocp: HorizonOCP, lead: tuple[int, ...]) -> np.ndarray | None:
-        """The sensitivities of a GaussNewtonWarm as a flat batch, checked against this problem (None: unused)."""
+        """The array of this solver's warm state (warm_field of a warm_type) as a flat batch, checked against this
+        problem (None: unused)."""
         if isinstance(warm, NoWarm):
             return None
-        if not isinstance(warm, GaussNewtonWarm):
-            raise wrong_warm(self, warm, "GaussNewtonWarm or NoWarm")
-        return self._checked(warm.sensitivities, "sensitivities", ocp, lead)
+        if not isinstance(warm, self.warm_type):
+            raise wrong_warm(self, warm, f"{self.warm_type.__name__} or NoWarm")
+        return self._checked(getattr(warm, self.warm_field), self.warm_field, ocp, lead)
 
     def _checked(self, array: np.ndarray, name: str, ocp: HorizonOCP, lead: tuple[int, ...]) -> np.ndarray | None:
         """A warm-start array of the expected shape as a flat batch; None where it cannot help this problem."""

@@ -7,6 +7,7 @@ within the box pinnmpc.controller.box_step's.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -14,7 +15,7 @@ from pinnmpc.controller.arrays import Array
 from pinnmpc.controller.box_step import newton_step
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.shooting import linearise, reached
-from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, project, result, wrong_warm
+from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, project, result
 from pinnmpc.controller.solvers.gauss_newton import GaussNewtonSolver
 
 
@@ -43,6 +44,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     Gauss-Newton when it does not converge or ends worse than it began.
     """
 
+    warm_type: ClassVar[type] = LiftedWarm  # the states its solution reaches, one step on
+    warm_field: ClassVar[str] = "states"
     tol_defect: float = 1e-10  # converged also needs every state defect F(s_i, u_i) - s_{i+1} below this
     fast_ratio: float = 1e-3  # a full step whose predicted decrease fell below this x the one before: see _remaining
     lifted_max_iter: int = 5  # lifted iterations before single shooting (max_iter more) takes over
@@ -53,14 +56,6 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     ) -> tuple[Array, SolveInfo, LiftedWarm | NoWarm]:
         """Optimised inputs, statistics (with the states they reach) and those states as the next warm start."""
         return super().solve(problem, U0, warm)
-
-    def _warm_array(self, warm: object, ocp: HorizonOCP, lead: tuple[int, ...]) -> np.ndarray | None:
-        """The states of a LiftedWarm as a flat batch, checked against this problem (None: unused)."""
-        if isinstance(warm, NoWarm):
-            return None
-        if not isinstance(warm, LiftedWarm):
-            raise wrong_warm(self, warm, "LiftedWarm or NoWarm")
-        return self._checked(warm.states, "states", ocp, lead)
 
     @staticmethod
     def _next_warm(out: np.ndarray | None) -> tuple[LiftedWarm | NoWarm, np.ndarray | None]:

@@ -8,7 +8,7 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, wrong_warm
+from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, cold_inputs
 
 
 @dataclass
@@ -22,11 +22,9 @@ class RMSpropSolver:
 
     def solve(self, problem: Problem, U0: Tensor, warm: NoWarm = NO_WARM) -> tuple[Tensor, SolveInfo, NoWarm]:
         """Optimised inputs and statistics; no warm state, since the optimiser's moments start afresh each solve."""
-        if not isinstance(warm, NoWarm):
-            raise wrong_warm(self, warm, "NoWarm")
+        U = cold_inputs(self, U0, warm)
         ocp, x0, x_ref, u_prev = problem.ocp, problem.x0, problem.x_ref, problem.u_prev
         low, high = problem.low, problem.high
-        U = U0.clone().requires_grad_(True)
         opt = torch.optim.RMSprop([U], lr=self.lr)
         prev = float("inf")
         it = 0
