@@ -41,7 +41,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     so the solution is that of the single-shooting problem. The states start from the last solve's
     predicted trajectory, one step on, when the controller hands it back as LiftedWarm (a receding-horizon
     warm start that costs no rollout); otherwise from a rollout of U0. Falls back to single-shooting
-    Gauss-Newton when it does not converge or ends worse than it began.
+    Gauss-Newton when it does not converge, ends worse than it began, or ends above the cost its model promised
+    (then the decreases its stopping tests trusted were the model's, not the cost's).
     """
 
     warm_type: ClassVar[type] = LiftedWarm  # the states its solution reaches, one step on
@@ -84,6 +85,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         iterations = np.zeros(batch, dtype=np.int64)
         predictions = np.full((batch, 2), np.nan)  # the two previous predicted decreases, latest first
         was_cut = np.ones(batch, dtype=bool)  # whether a bound cut the previous step short (none taken yet)
+        promised = np.full(batch, np.inf)  # the model's cost of the point each problem stops at (after its step)
         for _ in range(self.lifted_max_iter):
             # the whole batch every time (no row gathering: batch-1 solves are dominated by per-op overhead);
             # problems that stopped take no further steps, their states only settle onto the prediction
@@ -106,13 +108,19 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             # the states move to the linearised prediction (within the defect tolerance for those that stop)
             moved = pred.reshape(batch, -1) + (sens @ step[..., None])[..., 0]
             nodes[:, 1:] = moved.reshape(batch, horizon, nx)[:, :-1]
-            running &= go & ~last
+            stops = running & ~(go & ~last)
+            promised[stops] = (f - np.where(go, predicted, 0.0))[stops]
+            running &= ~stops
             if not running.any():
                 break
         U3 = U.reshape(-1, horizon, nu)
         X = reached(ocp, x0b, nodes, U3, chain, self.tol_final_defect)
         cost = (ocp.residuals(X, U3, refb, upb) ** 2).sum(-1)
-        failed = running | ~np.isfinite(cost) | (cost > start_cost)
+        # a stop is confirmed only where the cost reached keeps the model's promise: above it, the model (states
+        # with defects, or a Gauss-Newton model poor under large residuals) was optimistic, and so were the
+        # predicted decreases the stopping tests extrapolated from
+        broken = cost > promised + self.tol_gap * np.abs(promised)
+        failed = running | broken | ~np.isfinite(cost) | (cost > start_cost)
         if failed.any():  # rare: redo those problems by single shooting from the better of start and end
             rows = np.flatnonzero(failed)
             start = np.where(
