@@ -353,9 +353,13 @@ def say(message: str, run_dir: Path | None, prog: str, err: bool = False) -> Non
     """Print a command's closing line and keep it in the run dir's log, so the log says how the run ended."""
     print(message, file=sys.stderr if err else sys.stdout)
     if run_dir is not None and run_dir.is_dir():
-        stamp = time.strftime("%Y-%m-%d %H:%M:%S")
-        with job_log(run_dir, prog).open("a", encoding="utf-8") as f:
-            f.write(f"[{stamp}] {message}\n")
+        append_log(job_log(run_dir, prog), message)
+
+
+def append_log(path: Path, message: str) -> None:
+    """One timestamped line at the end of a run's log file."""
+    with path.open("a", encoding="utf-8") as f:
+        f.write(f"[{time.strftime('%Y-%m-%d %H:%M:%S')}] {message}\n")
 
 
 def run_cli(body: Callable[[], T], prog: str, run_dir: Path | None = None) -> T:

@@ -29,7 +29,7 @@ from pinnmpc.systems.registry import build_system
 from pinnmpc.training.callbacks import AtomicCheckpoint, GracefulStop, SelfLoopFigure, SurrogateFacts
 from pinnmpc.training.data import flow_scale
 from pinnmpc.training.pipeline import base_training_time, train_in_stages
-from pinnmpc.training.progress import BudgetBar, EpochLog, quiet_lightning
+from pinnmpc.training.progress import BudgetBar, EpochLog, quiet_lightning, timer_of
 from pinnmpc.training.stage import staged_model
 
 
@@ -77,7 +77,7 @@ EXPECTED_CKPT = "expected a Lightning .ckpt written by pinnmpc.train (e.g. <run 
 def training_time(trainer: L.Trainer, wall: float | None = None) -> float:
     """Training time across processes: the Timer (train() always has one) starts from what the checkpoint it
     resumed from had counted; the time a killed process spent after its last checkpoint is not in it."""
-    timer = next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
+    timer = timer_of(trainer)
     if timer is None:
         return float("nan") if wall is None else wall
     return float(timer.time_elapsed("train"))

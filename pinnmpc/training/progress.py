@@ -17,6 +17,7 @@ import lightning as L
 from lightning.pytorch.callbacks import Timer
 from tqdm.auto import tqdm
 
+from pinnmpc.cli import append_log
 from pinnmpc.training.pipeline import duration
 
 NOISE = ("💡 Tip", "GPU available", "TPU available", "HPU available")  # Lightning start-up lines with no news
@@ -44,13 +45,9 @@ class BudgetBar(L.Callback):
         self.enabled = enabled
         self.bar: tqdm | None = None
 
-    def _timer(self, trainer: L.Trainer) -> Timer | None:
-        """Lightning's Timer (added whenever max_time is set): elapsed time across resumes and the budget."""
-        return next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
-
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Open the bar at the time already spent (a resumed run starts part-way)."""
-        timer = self._timer(trainer)
+        timer = timer_of(trainer)
         if not self.enabled or timer is None or not trainer.is_global_zero:
             return
         total = float(timer._duration or 0.0)
@@ -66,7 +63,7 @@ class BudgetBar(L.Callback):
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Advance to the elapsed time and show the latest numbers."""
-        timer = self._timer(trainer)
+        timer = timer_of(trainer)
         if self.bar is None or timer is None:
             return
         done = min(round(timer.time_elapsed("train")), self.bar.total)  # the last epoch may overrun the budget
@@ -96,59 +93,46 @@ class EpochLog(L.Callback):
     def __init__(self, path: Path, state_names: Sequence[str]) -> None:
         self.path = path
         self.state_names = list(state_names)
-        self.logger = logging.getLogger(f"pinnmpc.train.epochs.{id(self)}")
-        self.logger.propagate = False
-        self.logger.setLevel(logging.INFO)
-        self.handler: logging.Handler | None = None
+
+    def _write(self, trainer: L.Trainer, message: str) -> None:
+        """Append to train.log (rank 0 only: the other DDP processes share the run dir)."""
+        if trainer.is_global_zero:
+            append_log(self.path, message)
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        """Open train.log for appending (rank 0 only) and say what runs."""
-        if not trainer.is_global_zero:
-            return
-        self.handler = logging.FileHandler(self.path, mode="a", encoding="utf-8")
-        self.handler.setFormatter(logging.Formatter("[%(asctime)s] %(message)s", "%Y-%m-%d %H:%M:%S"))
-        self.logger.addHandler(self.handler)
-        h = pl_module.hparams
-        self.logger.info(
-            "training from epoch %d: optimizer %s, %d parameters, budget %s",
-            trainer.current_epoch,
-            h.get("optimizer", "lbfgs"),
-            sum(p.numel() for p in pl_module.parameters() if p.requires_grad),
-            _budget(trainer),
+        """Say what runs."""
+        params = sum(p.numel() for p in pl_module.parameters() if p.requires_grad)
+        optimizer = pl_module.hparams.get("optimizer", "lbfgs")
+        self._write(
+            trainer,
+            f"training from epoch {trainer.current_epoch}: optimizer {optimizer}, {params} parameters, "
+            f"budget {_budget(trainer)}",
         )
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Loss, validation RMSE per state (when this epoch validated) and training time so far."""
-        if self.handler is None:
-            return
         m = trainer.callback_metrics
-        timer = next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
+        timer = timer_of(trainer)
         elapsed = f"{timer.time_elapsed('train'):.0f} s" if timer is not None else "?"
         val = " ".join(f"{n}={float(m[f'val/rmse_{n}']):.3e}" for n in self.state_names if f"val/rmse_{n}" in m)
         loss = f"{float(m['train/loss_total']):.3e}" if "train/loss_total" in m else "?"
-        self.logger.info("epoch %d  time %s  loss %s  val rmse %s", trainer.current_epoch, elapsed, loss, val or "-")
+        self._write(trainer, f"epoch {trainer.current_epoch}  time {elapsed}  loss {loss}  val rmse {val or '-'}")
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        """Say where training ended, then close the file."""
-        if self.handler is not None:
-            self.logger.info("training ended after epoch %d", trainer.current_epoch)
-        self._close()
+        """Say where training ended."""
+        self._write(trainer, f"training ended after epoch {trainer.current_epoch}")
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
-        """Say how the run ended, then close the file."""
-        if self.handler is not None:
-            self.logger.info("stopped by %s: %s", type(exception).__name__, exception)
-        self._close()
+        """Say how the run ended."""
+        self._write(trainer, f"stopped by {type(exception).__name__}: {exception}")
 
-    def _close(self) -> None:
-        """Detach and close the file handler."""
-        if self.handler is not None:
-            self.logger.removeHandler(self.handler)
-            self.handler.close()
-            self.handler = None
+
+def timer_of(trainer: L.Trainer) -> Timer | None:
+    """Lightning's Timer (added whenever max_time is set): training time across resumes and the budget."""
+    return next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
 
 
 def _budget(trainer: L.Trainer) -> str:
     """The wall-time budget Lightning's Timer holds, as DD:HH:MM:SS, or 'none'."""
-    timer = next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
+    timer = timer_of(trainer)
     return duration(float(timer._duration)) if timer is not None and timer._duration else "none"
