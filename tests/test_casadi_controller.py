@@ -153,11 +153,12 @@ def test_codegen_on_and_off_agree(base_cfg: Callable[..., dict], systems: dict) 
     s = systems["powercube"]
     x, ref = np.array([0.1, -0.2, 0.0, 0.1]), np.tile([0.15, -0.25, 0.0, 0.0], (5, 1))
     first = []
-    for codegen in (True, False):
-        c = build_casadi_nmpc(base_cfg("powercube", solver="sqpmethod", codegen=codegen), s)
+    for codegen, level in ((True, "-O2"), (False, "-O2"), (True, "-O1")):
+        c = build_casadi_nmpc(base_cfg("powercube", solver="sqpmethod", codegen=codegen, codegen_opt=level), s)
         first.append(c.make_step(x, ref))
         assert c.stats[-1].converged
     np.testing.assert_allclose(first[0], first[1], atol=1e-6)
+    np.testing.assert_allclose(first[2], first[0], atol=1e-9)
 
 
 def test_bad_settings_are_rejected(base_cfg: Callable[..., dict], systems: dict) -> None:
@@ -166,6 +167,8 @@ def test_bad_settings_are_rejected(base_cfg: Callable[..., dict], systems: dict)
         build_casadi_nmpc(base_cfg("powercube", solver="ipopt", rti=True), s)
     with pytest.raises(ValueError, match="expected one of"):
         build_casadi_nmpc(base_cfg("powercube", solver="snopt"), s)
+    with pytest.raises(ValueError, match="controller.codegen_opt='-O9'"):
+        build_casadi_nmpc(base_cfg("powercube", codegen_opt="-O9"), s)
     with pytest.raises(ValueError, match="x_ref must cover the horizon"):
         build_casadi_nmpc(base_cfg("powercube"), s).make_step(np.zeros(4), np.zeros((3, 4)))
     with pytest.raises(ValueError, match="exceeds upper bound"):

@@ -39,8 +39,21 @@ def test_a_convex_quadratic_is_solved_and_h_stays_positive_definite(variant):
     x, opt = _minimise(lambda x: 0.5 * x @ A @ x - b @ x, torch.zeros(8, dtype=torch.float64), max_iter=60,
                        variant=variant)  # fmt: skip
     assert torch.allclose(x, torch.linalg.solve(A, b), atol=1e-7)
-    H = opt.state[opt._params[0]]["H"]
+    H = opt.state[opt._params[0]]["H"].matrix()
     assert torch.allclose(H, H.T, atol=1e-12) and torch.linalg.eigvalsh(H).min() > 0  # updates keep H SPD
+
+
+def test_updates_kept_aside_give_the_iterates_of_updates_applied_at_once():
+    g = torch.Generator().manual_seed(1)
+    a = torch.randn(30, 30, generator=g, dtype=torch.float64)
+    A, b = a @ a.T + 0.1 * torch.eye(30, dtype=torch.float64), torch.randn(30, generator=g, dtype=torch.float64)
+    x0 = torch.zeros(30, dtype=torch.float64)
+    at_once, eager = _minimise(lambda x: 0.5 * x @ A @ x - b @ x, x0, max_iter=17, buffer=1)
+    kept, lazy = _minimise(lambda x: 0.5 * x @ A @ x - b @ x, x0, max_iter=17, buffer=5)
+    assert lazy.state[lazy._params[0]]["H"].B.shape[1] > 0  # some updates still pending at the end
+    assert torch.allclose(at_once, kept, rtol=0, atol=1e-9)
+    H_eager, H_lazy = (o.state[o._params[0]]["H"].matrix() for o in (eager, lazy))
+    assert torch.allclose(H_eager, H_lazy, rtol=0, atol=1e-9)
 
 
 def test_the_rosenbrock_valley_is_followed_to_its_minimum():
@@ -55,7 +68,7 @@ def test_the_rosenbrock_valley_is_followed_to_its_minimum():
 def test_checkpoints_leave_the_dense_matrix_out_and_a_reset_forgets_it():
     x, opt = _minimise(lambda x: (x * x).sum() + x.sum() ** 4, torch.ones(50, dtype=torch.float64), max_iter=5)
     state = opt.state[opt._params[0]]
-    assert state["H"].shape == (50, 50)
+    assert state["H"].matrix().shape == (50, 50)
     saved = opt.state_dict()["state"][0]
     assert "H" not in saved and saved["n_iter"] == state["n_iter"]
     opt.reset()
@@ -65,7 +78,7 @@ def test_checkpoints_leave_the_dense_matrix_out_and_a_reset_forgets_it():
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [({"variant": "sr1"}, "ssbfgs_variant='sr1'"), ({"hessian_dtype": "half"}, "hessian_dtype='half'"),
-     ({"max_params": 10}, "50 x 50 inverse Hessian")],
+     ({"max_params": 10}, "50 x 50 inverse Hessian"), ({"buffer": 0}, "hessian_buffer=0")],
 )  # fmt: skip
 def test_bad_settings_are_refused_with_the_setting_named(kwargs, match):
     with pytest.raises(ValueError, match=match):

@@ -233,6 +233,15 @@ def test_resume_continues_from_last_checkpoint(make_cfg, tmp_path):
     assert second["epoch"] == first["epoch"] + 2
 
 
+def test_a_resumed_run_weighs_its_loss_as_configured_now(make_cfg, tmp_path):
+    train(make_cfg("train", [*TINY, "trainer.max_epochs=1", "module.kinematic_weight=3.0"]), tmp_path)
+    before = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]["res_scale"]
+    train(make_cfg("train", [*TINY, "trainer.max_epochs=2", "module.kinematic_weight=12.0", "resume=true"]), tmp_path)
+    after = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]["res_scale"]
+    torch.testing.assert_close(after[:2], before[:2] / 4)  # kinematic rows: divided by the new weight
+    torch.testing.assert_close(after[2:], before[2:])
+
+
 def _timer_key(ckpt: dict) -> str:
     """Key of Lightning's Timer state among a checkpoint's callback states."""
     return next(k for k in ckpt["callbacks"] if k.startswith("Timer"))

@@ -193,10 +193,12 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
     )
     options = dict((cfg.get("solvers") or {}).get(plugin) or {})
     hessian, codegen = str(cfg.get("hessian", "gauss_newton")), bool(cfg.get("codegen", True))
-    solver = ocp.solver(plugin, options, hessian, codegen)
+    level = str(cfg.get("codegen_opt", "-O2"))
+    solver = ocp.solver(plugin, options, hessian, codegen, level)
     cold_solver = None
     if rti:  # one full SQP step from the shifted solution; the first step (and any after a fallback) solves fully
-        cold_solver, solver = solver, ocp.solver(plugin, {**options, "max_iter": 1, "max_iter_ls": 0}, hessian, codegen)
+        one_step = {**options, "max_iter": 1, "max_iter_ls": 0}
+        cold_solver, solver = solver, ocp.solver(plugin, one_step, hessian, codegen, level)
     d = cfg.get("disturbance") or {}
     return CasadiNMPC(
         ocp,

@@ -26,6 +26,7 @@ from pinnmpc.controller.ocp import JointLimits, psd_sqrt
 from pinnmpc.systems.compiled import compile_functions
 
 SOLVERS = ("ipopt", "sqpmethod", "fatrop")  # nlpsol plugins this controller knows how to configure
+OPT_LEVELS = ("-O0", "-O1", "-O2", "-O3", "-Os")  # C compiler optimisation levels for codegen
 HESSIANS = ("gauss_newton", "exact")  # Hessian of the Lagrangian: the cost's only (constant) or with the dynamics'
 RK4_STABLE = 2.0  # h * max|eig(df/dx)| kept below this (RK4's real stability bound is 2.785)
 STIFFNESS_SAMPLES = 400  # states sampled to estimate the stiffest eigenvalue
@@ -253,9 +254,17 @@ class CasadiOCP:
 
     # -- solvers --------------------------------------------------------------------------------------------
     def solver(
-        self, plugin: str, options: dict[str, Any], hessian: str = "gauss_newton", codegen: bool = True
+        self,
+        plugin: str,
+        options: dict[str, Any],
+        hessian: str = "gauss_newton",
+        codegen: bool = True,
+        codegen_opt: str = "-O2",
     ) -> NlpSolver:
-        """The nlpsol for this OCP: plugin (SOLVERS), its options (CasADi's names), compiled or not."""
+        """The nlpsol for this OCP: plugin (SOLVERS), its options (CasADi's names), compiled (at the C
+        optimisation level codegen_opt) or not."""
+        if codegen_opt not in OPT_LEVELS:
+            raise ValueError(f"controller.codegen_opt={codegen_opt!r}; expected one of {list(OPT_LEVELS)}")
         if plugin not in SOLVERS:
             raise ValueError(f"solver={plugin!r}; expected one of {SOLVERS}")
         if not ca.has_nlpsol(plugin):
@@ -272,11 +281,11 @@ class CasadiOCP:
         if gauss_newton and plugin == "ipopt" and not self._limit_sides:  # the limits' Hessian is piecewise constant
             opts["ipopt"].setdefault("hessian_constant", "yes")
         if codegen:
-            return self._compiled(plugin, opts, gauss_newton)
+            return self._compiled(plugin, opts, gauss_newton, codegen_opt)
         extra = {"hess_lag": self.gauss_newton} if gauss_newton else {}
         return NlpSolver(self, ca.nlpsol("ocp", plugin, self.nlp, {**opts, **extra}), self.F, SUCCESS[plugin])
 
-    def _compiled(self, plugin: str, opts: dict, gauss_newton: bool) -> NlpSolver:
+    def _compiled(self, plugin: str, opts: dict, gauss_newton: bool, opt: str) -> NlpSolver:
         """The solver on a library of its functions compiled to C: CasADi loads every derivative the solver
         asks for (nlp_grad_f, nlp_jac_g, nlp_hess_l, ...) from the library that holds the oracle "nlp".
         The constraint Jacobians come from F_sens; with Gauss-Newton, nlp_hess_l is the constant cost Hessian."""
@@ -293,7 +302,7 @@ class CasadiOCP:
         x, u = self.F.mx_in()
         flow = ca.Function("flow", [x, u], [self.F(x, u)])
         tag = f"casadi_nmpc_{self.name}_{plugin}_{'gn' if gauss_newton else 'exact'}"
-        lib = compile_functions(tag, [oracle, flow, *deps], opt="-O2")
+        lib = compile_functions(tag, [oracle, flow, *deps], opt=opt)
         return NlpSolver(self, ca.nlpsol("ocp", plugin, lib["nlp"], opts), lib["flow"], SUCCESS[plugin])
 
     def _like(self, template: ca.Function, gauss_newton: bool) -> ca.Function:

@@ -49,7 +49,8 @@ class PINNModule(L.LightningModule):
         robust_delta: float | None = None,
         optimizer: str = "lbfgs",
         ssbfgs_variant: str = "ssbfgs",
-        hessian_dtype: str = "float64",
+        hessian_dtype: str = "float32",
+        hessian_buffer: int = 16,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["system", "model"])
@@ -70,6 +71,11 @@ class PINNModule(L.LightningModule):
         scale = self._residual_scale(residual_scale) / self._kinematic_weights(kinematic_weight)
         self.register_buffer("res_scale", scale.to(DTYPES[dtype]))
         self.stalls = 0
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """A resumed run weighs its loss as configured now (module.residual_scale, kinematic_weight), not as the
+        checkpoint's run did: the weights are settings, like robust_delta, that a user may change on resume."""
+        checkpoint["state_dict"]["res_scale"] = self.res_scale.detach().clone()
 
     def _residual_scale(self, residual_scale: Sequence[float] | str) -> Tensor:
         """Divide each residual component by its typical size so no state dominates the loss."""
@@ -153,7 +159,11 @@ class PINNModule(L.LightningModule):
         )
         if h.optimizer == "ssbfgs":
             qn: torch.optim.Optimizer = SSBFGS(
-                params, **common, variant=h.ssbfgs_variant, hessian_dtype=h.hessian_dtype
+                params,
+                **common,
+                variant=h.ssbfgs_variant,
+                hessian_dtype=h.hessian_dtype,
+                buffer=h.hessian_buffer,
             )
         else:
             qn = torch.optim.LBFGS(params, **common, history_size=h.lbfgs_history, line_search_fn="strong_wolfe")

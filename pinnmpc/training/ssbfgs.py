@@ -32,6 +32,47 @@ class Step:
     slope: float
 
 
+class InverseHessian:
+    """H = c D + A B': a dense n x n matrix D, a scalar c and the pending low-rank updates A B' (n x k each).
+
+    Each BFGS update scales H and adds a rank-two term; applied one by one they cost two passes over the n x n
+    matrix per iteration (read and write), more than the network's loss and gradient at 10^4 parameters. Kept
+    aside and folded into D `buffer` updates at a time, an iteration reads D once (its product with a vector).
+    """
+
+    def __init__(self, n: int, scale: float, dtype: torch.dtype, device: torch.device, buffer: int) -> None:
+        self.D = torch.eye(n, dtype=dtype, device=device)
+        self.c = float(scale)
+        self.A = torch.zeros(n, 0, dtype=dtype, device=device)
+        self.B = torch.zeros(n, 0, dtype=dtype, device=device)
+        self.buffer = int(buffer)
+        self.dtype = dtype
+
+    def __matmul__(self, v: Tensor) -> Tensor:
+        """H v without forming H."""
+        out = (self.D @ v).mul_(self.c)
+        return out.addmv_(self.A, self.B.T @ v) if self.A.shape[1] else out
+
+    def update(self, UM: Tensor, U: Tensor, tau: float) -> None:
+        """H <- H / tau + (U M) U' (M symmetric); folded into D once `buffer` updates are pending."""
+        self.c /= tau
+        self.A = torch.cat([self.A / tau, UM], dim=1)
+        self.B = torch.cat([self.B, U], dim=1)
+        if self.B.shape[1] >= 2 * self.buffer:
+            self.fold()
+
+    def fold(self) -> None:
+        """D <- c D + A B' in one pass over D."""
+        self.D.addmm_(self.A, self.B.T, beta=self.c)
+        self.c = 1.0
+        self.A, self.B = self.A[:, :0], self.B[:, :0]
+
+    def matrix(self) -> Tensor:
+        """H itself (folds what is pending)."""
+        self.fold()
+        return self.D
+
+
 class SSBFGS(torch.optim.Optimizer):
     """Dense (self-scaled) BFGS over all parameters with a strong Wolfe line search; one `step` runs max_iter
     iterations, like torch.optim.LBFGS, so it drops into the same full-batch training loop."""
@@ -46,9 +87,12 @@ class SSBFGS(torch.optim.Optimizer):
         variant: str = "ssbfgs",
         hessian_dtype: str = "float64",
         max_params: int = 40_000,
+        buffer: int = 16,
     ) -> None:
         if variant not in VARIANTS:
             raise ValueError(f"module.ssbfgs_variant={variant!r}; expected one of {list(VARIANTS)}")
+        if isinstance(buffer, bool) or not isinstance(buffer, int) or buffer < 1:
+            raise ValueError(f"module.hessian_buffer={buffer!r}; expected a positive integer")
         if hessian_dtype not in HESSIAN_DTYPES:
             raise ValueError(f"module.hessian_dtype={hessian_dtype!r}; expected one of {sorted(HESSIAN_DTYPES)}")
         super().__init__(params, {"lr": lr})
@@ -68,6 +112,7 @@ class SSBFGS(torch.optim.Optimizer):
         self.tolerance_change = float(tolerance_change)
         self.variant = variant
         self.hessian_dtype = HESSIAN_DTYPES[hessian_dtype]
+        self.buffer = buffer
         self._ceiling = math.inf
 
     # -- flat views of the parameters ---------------------------------------------------------------------------
@@ -116,8 +161,8 @@ class SSBFGS(torch.optim.Optimizer):
         sd["state"] = {k: {n: v for n, v in s.items() if n != "H"} for k, s in sd["state"].items()}
         return sd
 
-    def _update(self, H: Tensor, step: Step) -> Callable[[Tensor, Tensor], Tensor]:
-        """Self-scaled BFGS update of the inverse Hessian in place (a scale plus rank two); returns the map
+    def _update(self, H: InverseHessian, step: Step) -> Callable[[Tensor, Tensor], Tensor]:
+        """Self-scaled BFGS update of the inverse Hessian (a scale plus rank two); returns the map
         H v -> H+ v, so the next direction needs no second product with the n x n matrix.
 
         H+ = (1/tau) (H - Hy Hy'/y'Hy + v v') + s s'/y's, v = sqrt(y'Hy) (s/y's - Hy/y'Hy), with
@@ -133,10 +178,10 @@ class SSBFGS(torch.optim.Optimizer):
             tau = min(1.0, ys / step.slope)
         a = 1.0 / ys
         # H+ = H/tau + [s Hy] M [s Hy]' with this 2 x 2 M (the v v' term expanded)
-        m = torch.tensor([[(yhy * a * a) / tau + a, -a / tau], [-a / tau, 0.0]], dtype=H.dtype, device=H.device)
+        m = torch.tensor([[(yhy * a * a) / tau + a, -a / tau], [-a / tau, 0.0]], dtype=H.dtype, device=s.device)
         U = torch.stack([s, hy], dim=1)
         Um = U @ m
-        H.addmm_(Um, U.T, beta=1.0 / tau)
+        H.update(Um, U, tau)
         return lambda hv, v: hv / tau + Um @ (U.T @ v)
 
     @torch.no_grad()
@@ -153,7 +198,7 @@ class SSBFGS(torch.optim.Optimizer):
         state["func_evals"] += 1
         if g.abs().max() <= self.tolerance_grad or not math.isfinite(loss):
             return first
-        H: Tensor | None = state.get("H")
+        H: InverseHessian | None = state.get("H")
         hg = None if H is None else H @ g.to(H.dtype)  # H g, carried from iteration to iteration
         x = self._flat_params()
         self._ceiling = abs(loss) * 1e12 + 1e12  # stands for a non-finite trial loss
@@ -187,7 +232,7 @@ class SSBFGS(torch.optim.Optimizer):
             if H is None or hg is None:  # the first curvature pair scales the identity (Nocedal and Wright 6.20)
                 ys = float(y @ s)
                 scale = ys / float(y @ y) if ys > 0 else 1.0
-                H = torch.eye(self.n, dtype=self.hessian_dtype, device=g.device).mul_(scale)
+                H = InverseHessian(self.n, scale, self.hessian_dtype, g.device, self.buffer)
                 hg = scale * g.to(H.dtype)
             g64 = g_new.to(H.dtype)
             hg_new = H @ g64
