@@ -11,6 +11,7 @@ import hashlib
 import os
 import shutil
 import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -50,6 +51,8 @@ def compile_functions(name: str, functions: list[ca.Function], opt: str = "-O1")
         if compiler is None:
             raise RuntimeError(f"no C compiler found (CC={os.environ.get('CC', 'cc')}); install gcc to compile {name}")
         lib.parent.mkdir(parents=True, exist_ok=True)
+        # a large arm's generated code takes minutes at -O2: say what the wait is (once; the library is cached)
+        print(f"compiling {name} ({len(source) // 1024} kB of C, {opt}) into {lib.parent}", file=sys.stderr)
         with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
             src = Path(tmp) / f"{name}.c"
             src.write_text(source)
