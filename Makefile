@@ -18,7 +18,7 @@ CLI_NAMES := $(call uniq,$(call reverse,$(foreach d,$(subst \$(space),^,$(MAKEOV
 shell_quote = '$(subst ','\'',$(1))'
 OVERRIDES = $(foreach v,$(filter-out $(KNOBS),$(CLI_NAMES)),$(call shell_quote,$(v)=$($(v)))) $(ARGS)
 
-.PHONY: install train self-loop closed-loop closed-loop-paper robustness evaluate bench sweep sweep-optuna tensorboard test test-all lint format contract clean
+.PHONY: install train self-loop residuals closed-loop closed-loop-paper robustness evaluate bench sweep sweep-optuna tensorboard test test-all lint format contract clean
 
 install: $(VENV)/.installed  ## venv with a CPU build of torch, the package (editable) and its extras
 
@@ -34,6 +34,9 @@ train: install  ## train the default PINN (under 30 min on 2 cores); outputs/tra
 
 self-loop: install  ## the paper's 20-step self-loop test with the shipped checkpoint
 	$(PY) -m pinnmpc.self_loop $(OVERRIDES)
+
+residuals: install  ## where the shipped network breaks the physics: ODE residual by state and time in the step
+	$(PY) -m pinnmpc.residuals $(OVERRIDES)
 
 closed-loop: install  ## NMPC tracks the built-in reference on the RK45 plant (the main job)
 	$(PY) -m pinnmpc.closed_loop $(OVERRIDES)

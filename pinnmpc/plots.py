@@ -230,6 +230,28 @@ def scaling_figure(
     return fig
 
 
+def residual_figure(t_edges: np.ndarray, rms: np.ndarray, state_names: Sequence[str], title: str = "") -> Figure:
+    """Heat map of an RMS residual per time bin (rows) and state (columns), log colours, each cell labelled."""
+    rms = _as_2d("rms", np.asarray(rms, dtype=float), len(t_edges) - 1, len(state_names))
+    shown = np.clip(rms, max(ERROR_FLOOR, rms.max() * 10.0**-ERROR_DECADES), None)
+    fig = Figure(figsize=(max(5.0, 0.75 * len(state_names) + 2.5), 0.45 * len(rms) + 2.0), layout="constrained")
+    ax = fig.subplots()
+    image = ax.imshow(np.log10(shown), aspect="auto", cmap="viridis")
+    level = np.log10(shown)
+    bright = level.min() + 0.7 * np.ptp(level)  # cells this far up the colour map are light: dark text on them
+    for (i, j), v in np.ndenumerate(rms):
+        color = "k" if level[i, j] > bright else "w"
+        ax.text(j, i, f"{v:.1e}", ha="center", va="center", fontsize="x-small", color=color)
+    ax.set_xticks(range(len(state_names)), labels=list(state_names), rotation=45, ha="right")
+    ms = 1e3 * np.asarray(t_edges, dtype=float)
+    ax.set_yticks(range(len(rms)), labels=[f"{a:.3g}-{b:.3g}" for a, b in zip(ms[:-1], ms[1:])])
+    ax.set_ylabel("t in the step, ms")
+    fig.colorbar(image, ax=ax, label="log10 RMS residual (network units)")
+    if title:
+        ax.set_title(title, fontsize="small")
+    return fig
+
+
 def save_figure(fig: Figure, path: str | Path, dpi: int = DPI) -> Path:
     """PNG written atomically, so a watcher or a crash never sees a truncated image."""
     return atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=dpi))

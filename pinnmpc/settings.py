@@ -191,6 +191,15 @@ SELF_LOOP: dict[str, Check] = {
     "plots": boolean(),
 }
 
+RESIDUALS: dict[str, Check] = {
+    "checkpoint": optional(text()),
+    "points": integer(1),
+    "bins": integer(1),
+    "seed": SEED,
+    "threads": integer(1),
+    "plots": boolean(),
+}
+
 TRAIN: dict[str, Check] = {
     "tau": positive(),
     "t_max": positive(),
@@ -260,6 +269,11 @@ def validate_robustness(cfg: DictConfig, system: Any) -> None:
 def validate_self_loop(cfg: DictConfig, system: Any) -> None:
     """self_loop settings."""
     validate(cfg, SELF_LOOP, system_dims(system))
+
+
+def validate_residuals(cfg: DictConfig, system: Any) -> None:
+    """residuals settings."""
+    validate(cfg, RESIDUALS, system_dims(system))
 
 
 def validate_train(cfg: DictConfig, system: Any) -> None:

@@ -102,6 +102,8 @@ def test_step_table(bench: tuple[dict[str, Any], Path]) -> None:
         np_rmse, torch_rmse = step["rmse"][f"{name}_numpy"], step["rmse"][f"{name}_torch"]
         assert np_rmse == pytest.approx(torch_rmse, rel=1e-9)
     assert step["rmse"]["rk4_compiled"] == pytest.approx(step["rmse"]["rk4_numpy"], rel=1e-9)  # ... and the C
+    for name, size in step["rmse_hold"].items():  # the yardstick: the shipped network is 10x better than standing still
+        assert step["rmse"]["pinn_numpy"][name] < size / 10, name
 
 
 def test_step_skips_rk45_batch_rows_when_asked(tmp_path: Path) -> None:

@@ -17,6 +17,7 @@ COMMANDS = {  # module: its primary config
     "train": "train",
     "closed_loop": "closed_loop",
     "self_loop": "self_loop",
+    "residuals": "residuals",
     "robustness": "robustness",
     "bench": "bench",
 }

@@ -63,6 +63,8 @@ def md_step(step: dict[str, Any], paper: dict[str, Any] | None, names: Sequence[
             table.append(cells)
         out += [f"### batch {b}", "", md_table(headers, table), ""]
     acc = [[step["methods"][k]["label"], *(fmt(v[n], ".2e") for n in names)] for k, v in step["rmse"].items()]
+    if "rmse_hold" in step:  # absent in reports of older runs
+        acc.append(["no model: x(tau) = x0 (the size of one step)", *(fmt(step["rmse_hold"][n], ".2e") for n in names)])
     out += [
         f"### one-step RMSE vs fine RK4 (h = {step['ref_h_s']:g} s), {step['n_states']} random states",
         "",

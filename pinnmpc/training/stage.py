@@ -8,9 +8,10 @@ import torch
 from torch import Tensor
 
 from pinnmpc.pinn import PINN, StagedPINN
+from pinnmpc.residuals import scaled_residual
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import System
-from pinnmpc.training.data import collocation_box, lhs_box, random_pairs, reference_flow
+from pinnmpc.training.data import random_pairs, reference_flow
 
 
 def one_step_rmse(system: System, model: PINN, tau: float, n: int, h: float, seed: int) -> Tensor:
@@ -24,13 +25,7 @@ def one_step_rmse(system: System, model: PINN, tau: float, n: int, h: float, see
 
 def residual_level(system: System, model: PINN, n: int, seed: int) -> float:
     """RMS of the explicit ODE residual in the network's residual units over n LHS points of its training box."""
-    pts = lhs_box(n, *collocation_box(system, model.t_max), seed).to(model.out_scale.dtype)
-    nx = system.state_box.dim
-    t, x0, u = pts[:, :1], pts[:, 1 : 1 + nx], pts[:, 1 + nx :]
-    with torch.no_grad():
-        x, dxdt = model.with_time_derivative(t, x0, u)
-        r = system.residual(x, dxdt, u, "explicit") / model.residual_unit
-    return float(r.double().square().mean().sqrt())
+    return float(scaled_residual(system, model, n, seed)[1].square().mean().sqrt())
 
 
 def staged_model(
