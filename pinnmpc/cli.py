@@ -383,6 +383,21 @@ def run_cli(body: Callable[[], T], prog: str, run_dir: Path | None = None) -> T:
         sys.exit(EXIT_RUN_FAILED if isinstance(e, RUN_FAILURES) else EXIT_BAD_INPUT)
 
 
+def hydra_run_dir() -> Path:
+    """The run dir Hydra made for this job (inside @hydra.main)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return Path(HydraConfig.get().runtime.output_dir)
+
+
+def run_job(body: Callable[[Path], T], prog: str, summary: Callable[[T, Path], str]) -> T:
+    """An entry point's whole job: run body in Hydra's run dir under run_cli, then print and log its summary."""
+    run_dir = hydra_run_dir()
+    result = run_cli(lambda: body(run_dir), prog, run_dir)
+    say(summary(result, run_dir), run_dir, prog)
+    return result
+
+
 # ---------------------------------------------------------------------------------------------- make clean
 
 

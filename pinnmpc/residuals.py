@@ -17,7 +17,7 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from pinnmpc.cli import run_cli, say
+from pinnmpc.cli import run_job
 from pinnmpc.io import save_json
 from pinnmpc.pinn import PINN
 from pinnmpc.settings import validate_residuals
@@ -60,6 +60,12 @@ def residual_table(system: System, model: PINN, n: int, bins: int, seed: int) ->
     }
 
 
+def _summary(m: dict[str, Any], run_dir: Path) -> str:
+    """One line: RMS and loss share per state."""
+    rms = ", ".join(f"{k} {v:.2e} ({100 * m['share'][k]:.0f}%)" for k, v in m["rms"].items())
+    return f"RMS scaled residual (share of the sum of squares): {rms}; outputs in {run_dir}"
+
+
 def run_residuals(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """The table of a surrogate as residuals.json, and residuals.png (a heat map)."""
     system = build_system(cfg.system)
@@ -70,26 +76,19 @@ def run_residuals(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     )
     result = residual_table(system, surrogate.model, int(cfg.points), int(cfg.bins), int(cfg.seed))
     save_json(run_dir / "residuals.json", result)
-    if cfg.plots:
-        from pinnmpc import plots
+    if cfg.plots:  # matplotlib only when a figure is wanted
+        from pinnmpc.plots import residual_figure, save_figure
 
-        fig = plots.residual_figure(
-            np.asarray(result["t_edges_s"]),
-            np.asarray(result["rms_by_bin"]),
-            result["state_names"],
-            title=f"{system.name}: RMS scaled ODE residual by time in the step ({cfg.points} LHS points)",
-        )
-        plots.save_figure(fig, run_dir / "residuals.png")
+        edges, rms = np.asarray(result["t_edges_s"]), np.asarray(result["rms_by_bin"])
+        title = f"{system.name}: RMS scaled ODE residual by time in the step ({cfg.points} LHS points)"
+        save_figure(residual_figure(edges, rms, result["state_names"], title), run_dir / "residuals.png")
     return result
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="residuals")
 def main(cfg: DictConfig) -> None:
     """CLI: the per-state RMS and where the outputs went."""
-    run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    m = run_cli(lambda: run_residuals(cfg, run_dir), "pinnmpc.residuals", run_dir)
-    rms = ", ".join(f"{k} {v:.2e} ({100 * m['share'][k]:.0f}%)" for k, v in m["rms"].items())
-    say(f"RMS scaled residual (share of the sum of squares): {rms}; outputs in {run_dir}", run_dir, "pinnmpc.residuals")
+    run_job(lambda run_dir: run_residuals(cfg, run_dir), "pinnmpc.residuals", _summary)
 
 
 if __name__ == "__main__":

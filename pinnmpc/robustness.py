@@ -10,7 +10,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from pinnmpc.cli import run_cli, say
+from pinnmpc.cli import run_job
 from pinnmpc.closed_loop import run_closed_loop
 from pinnmpc.io import atomic_write, save_json
 from pinnmpc.report import md_table
@@ -73,9 +73,11 @@ def run_robustness(cfg: DictConfig, run_dir: Path) -> list[dict[str, Any]]:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="robustness")
 def main(cfg: DictConfig) -> None:
     """CLI: print the table."""
-    run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    run_cli(lambda: run_robustness(cfg, run_dir), "pinnmpc.robustness", run_dir)
-    say((run_dir / "robustness.md").read_text() + f"outputs in {run_dir}", run_dir, "pinnmpc.robustness")
+    run_job(
+        lambda run_dir: run_robustness(cfg, run_dir),
+        "pinnmpc.robustness",
+        lambda _rows, run_dir: (run_dir / "robustness.md").read_text() + f"outputs in {run_dir}",
+    )
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from pinnmpc.cli import run_cli, say
+from pinnmpc.cli import run_job
 from pinnmpc.io import save_json, save_npz
 from pinnmpc.plant import ScipyPlant
 from pinnmpc.settings import validate_self_loop
@@ -88,10 +88,13 @@ def run_self_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="self_loop")
 def main(cfg: DictConfig) -> None:
     """CLI: headline numbers and where the outputs went."""
-    run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
-    m = run_cli(lambda: run_self_loop(cfg, run_dir), "pinnmpc.self_loop", run_dir)
+    run_job(lambda run_dir: run_self_loop(cfg, run_dir), "pinnmpc.self_loop", _summary)
+
+
+def _summary(m: dict[str, Any], run_dir: Path) -> str:
+    """One line: MAE per state against the plant."""
     mae = ", ".join(f"{k} {v:.2e}" for k, v in m["mae"].items())
-    say(f"self-loop {m['steps']} steps, MAE vs plant: {mae}; outputs in {run_dir}", run_dir, "pinnmpc.self_loop")
+    return f"self-loop {m['steps']} steps, MAE vs plant: {mae}; outputs in {run_dir}"
 
 
 if __name__ == "__main__":
