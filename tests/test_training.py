@@ -78,21 +78,6 @@ def test_bad_kinematic_weight_is_refused(make_cfg, bad):
         PINNModule(system, build_model(make_cfg("train", TINY), system), tau=0.2, kinematic_weight=bad)
 
 
-def test_settle_time_fades_in_only_the_velocity_rows(make_cfg):
-    system = PowerCube()
-    model = build_model(make_cfg("train", TINY), system)
-    plain = PINNModule(system, model, tau=0.2)
-    faded = PINNModule(system, model, tau=0.2, settle_time=0.01)
-    t = torch.tensor([[0.0], [0.01], [0.2]])
-    b = {"t": t, "x0": torch.rand(3, 4) - 0.5, "u": torch.rand(3, 2) - 0.5}
-    r, w = plain._scaled_residual(b).detach(), faded._scaled_residual(b).detach()
-    torch.testing.assert_close(w[:, :2], r[:, :2])  # dq/dt - v: every time counts for q(tau)
-    torch.testing.assert_close(w[:, 2:], r[:, 2:] * (1 - torch.exp(-t / 0.01)))  # 0 at t = 0, 63% at t = T
-    for bad in (0.0, 0.3, -1.0, True, "fast"):  # not a time inside the period
-        with pytest.raises(ValueError, match="module.settle_time must be null or a time in"):
-            PINNModule(system, model, tau=0.2, settle_time=bad)
-
-
 def test_huber_loss_is_squares_below_delta_and_linear_above(make_cfg):
     cfg = make_cfg("train", TINY)
     system = PowerCube()

@@ -51,7 +51,6 @@ class PINNModule(L.LightningModule):
         ssbfgs_variant: str = "ssbfgs",
         hessian_dtype: str = "float32",
         hessian_buffer: int = 16,
-        settle_time: float | None = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["system", "model"])
@@ -65,14 +64,6 @@ class PINNModule(L.LightningModule):
             or not 0 < robust_delta < math.inf
         ):
             raise ValueError(f"robust_delta must be a positive number or null, got {robust_delta!r}")
-        if settle_time is not None and (
-            isinstance(settle_time, bool) or not isinstance(settle_time, int | float) or not 0 < settle_time < tau
-        ):
-            raise ValueError(f"module.settle_time must be null or a time in (0, tau = {tau}) s, got {settle_time!r}")
-        if settle_time is not None and model.nx % 2:
-            raise ValueError(
-                f"module.settle_time needs a state (positions, velocities) of even dimension, got {model.nx}"
-            )
         self.automatic_optimization = False
         self.system = system
         self.model = model.to(DTYPES[dtype])
@@ -122,13 +113,7 @@ class PINNModule(L.LightningModule):
     def _scaled_residual(self, b: dict[str, Tensor]) -> Tensor:
         """ODE residual per point and state, in the units the physics loss weighs."""
         x, dxdt = self.model.with_time_derivative(b["t"], b["x0"], b["u"])
-        r = self.system.residual(x, dxdt, b["u"], self.hparams.residual_form) / self.res_scale
-        settle = self.hparams.get("settle_time")
-        if settle is None:
-            return r
-        nq = self.model.nx // 2  # velocity rows fade in: a fast mode's misfit at the start is gone by tau
-        weight = torch.cat([torch.ones_like(r[..., :nq]), (-b["t"] / settle).expm1().neg().expand_as(r[..., nq:])], -1)
-        return r * weight
+        return self.system.residual(x, dxdt, b["u"], self.hparams.residual_form) / self.res_scale
 
     @torch.no_grad()
     def pointwise_residual(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
