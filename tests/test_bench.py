@@ -259,7 +259,9 @@ def test_targets_verdict_says_what_was_missed_and_by_how_much() -> None:
 def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
     result = bench[0]
     cl = result["classical"]
-    assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod"]
+    mismatch = ["pinn_lifted_gauss_newton_friction_0.8", "classical_friction_0.8"]
+    mismatch += ["pinn_lifted_gauss_newton_friction_1.2", "classical_friction_1.2"]
+    assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod", *mismatch]
     pinn, classical = cl["rows"]["pinn_lifted_gauss_newton"], cl["rows"]["classical_sqpmethod"]
     assert pinn["mae"] == result["closed_loop"]["rows"]["pinn_lifted_gauss_newton"]["mae"]  # reused, same process
     assert classical["solver"] == "casadi-sqpmethod" and classical["model"] == "classical"
@@ -269,11 +271,20 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
     assert 0 < t["median"] <= t["p95"] <= t["max"]
     assert classical["ratio_ocp_to_plant"] == pytest.approx(t["median"] / classical["plant_step_median_s"], rel=1e-12)
     assert cl["shared"] == ["horizon", "Q", "R", "R_rate", "u_low", "u_high"]
+    for scale in ("0.8", "1.2"):  # a plant off the model: the classical NMPC estimates the offset, as the PINN one
+        off = cl["rows"][f"classical_friction_{scale}"]
+        assert off["status"] == "ok" and off["disturbance_gain"] == pinn["disturbance_gain"] > 0
+        assert classical["disturbance_gain"] == 0  # exact model: nothing to estimate
+        assert all(off["mae"][n] > 10 * classical["mae"][n] for n in ("alpha", "beta"))  # its model is not exact now
+        assert cl["rows"][f"pinn_lifted_gauss_newton_friction_{scale}"]["mae"] != pinn["mae"]
+        label = f"| classical NMPC, casadi-sqpmethod, plant friction x{scale}, offset-free"
+        assert label in (bench[1] / "bench.md").read_text()
 
 
 def test_classical_alone_runs_its_own_pinn_row_and_extra_solvers(tmp_path: Path) -> None:
     off = [o for o in SECTIONS_OFF if not o.startswith("classical")]
     overrides = [*TINY, *off, "classical.enabled=true", "classical.solvers=[ipopt]", "closed_loop.max_steps=3"]
+    overrides.append("classical.friction_scales=[]")
     cl = run_bench(_cfg(overrides), tmp_path)["classical"]
     assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod", "classical_ipopt"]
     assert all(r["steps"] == 3 and r["status"] == "ok" for r in cl["rows"].values())
@@ -370,7 +381,8 @@ def test_planar3_bench_is_generic(planar3: tuple[dict[str, Any], Path]) -> None:
     assert set(cl["rows"]) == {"pinn_lifted_gauss_newton", "true_rk4_lifted_gauss_newton"}
     for row in [*cl["rows"].values(), *cl["references"].values(), *result["classical"]["rows"].values()]:
         assert row["steps"] == P3_STEPS and set(row["mae"]) == set(names)
-    assert list(result["classical"]["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod"]
+    mismatch = [f"{who}_friction_{f}" for f in ("0.8", "1.2") for who in ("pinn_lifted_gauss_newton", "classical")]
+    assert list(result["classical"]["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod", *mismatch]
     targets = {t["what"]: t for t in result["targets"]}
     assert targets["one-step RMSE q_joint1"]["limit"] == 1e-3  # conf/system/planar3.yaml
     md = (run_dir / "bench.md").read_text()

@@ -36,6 +36,27 @@ def available(cfg: DictConfig) -> bool:
     return cfg.classical.get("controller") is not None
 
 
+def mismatch_rows(
+    cfg: DictConfig, system: System, surrogate: Surrogate, ref: Reference, scale: float
+) -> dict[str, dict[str, Any]]:
+    """Both controllers on a plant whose friction is scaled: neither model is exact there, so the classical NMPC
+    gets the PINN controller's offset-free estimator too (its best setting under mismatch)."""
+    from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc
+
+    if not 0 < scale < float("inf"):
+        raise ValueError(f"classical.friction_scales holds {scale}; expected positive numbers")
+    off = OmegaConf.merge(cfg, {"plant": {"friction_scale": scale}})
+    solver, tag = str(cfg.controller.solver), f"plant friction x{scale:g}"
+    pinn, _ = run_controller(off, system, surrogate, ref, solver, record=False)
+    estimating = {"disturbance": cfg.controller.disturbance}
+    classical = OmegaConf.merge(classical_cfg(cfg, classical_solvers(cfg)[0]), estimating)
+    row = loop_row(off, system, build_casadi_nmpc(classical, system), None, system.tau, ref)
+    log.info("classical: %s, both controllers done", tag)
+    pinn.update(label=f"PINN-MPC, {solver}, {tag}", model="pinn", plant_friction_scale=scale)
+    row.update(label=f"classical NMPC, {row['solver']}, {tag}", model="classical", plant_friction_scale=scale)
+    return {f"pinn_{solver}_friction_{scale:g}": pinn, f"classical_friction_{scale:g}": row}
+
+
 def bench_classical(
     cfg: DictConfig,
     system: System,
@@ -62,6 +83,8 @@ def bench_classical(
         row = loop_row(cfg, system, controller, None, system.tau, ref)
         rows[f"classical_{name}"] = {**row, "label": f"classical NMPC, {row['solver']}", "model": "classical"}
         log.info("classical: %s done in %.1f s", row["solver"], row["wall_s"])
+    for scale in (float(f) for f in cfg.classical.friction_scales):
+        rows.update(mismatch_rows(cfg, system, surrogate, ref, scale))
     return {
         "reference": ref.name,
         "horizon": int(cfg.controller.horizon),

@@ -302,6 +302,12 @@ def targets_verdict(targets: list[dict[str, Any]]) -> str:
     )
 
 
+MISMATCH_NOTE = (
+    " Rows 'plant friction xF': the plant's friction scaled by F (classical.friction_scales), a model error for"
+    " both controllers, so both estimate the offset (the classical NMPC with the PINN controller's estimator)."
+)
+
+
 def md_classical(cl: dict[str, Any], system: dict[str, Any], plant: str) -> str:
     """Section 6 table: the PINN controller against the classical NMPC, per joint angle and per solve."""
     title = f"## 6. PINN vs classical NMPC ({system['name']})"
@@ -337,7 +343,9 @@ def md_classical(cl: dict[str, Any], system: dict[str, Any], plant: str) -> str:
             "",
             f"Reference: {cl['reference']}; horizon {cl['horizon']}; plant {plant}; one process, the same protocol. "
             "The classical NMPC solves the same OCP on the true model (RK4 multiple shooting, CasADi, compiled); "
-            f"taken from the PINN controller: {', '.join(cl['shared']) or 'nothing'}.",
+            f"taken from the PINN controller: {', '.join(cl['shared']) or 'nothing'}."
+            + MISMATCH_NOTE
+            * any("plant_friction_scale" in r for r in cl["rows"].values()),
             "",
             md_table(headers, rows),
             "",
