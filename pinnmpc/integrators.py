@@ -32,7 +32,11 @@ def euler_step(rhs: Rhs, x0: Array, u: Array, tau: float, h: float) -> Array:
 def rk4_step(rhs: Rhs, x0: Array, u: Array, tau: float, h: float) -> Array:
     """Classical RK4 over tau with zero-hold u; h = tau/10 is the paper's baseline."""
     n = n_steps(tau, h)
-    dt = tau / n
+    return rk4_fixed(rhs, x0, u, tau / n, n)
+
+
+def rk4_fixed(rhs: Rhs, x0: Array, u: Array, dt: Array, n: int) -> Array:
+    """n classical RK4 steps of length dt, a scalar or one per row (an (N, 1) array: every row to its own time)."""
     x = x0
     for _ in range(n):
         k1 = rhs(x, u)

@@ -187,6 +187,7 @@ def test_planar3_trains_and_tracks(make_cfg, tmp_path: Path) -> None:
         "system=planar3",
         "data.n_collocation=256",
         "data.n_val=32",
+        "data.n_anchor=32",
         "module.lbfgs_max_iter=3",
         "trainer.max_epochs=2",
         "trainer.check_val_every_n_epoch=1",

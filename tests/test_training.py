@@ -22,7 +22,7 @@ from pinnmpc.systems import PowerCube
 from pinnmpc.systems.registry import build_system
 from pinnmpc.train import build_model, sha256, train
 from pinnmpc.training.callbacks import AtomicCheckpoint
-from pinnmpc.training.data import CollocationDataModule, lhs_box
+from pinnmpc.training.data import CollocationDataModule, lhs_box, reference_flow
 from pinnmpc.training.module import PINNModule
 from tests.conftest import ROOT, TINY_TRAIN
 
@@ -179,6 +179,31 @@ def test_t_high_keeps_collocation_times_up_to_tau():
     full = CollocationDataModule(system, 0.2, 0.25, n_collocation=256, n_data=8, n_val=8, val_h=1e-2)
     full.draw()
     assert float(full.batch["t"].max()) > 0.24
+
+
+def test_anchors_carry_the_accurate_flow_to_their_own_times_and_enter_the_loss(make_cfg, tmp_path):
+    system = PowerCube()
+    dm = CollocationDataModule(system, 0.2, 0.25, n_collocation=64, n_data=8, n_val=8, val_h=1e-2, n_anchor=32)
+    dm.setup()
+    b = dm.batch
+    t, x0, u = b["anchor_t"], b["anchor_x0"], b["anchor_u"]
+    assert t.shape == (32, 1) and float(t.min()) >= 0.0 and float(t.max()) <= 0.25
+    row = int(t.argmax())  # one row alone, to its own time, by an independent fine RK4
+    alone = reference_flow(system, x0[row : row + 1], u[row : row + 1], float(t[row]), 1e-4) - x0[row]
+    torch.testing.assert_close(b["anchor_dx"][row : row + 1], alone, rtol=0.0, atol=1e-6)  # two RK4 step sizes
+    assert float(b["anchor_dx"].abs().max()) > 1e-2  # the flow moves: the anchors are not x0
+    module = PINNModule(system, build_model(make_cfg("train", TINY), system), tau=0.2, lbfgs_max_iter=5)
+    before = float(module.losses(b)["anchor"].detach())
+    _quiet_trainer(tmp_path, max_epochs=3).fit(module, datamodule=dm)
+    assert float(module.losses(dm.batch)["anchor"].detach()) < 0.5 * before
+    off = PINNModule(system, module.model, tau=0.2, weight_anchor=0.0)
+    assert "anchor" not in off.losses(b)
+
+
+@pytest.mark.parametrize("bad", [dict(n_anchor=-1), dict(n_anchor=4, anchor_h=0.0)])
+def test_bad_anchor_settings_are_refused(bad):
+    with pytest.raises(ValueError, match="n_anchor|anchor_h"):
+        CollocationDataModule(PowerCube(), 0.2, 0.25, **bad)
 
 
 @pytest.mark.parametrize("bad", [0.1, 0.3])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import lightning as L
@@ -11,7 +12,7 @@ from scipy.stats import qmc
 from torch import Tensor
 from torch.utils.data import DataLoader
 
-from pinnmpc.integrators import rk4_step
+from pinnmpc.integrators import n_steps, rk4_fixed, rk4_step
 from pinnmpc.systems.base import System
 
 Scorer = Callable[[Tensor, Tensor, Tensor], Tensor]  # (t, x0, u) -> residual per point, as PINNModule provides
@@ -79,12 +80,17 @@ class CollocationDataModule(L.LightningDataModule):
         adaptive_k: float = 1.0,
         adaptive_c: float = 1.0,
         t_high: float | None = None,
+        n_anchor: int = 0,
+        anchor_h: float = 1e-4,
     ) -> None:
         super().__init__()
-        if n_collocation < 1 or n_data < 0 or n_val < 1:
+        if n_collocation < 1 or n_data < 0 or n_val < 1 or n_anchor < 0:
             raise ValueError(
-                f"need n_collocation >= 1, n_data >= 0, n_val >= 1; got {n_collocation}, {n_data}, {n_val}"
+                f"need n_collocation >= 1, n_data >= 0, n_val >= 1, n_anchor >= 0; "
+                f"got {n_collocation}, {n_data}, {n_val}, {n_anchor}"
             )
+        if not 0 < anchor_h < math.inf:
+            raise ValueError(f"data.anchor_h={anchor_h}: expected a positive RK4 step in seconds")
         if adaptive_pool < 0 or adaptive_k < 0 or adaptive_c < 0 or (adaptive_pool and adaptive_pool < 2):
             raise ValueError(
                 f"need adaptive_pool 0 (off) or >= 2, adaptive_k >= 0, adaptive_c >= 0; "
@@ -101,6 +107,7 @@ class CollocationDataModule(L.LightningDataModule):
         self.n_collocation, self.n_data = int(n_collocation), int(n_data)
         self.resample_every, self.resample_epochs = int(resample_every), {int(e) for e in resample_epochs}
         self.n_val, self.val_h, self.seed = int(n_val), float(val_h), int(seed)
+        self.n_anchor, self.anchor_h = int(n_anchor), float(anchor_h)
         self.adaptive_pool, self.adaptive_k, self.adaptive_c = int(adaptive_pool), float(adaptive_k), float(adaptive_c)
         self.draws = 0
         self.batch: dict[str, Tensor] = {}
@@ -173,8 +180,21 @@ class CollocationDataModule(L.LightningDataModule):
         if self.n_data:
             data = lhs_box(self.n_data, low[1:], high[1:], seed + 1)
             batch.update(data_x0=data[:, :nx], data_u=data[:, nx:])
+        if self.n_anchor:
+            batch.update(self._anchors(low, high, seed + 2))
         self.batch = batch
         self.draws += 1
+
+    def _anchors(self, low: Sequence[float], high: Sequence[float], seed: int) -> dict[str, Tensor]:
+        """LHS points (t, x0, u) with the accurate change x(t) - x0 by fine RK4 of the same ODE (every row to its
+        own t): the anchor loss, a supervised term that needs no data beyond the model the residual uses."""
+        pts = lhs_box(self.n_anchor, low, high, seed).double()
+        nx = self.system.state_box.dim
+        t, x0, u = pts[:, :1], pts[:, 1 : 1 + nx], pts[:, 1 + nx :]
+        n = n_steps(self.t_high, self.anchor_h)
+        with torch.no_grad():
+            dx = rk4_fixed(self.system.fast_rhs, x0, u, t / n, n) - x0
+        return {"anchor_t": t, "anchor_x0": x0, "anchor_u": u, "anchor_dx": dx}
 
     def setup(self, stage: str | None = None) -> None:
         """Initial draw and the held-out validation rollouts (computed once)."""

@@ -35,6 +35,7 @@ class PINNModule(L.LightningModule):
         kinematic_weight: float = 1.0,
         weight_physics: float = 1.0,
         weight_data: float = 1.0,
+        weight_anchor: float = 1.0,
         dtype: str = "float32",
         adam_epochs: int = 0,
         adam_lr: float = 1e-3,
@@ -143,6 +144,10 @@ class PINNModule(L.LightningModule):
             x_at_0 = self.model(torch.zeros_like(x0[..., :1]), x0, b["data_u"])
             out["data"] = ((x_at_0 - x0) / self.model.out_scale).square().mean()
             total = total + self.hparams.weight_data * out["data"]
+        if "anchor_t" in b and self.hparams.weight_anchor > 0:
+            dx = self.model(b["anchor_t"], b["anchor_x0"], b["anchor_u"]) - b["anchor_x0"]
+            out["anchor"] = ((dx - b["anchor_dx"]) / self.model.out_scale).square().mean()
+            total = total + self.hparams.weight_anchor * out["anchor"]
         out["total"] = total
         return out
 
