@@ -373,7 +373,7 @@ def _as_rank(dm: CollocationDataModule, rank: int, world: int) -> CollocationDat
 def test_ddp_shards_are_disjoint_slices_weighted_to_the_global_mean(make_cfg):
     module, _ = _tiny_module(make_cfg)
     system, n = PowerCube(), 257  # not a multiple of the 2 processes: shards of 129 and 128 points
-    kwargs = dict(n_collocation=n, n_data=8, n_val=8, val_h=1e-2, seed=3)
+    kwargs = dict(n_collocation=n, n_data=8, n_val=8, val_h=1e-2, seed=3, n_anchor=33, anchor_h=1e-2)
     full = CollocationDataModule(system, 0.2, 0.25, **kwargs)
     full.draw()
     shards = [_as_rank(CollocationDataModule(system, 0.2, 0.25, **kwargs), r, 2) for r in (0, 1)]
@@ -385,10 +385,14 @@ def test_ddp_shards_are_disjoint_slices_weighted_to_the_global_mean(make_cfg):
     assert torch.equal(pts[0], whole[0::2]) and torch.equal(pts[1], whole[1::2])  # one draw, sliced: disjoint
     assert all(torch.equal(dm.batch["data_x0"], full.batch["data_x0"]) for dm in shards)  # data points: shared
     assert [float(dm.batch["share"]) for dm in shards] == [2 * 129 / n, 2 * 128 / n]
+    for key in ("anchor_t", "anchor_x0", "anchor_u", "anchor_dx"):  # anchors: sliced too, each integrated once
+        assert torch.equal(shards[0].batch[key], full.batch[key][0::2]), key
+        assert torch.equal(shards[1].batch[key], full.batch[key][1::2]), key
+    assert [float(dm.batch["anchor_share"]) for dm in shards] == [2 * 17 / 33, 2 * 16 / 33]
     with torch.no_grad():  # the mean over processes (what the closure all-reduces) is the loss over all points
         per_rank = [module.losses(dm.batch) for dm in shards]
         want = module.losses(full.batch)
-    for key in ("physics", "total"):
+    for key in ("physics", "anchor", "total"):
         torch.testing.assert_close((per_rank[0][key] + per_rank[1][key]) / 2, want[key], rtol=1e-5, atol=0)
     for dm in shards:  # a redraw moves every process to its slice of the same next draw
         dm.draw()
@@ -396,6 +400,8 @@ def test_ddp_shards_are_disjoint_slices_weighted_to_the_global_mean(make_cfg):
     assert torch.equal(shards[1].batch["x0"], full.batch["x0"][1::2])
     with pytest.raises(ValueError, match="at least one point per process"):
         _as_rank(CollocationDataModule(system, 0.2, 0.25, n_collocation=1), 0, 2).draw()
+    with pytest.raises(ValueError, match="data.n_anchor=1: expected at least one point per process"):
+        _as_rank(CollocationDataModule(system, 0.2, 0.25, n_collocation=4, n_anchor=1), 0, 2).draw()
 
 
 def test_a_ddp_process_of_rank_above_zero_shares_the_run_dir_and_removes_nothing(tmp_path, monkeypatch):

@@ -60,8 +60,8 @@ class CollocationDataModule(L.LightningDataModule):
     Under DDP (N processes) every process makes the same global draw and keeps its rows rank::N, so the shards are
     disjoint, together they are the one-process draw, and each redraw is the same on every process; its batch then
     carries `share` = N x shard size / n_collocation, which makes the mean over the processes of each shard's
-    weighted physics loss the mean over all points. The data points at t = 0 and the validation set are the same on
-    every process.
+    weighted physics loss the mean over all points. The anchors are sharded the same way (`anchor_share`). The data
+    points at t = 0 and the validation set are the same on every process.
     """
 
     def __init__(
@@ -166,17 +166,11 @@ class CollocationDataModule(L.LightningDataModule):
         seed = self.seed + 7919 * self.draws
         low, high = collocation_box(s, self.t_high)
         pts = self._collocation(low, high, seed)
-        rank, world = self.shard()
-        if world > self.n_collocation:
-            raise ValueError(
-                f"data.n_collocation={self.n_collocation}: expected at least one point per process ({world})"
-            )
-        if world > 1:
-            pts = pts[rank::world].clone()  # a copy: the global draw is not kept
+        pts, share = self._my_rows(pts, "n_collocation")
         nx = s.state_box.dim
         batch = {"t": pts[:, :1], "x0": pts[:, 1 : 1 + nx], "u": pts[:, 1 + nx :]}
-        if world > 1:  # the weight that makes the mean over processes of the shard means the mean over all points
-            batch["share"] = torch.tensor(world * len(pts) / self.n_collocation, dtype=torch.float64)
+        if share is not None:
+            batch["share"] = share
         if self.n_data:
             data = lhs_box(self.n_data, low[1:], high[1:], seed + 1)
             batch.update(data_x0=data[:, :nx], data_u=data[:, nx:])
@@ -185,16 +179,31 @@ class CollocationDataModule(L.LightningDataModule):
         self.batch = batch
         self.draws += 1
 
+    def _my_rows(self, pts: Tensor, setting: str) -> tuple[Tensor, Tensor | None]:
+        """This process's rows rank::N of a global draw and their `share` weight (None without DDP)."""
+        rank, world = self.shard()
+        total = getattr(self, setting)
+        if world > total:
+            raise ValueError(f"data.{setting}={total}: expected at least one point per process ({world})")
+        if world == 1:
+            return pts, None
+        mine = pts[rank::world].clone()  # a copy: the global draw is not kept
+        return mine, torch.tensor(world * len(mine) / total, dtype=torch.float64)
+
     def _anchors(self, low: Sequence[float], high: Sequence[float], seed: int) -> dict[str, Tensor]:
         """LHS points (t, x0, u) with the accurate change x(t) - x0 by fine RK4 of the same ODE (every row to its
-        own t): the anchor loss, a supervised term that needs no data beyond the model the residual uses."""
-        pts = lhs_box(self.n_anchor, low, high, seed).double()
+        own t): the anchor loss, a supervised term that needs no data beyond the model the residual uses. Under DDP
+        each process integrates only its shard."""
+        pts, share = self._my_rows(lhs_box(self.n_anchor, low, high, seed).double(), "n_anchor")
         nx = self.system.state_box.dim
         t, x0, u = pts[:, :1], pts[:, 1 : 1 + nx], pts[:, 1 + nx :]
         n = n_steps(self.t_high, self.anchor_h)
         with torch.no_grad():
             dx = rk4_fixed(self.system.fast_rhs, x0, u, t / n, n) - x0
-        return {"anchor_t": t, "anchor_x0": x0, "anchor_u": u, "anchor_dx": dx}
+        out = {"anchor_t": t, "anchor_x0": x0, "anchor_u": u, "anchor_dx": dx}
+        if share is not None:
+            out["anchor_share"] = share
+        return out
 
     def setup(self, stage: str | None = None) -> None:
         """Initial draw and the held-out validation rollouts (computed once)."""

@@ -147,6 +147,8 @@ class PINNModule(L.LightningModule):
         if "anchor_t" in b and self.hparams.weight_anchor > 0:
             dx = self.model(b["anchor_t"], b["anchor_x0"], b["anchor_u"]) - b["anchor_x0"]
             out["anchor"] = ((dx - b["anchor_dx"]) / self.model.out_scale).square().mean()
+            if "anchor_share" in b:  # a DDP shard, weighted as the physics loss is
+                out["anchor"] = out["anchor"] * b["anchor_share"]
             total = total + self.hparams.weight_anchor * out["anchor"]
         out["total"] = total
         return out
