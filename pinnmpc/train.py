@@ -27,7 +27,7 @@ from pinnmpc.surrogate import FORMAT, load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import build_system
 from pinnmpc.training.callbacks import AtomicCheckpoint, GracefulStop, SelfLoopFigure, SurrogateFacts
-from pinnmpc.training.data import flow_scale
+from pinnmpc.training.data import CollocationDataModule, flow_scale
 from pinnmpc.training.pipeline import base_training_time, train_in_stages
 from pinnmpc.training.progress import BudgetBar, EpochLog, quiet_lightning, timer_of
 from pinnmpc.training.stage import staged_model
@@ -196,6 +196,15 @@ def resume_command(cfg_overrides: list[str], run_dir: Path) -> str:
     return shlex.join(["python", "-m", "pinnmpc.train", *kept, "resume=true", f"hydra.run.dir={run_dir}"])
 
 
+def build_datamodule(cfg: DictConfig, system: System) -> CollocationDataModule:
+    """The run's training points; module.weight_anchor=0 also switches the anchors off, so no integration is spent
+    on a term the loss ignores."""
+    n_anchor = cfg.data.get("n_anchor", 0) if cfg.module.get("weight_anchor", 0) > 0 else 0
+    return instantiate(cfg.data, _partial_=True, _convert_="all")(
+        system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed, n_anchor=n_anchor
+    )
+
+
 def train(
     cfg: DictConfig,
     run_dir: Path,
@@ -216,9 +225,7 @@ def train(
     model = build_model(cfg, system)
     # _convert_="all": plain lists, not OmegaConf ones, reach the hyper-parameters stored in checkpoints,
     # which load_surrogate reads with torch.load(weights_only=True)
-    datamodule = instantiate(cfg.data, _partial_=True, _convert_="all")(
-        system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed
-    )
+    datamodule = build_datamodule(cfg, system)
     module = instantiate(cfg.module, _partial_=True, _convert_="all")(system=system, model=model, tau=cfg.tau)
     if ckpt is not None:
         check_fits(ckpt, label, module)

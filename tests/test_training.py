@@ -20,7 +20,7 @@ from pinnmpc.cli import LOCK_NAME, discard_own_files, guard, launched_rank, rele
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems import PowerCube
 from pinnmpc.systems.registry import build_system
-from pinnmpc.train import build_model, sha256, train
+from pinnmpc.train import build_datamodule, build_model, sha256, train
 from pinnmpc.training.callbacks import AtomicCheckpoint
 from pinnmpc.training.data import CollocationDataModule, lhs_box, reference_flow
 from pinnmpc.training.module import PINNModule
@@ -198,6 +198,15 @@ def test_anchors_carry_the_accurate_flow_to_their_own_times_and_enter_the_loss(m
     assert float(module.losses(dm.batch)["anchor"].detach()) < 0.5 * before
     off = PINNModule(system, module.model, tau=0.2, weight_anchor=0.0)
     assert "anchor" not in off.losses(b)
+
+
+def test_anchor_weight_zero_switches_the_anchors_off_so_none_are_integrated(make_cfg):
+    system = PowerCube()
+    on = build_datamodule(make_cfg("train", [*TINY_TRAIN]), system)
+    off = build_datamodule(make_cfg("train", [*TINY_TRAIN, "module.weight_anchor=0.0"]), system)
+    assert on.n_anchor == 32 and off.n_anchor == 0
+    off.draw()
+    assert "anchor_t" not in off.batch
 
 
 @pytest.mark.parametrize("bad", [dict(n_anchor=-1), dict(n_anchor=4, anchor_h=0.0)])
