@@ -275,3 +275,12 @@ def test_casadi_plans_stay_within_the_limits() -> None:
     assert sol.success, sol.status
     alpha = sol.w[ocp.ix[1:, 0]]
     assert 0.28 < alpha.max() <= 0.3 - 0.01 + 1e-4, alpha  # at the margin, with the reference at 0.9
+
+
+def test_panda_input_rate_weight_is_the_systems_and_shared_by_both_controllers(make_cfg) -> None:
+    loop, bench = make_cfg("closed_loop", ["system=panda"]), make_cfg("bench", ["system=panda"])
+    assert list(loop.controller.R_rate) == list(loop.system.control.R_rate) and len(loop.controller.R_rate) == 7
+    assert list(bench.classical.controller.R_rate) == list(bench.controller.R_rate) == list(loop.controller.R_rate)
+    assert make_cfg("closed_loop", []).controller.R_rate is None  # the PowerCube keeps the paper's cost
+    override = make_cfg("closed_loop", ["system=panda", "controller.R_rate=null"])
+    assert override.controller.R_rate is None
