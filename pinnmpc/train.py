@@ -199,7 +199,7 @@ def resume_command(cfg_overrides: list[str], run_dir: Path) -> str:
 def build_datamodule(cfg: DictConfig, system: System) -> CollocationDataModule:
     """The run's training points; module.weight_anchor=0 also switches the anchors off, so no integration is spent
     on a term the loss ignores."""
-    n_anchor = cfg.data.get("n_anchor", 0) if cfg.module.get("weight_anchor", 0) > 0 else 0
+    n_anchor = 0 if cfg.module.get("weight_anchor") == 0 else cfg.data.get("n_anchor", 0)
     return instantiate(cfg.data, _partial_=True, _convert_="all")(
         system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed, n_anchor=n_anchor
     )
