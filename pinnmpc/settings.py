@@ -211,6 +211,7 @@ TRAIN: dict[str, Check] = {
     "self_loop_figure.every_n_epochs": integer(0),
     "self_loop_figure.steps": integer(2),
     "self_loop_figure.amplitude": vector("nu"),
+    "init_from": optional(text()),
     "stage.base": optional(text()),
     "stage.hidden": listof(integer(1)),
     "stage.error_scale": positive(),
@@ -279,6 +280,11 @@ def validate_residuals(cfg: DictConfig, system: Any) -> None:
 def validate_train(cfg: DictConfig, system: Any) -> None:
     """train settings, before any data is drawn."""
     validate(cfg, TRAIN, system_dims(system))
+    if cfg.get("init_from") and (cfg.stage.base or cfg.stage.get("split") is not None):
+        raise SettingError(
+            f"init_from={cfg.init_from} starts one network from a trained one; expected stage.base=null and "
+            f"stage.split=null with it, got {cfg.stage.base} and {cfg.stage.get('split')}"
+        )
     if cfg.t_max < cfg.tau:
         raise SettingError(
             f"t_max={cfg.t_max} is below tau={cfg.tau}: expected t_max >= tau (the network predicts x(tau))"

@@ -28,6 +28,7 @@ from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import build_system
 from pinnmpc.training.callbacks import AtomicCheckpoint, GracefulStop, SelfLoopFigure, SurrogateFacts
 from pinnmpc.training.data import CollocationDataModule, flow_scale
+from pinnmpc.training.grow import grown_model
 from pinnmpc.training.pipeline import base_training_time, train_in_stages
 from pinnmpc.training.progress import BudgetBar, EpochLog, quiet_lightning, timer_of
 from pinnmpc.training.stage import staged_model
@@ -35,9 +36,11 @@ from pinnmpc.training.stage import staged_model
 
 def build_model(cfg: DictConfig, system: System) -> PINN | StagedPINN:
     """The network for this system's training box (output scale estimated from the flow when 'auto'), or with
-    stage.base a correction network on top of that trained one."""
+    stage.base a correction network on top of that trained one, or with init_from that one widened to model.hidden."""
     if cfg.stage.base:
         return build_staged(cfg, system)
+    if cfg.get("init_from"):
+        return grown_model(system, cfg.init_from, cfg.tau, cfg.t_max, list(cfg.model.hidden), cfg.seed)
     scale = cfg.model.output_scale
     if scale == "auto":
         a = cfg.model.auto_scale
@@ -263,8 +266,8 @@ def train(
         "config": OmegaConf.to_container(cfg, resolve=True),
         "status": f"interrupted by {stop.name}" if interrupted and stop is not None else "ok",
         "wall_time_s": wall,
-        # every network inside this one counts: a stage's frozen base too
-        "training_time_s": training_time(trainer, wall) + base_training_time(cfg.stage.base),
+        # every network inside this one counts: a stage's frozen base or the network it started from too
+        "training_time_s": training_time(trainer, wall) + base_training_time(cfg.stage.base or cfg.get("init_from")),
         "epochs": trainer.current_epoch,
         "best_val_rmse_position": float(best.best_model_score) if best.best_model_score is not None else None,
         "final_metrics": {k: float(v) for k, v in trainer.callback_metrics.items()},

@@ -1,0 +1,81 @@
+"""init_from: a trained network widened with its outputs unchanged, then trained on with all parameters free."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from pinnmpc.settings import SettingError, validate_train
+from pinnmpc.surrogate import load_surrogate, shipped
+from pinnmpc.systems import PowerCube
+from pinnmpc.train import build_model, train
+from pinnmpc.training.grow import widened
+from tests.conftest import TINY_TRAIN
+
+
+@pytest.fixture
+def base_run(make_cfg, tmp_path):
+    """A real two-epoch training run to start from."""
+    train(make_cfg("train", [*TINY_TRAIN, "trainer.max_epochs=2"]), tmp_path / "base")
+    return tmp_path / "base" / "surrogate.pt"
+
+
+def _points(n: int = 50) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Random (t, x0, u) in and a little beyond the PowerCube's box."""
+    g = torch.Generator().manual_seed(3)
+    t = 0.25 * torch.rand(n, 1, generator=g, dtype=torch.float64)
+    x0 = 4 * torch.rand(n, 4, generator=g, dtype=torch.float64) - 2
+    u = 2 * torch.rand(n, 2, generator=g, dtype=torch.float64) - 1
+    return t, x0, u
+
+
+def test_a_widened_network_starts_at_the_trained_outputs_and_trains_on(make_cfg, base_run, tmp_path):
+    base = load_surrogate(base_run)
+    cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={base_run}", "model.hidden=[24,20]", "trainer.max_epochs=2"])
+    model = build_model(cfg, PowerCube()).double()
+    assert [layer.out_features for layer in model.net.layers[:-1]] == [24, 20]
+    t, x0, u = _points()
+    torch.testing.assert_close(model(t, x0, u), base.model(t, x0, u), rtol=0, atol=1e-13)
+    assert all(p.requires_grad for p in model.parameters())
+
+    summary = train(cfg, tmp_path / "grown")
+    grown = load_surrogate(tmp_path / "grown" / "surrogate.pt")
+    assert grown.model.config["hidden"] == [24, 20]
+    assert (grown.model(t, x0, u) - base.model(t, x0, u)).abs().max() > 1e-9  # training moved it
+    # the new units took part: their outgoing weights left zero
+    assert grown.model.net.layers[1].weight[:16, 16:].abs().max() > 0
+    assert summary["training_time_s"] > base.meta["training_time_s"]  # the base's time is counted
+
+
+def test_widening_keeps_a_gated_network_with_periodic_angles_exact():
+    base = load_surrogate(system="planar3").model  # periodic angles, gated: the shipped network
+    model = widened(base, [w + 8 for w in base.config["hidden"]], seed=0)
+    g = torch.Generator().manual_seed(0)
+    t = 0.1 * torch.rand(20, 1, generator=g, dtype=torch.float64)
+    x0, u = 2 * torch.rand(20, 6, generator=g, dtype=torch.float64) - 1, torch.rand(20, 3, dtype=torch.float64)
+    torch.testing.assert_close(model(t, x0, u), base(t, x0, u), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("hidden", "match"),
+    [("[8,16]", "no layer narrower"), ("[16,16,16]", "the same depth")],
+)
+def test_a_narrower_or_deeper_target_is_refused(make_cfg, base_run, hidden, match):
+    cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={base_run}", f"model.hidden={hidden}"])
+    with pytest.raises(ValueError, match=match):
+        build_model(cfg, PowerCube())
+
+
+def test_init_from_another_tau_or_together_with_a_stage_is_refused(make_cfg, base_run):
+    cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={base_run}", "tau=0.1"])
+    with pytest.raises(ValueError, match="trained with tau=0.2; this run has tau=0.1"):
+        build_model(cfg, PowerCube())
+    cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={base_run}", f"stage.base={base_run}"])
+    with pytest.raises(SettingError, match="expected stage.base=null and stage.split=null"):
+        validate_train(cfg, PowerCube())
+
+
+def test_init_from_a_network_of_another_system_is_refused(make_cfg):
+    cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={shipped('planar3')}"])
+    with pytest.raises(ValueError, match="trained for states"):
+        build_model(cfg, PowerCube())
