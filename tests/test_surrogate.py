@@ -71,7 +71,7 @@ def test_shipped_30min_network_is_anchor_trained_beats_the_pure_pinn_and_the_def
     pure = load_surrogate(SHIPPED.parent / "powercube-pinn.pt", nx=NX, nu=NU)
     assert short.meta["config"]["data"]["n_anchor"] > 0 and pure.meta["config"]["data"].get("n_anchor", 0) == 0
     assert short.meta["training_time_s"] <= 31 * 60  # the budget: one 30-min run
-    assert default.meta["training_time_s"] <= 4 * 3600  # the frontier's budget
+    assert default.meta["training_time_s"] <= 4 * 3600 + 60  # the frontier's ~4 h (the timer ends after an epoch)
     x0, u = _points(512, seed=13)
     ref = rk4_step(PowerCube().rhs, x0, u, 0.2, 1e-4)
     nets = (("default", default), ("short", short), ("pure", pure))
@@ -79,6 +79,7 @@ def test_shipped_30min_network_is_anchor_trained_beats_the_pure_pinn_and_the_def
     assert torch.all(err["short"] < err["pure"])  # measured: angles 2-3x, velocities ~1.4x better
     assert torch.all(err["short"] < torch.tensor([7e-4, 7e-4, 3.5e-3, 3.5e-3], dtype=torch.float64))
     assert torch.all(err["default"] < err["short"])  # the longer run of the same recipe
+    assert torch.all(err["default"][:2] <= 2e-4)  # the frontier's one-step target in the angles
 
 
 def test_shipped_second_order_network_is_accurate_and_consistent() -> None:
