@@ -135,6 +135,13 @@ class TangentMLP(nn.Module):
         return self.layers[-1](z), dt @ w, dd @ w, mixed @ w
 
 
+def time_gates(t: Tensor, t_max: float, time_basis: Tensor) -> tuple[Tensor, Tensor]:
+    """Gates (t / t_max, 1 - exp(-t / T_k)) for t (..., 1) and their slopes: the time shapes of ic='gated'."""
+    ramp = torch.cat((t / t_max, 1.0 - torch.exp(-t / time_basis)), dim=-1)
+    slope = torch.cat((torch.full_like(t, 1.0 / t_max), torch.exp(-t / time_basis) / time_basis), -1)
+    return ramp, slope
+
+
 class PINN(nn.Module):
     """Flow map (t, x0, u) -> x(t) with inputs normalised to [-1, 1] over the training box.
 
@@ -259,9 +266,7 @@ class PINN(nn.Module):
 
     def gates(self, t: Tensor) -> tuple[Tensor, Tensor]:
         """Time gates g(t) (..., n_gates), all zero at t = 0, and dg/dt."""
-        ramp = torch.cat((t / self.t_max, 1.0 - torch.exp(-t / self.time_basis)), dim=-1)
-        slope = torch.cat((torch.full_like(t, 1.0 / self.t_max), torch.exp(-t / self.time_basis) / self.time_basis), -1)
-        return ramp, slope
+        return time_gates(t, self.t_max, self.time_basis)
 
     def gate_integrals(self, t: Tensor) -> Tensor:
         """G_k(t) = integral of g_k from 0 to t: zero value and slope at t = 0, for second-order models."""

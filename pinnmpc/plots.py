@@ -252,6 +252,30 @@ def residual_figure(t_edges: np.ndarray, rms: np.ndarray, state_names: Sequence[
     return fig
 
 
+def basis_figure(
+    misfit: Sequence[Sequence[float]],
+    labels: Sequence[str],
+    state_names: Sequence[str],
+    targets: Sequence[float | None] | None = None,
+    title: str = "",
+) -> Figure:
+    """One line per time basis: its gate misfit per state (log scale), the basis under test first; the system's
+    one-step targets as marks, where it has them."""
+    fig = Figure(figsize=SCALING_FIGSIZE, layout="constrained")
+    ax = fig.subplots()
+    for values, label in zip(misfit, labels):
+        ax.semilogy(np.clip(np.asarray(values, dtype=float), ERROR_FLOOR, None), "o-", label=label)
+    if targets is not None:
+        given = [(i, v) for i, v in enumerate(targets) if v is not None]
+        ax.plot([i for i, _ in given], [v for _, v in given], "k_", markersize=20, label="one-step target")
+    ax.set_xticks(range(len(state_names)), labels=list(state_names), rotation=45, ha="right")
+    ax.set_ylabel("RMS misfit over the step (state units)")
+    ax.legend(title="time_basis, s", fontsize="x-small")
+    if title:
+        ax.set_title(title, fontsize="small")
+    return fig
+
+
 def save_figure(fig: Figure, path: str | Path, dpi: int = DPI) -> Path:
     """PNG written atomically, so a watcher or a crash never sees a truncated image."""
     return atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=dpi))

@@ -108,12 +108,12 @@ def vector(n: int | str, element: Check | None = None) -> Check:
     return _check
 
 
-def listof(element: Check) -> Check:
-    """A non-empty list, each entry allowed by element (grids, layer widths)."""
+def listof(element: Check, empty: bool = False) -> Check:
+    """A list (non-empty unless `empty`), each entry allowed by element (grids, layer widths)."""
 
     def _check(v: Any, dims: Dims) -> str | None:
-        ok = isinstance(v, list) and len(v) > 0 and all(element(e, dims) is None for e in v)
-        return None if ok else f"a non-empty list, each entry {element(None, dims)}"
+        ok = isinstance(v, list) and (empty or len(v) > 0) and all(element(e, dims) is None for e in v)
+        return None if ok else f"a {'' if empty else 'non-empty '}list, each entry {element(None, dims)}"
 
     return _check
 
@@ -200,6 +200,21 @@ RESIDUALS: dict[str, Check] = {
     "plots": boolean(),
 }
 
+TIME_BASIS: dict[str, Check] = {
+    "tau": positive(),
+    "t_max": positive(),
+    "time_basis": listof(positive(), empty=True),
+    "candidates": listof(positive(), empty=True),
+    "greedy": integer(0),
+    "degree": integer(0),
+    "points": integer(1),
+    "dt": positive(),
+    "h": positive(),
+    "seed": SEED,
+    "threads": integer(1),
+    "plots": boolean(),
+}
+
 TRAIN: dict[str, Check] = {
     "tau": positive(),
     "t_max": positive(),
@@ -275,6 +290,13 @@ def validate_self_loop(cfg: DictConfig, system: Any) -> None:
 def validate_residuals(cfg: DictConfig, system: Any) -> None:
     """residuals settings."""
     validate(cfg, RESIDUALS, system_dims(system))
+
+
+def validate_time_basis(cfg: DictConfig, system: Any) -> None:
+    """time_basis settings."""
+    validate(cfg, TIME_BASIS, system_dims(system))
+    if cfg.t_max < cfg.tau:
+        raise SettingError(f"t_max={cfg.t_max} is below tau={cfg.tau}: expected t_max >= tau (the misfit is at tau)")
 
 
 def validate_train(cfg: DictConfig, system: Any) -> None:

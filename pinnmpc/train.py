@@ -40,7 +40,8 @@ def build_model(cfg: DictConfig, system: System) -> PINN | StagedPINN:
     if cfg.stage.base:
         return build_staged(cfg, system)
     if cfg.get("init_from"):
-        return grown_model(system, cfg.init_from, cfg.tau, cfg.t_max, list(cfg.model.hidden), cfg.seed)
+        hidden, basis = list(cfg.model.hidden), list(cfg.model.time_basis)
+        return grown_model(system, cfg.init_from, cfg.tau, cfg.t_max, hidden, cfg.seed, basis)
     scale = cfg.model.output_scale
     if scale == "auto":
         a = cfg.model.auto_scale

@@ -18,6 +18,7 @@ COMMANDS = {  # module: its primary config
     "closed_loop": "closed_loop",
     "self_loop": "self_loop",
     "residuals": "residuals",
+    "time_basis": "time_basis",
     "robustness": "robustness",
     "bench": "bench",
 }

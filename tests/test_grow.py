@@ -31,9 +31,13 @@ def _points(n: int = 50) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
 
 def test_a_widened_network_starts_at_the_trained_outputs_and_trains_on(make_cfg, base_run, tmp_path):
     base = load_surrogate(base_run)
-    cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={base_run}", "model.hidden=[24,20]", "trainer.max_epochs=2"])
+    more_gates = "model.time_basis=[0.02,0.045,0.005]"  # the PowerCube's gates and a faster one
+    cfg = make_cfg(
+        "train", [*TINY_TRAIN, f"init_from={base_run}", "model.hidden=[24,20]", more_gates, "trainer.max_epochs=2"]
+    )
     model = build_model(cfg, PowerCube()).double()
     assert [layer.out_features for layer in model.net.layers[:-1]] == [24, 20]
+    assert model.n_gates == base.model.n_gates + 1
     t, x0, u = _points()
     torch.testing.assert_close(model(t, x0, u), base.model(t, x0, u), rtol=0, atol=1e-13)
     assert all(p.requires_grad for p in model.parameters())
@@ -44,12 +48,15 @@ def test_a_widened_network_starts_at_the_trained_outputs_and_trains_on(make_cfg,
     assert (grown.model(t, x0, u) - base.model(t, x0, u)).abs().max() > 1e-9  # training moved it
     # the new units took part: their outgoing weights left zero
     assert grown.model.net.layers[1].weight[:16, 16:].abs().max() > 0
+    assert grown.model.net.layers[-1].weight[-4:].abs().max() > 0  # and so did the new gate's head
     assert summary["training_time_s"] > base.meta["training_time_s"]  # the base's time is counted
 
 
-def test_widening_keeps_a_gated_network_with_periodic_angles_exact():
+@pytest.mark.parametrize("new_gates", [[], [0.002, 0.008]])
+def test_widening_keeps_a_gated_network_with_periodic_angles_exact(new_gates):
     base = load_surrogate(system="planar3").model  # periodic angles, gated: the shipped network
-    model = widened(base, [w + 8 for w in base.config["hidden"]], seed=0)
+    model = widened(base, [w + 8 for w in base.config["hidden"]], 0, base.config["time_basis"] + new_gates)
+    assert model.n_gates == base.n_gates + len(new_gates)
     g = torch.Generator().manual_seed(0)
     t = 0.1 * torch.rand(20, 1, generator=g, dtype=torch.float64)
     x0, u = 2 * torch.rand(20, 6, generator=g, dtype=torch.float64) - 1, torch.rand(20, 3, dtype=torch.float64)
@@ -63,6 +70,12 @@ def test_widening_keeps_a_gated_network_with_periodic_angles_exact():
 def test_a_narrower_or_deeper_target_is_refused(make_cfg, base_run, hidden, match):
     cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={base_run}", f"model.hidden={hidden}"])
     with pytest.raises(ValueError, match=match):
+        build_model(cfg, PowerCube())
+
+
+def test_a_time_basis_that_does_not_extend_the_trained_one_is_refused(make_cfg, base_run):
+    cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={base_run}", "model.time_basis=[0.005,0.02,0.045]"])
+    with pytest.raises(ValueError, match=r"expected its relaxation times first, in order"):
         build_model(cfg, PowerCube())
 
 

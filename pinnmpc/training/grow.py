@@ -1,9 +1,11 @@
-"""Warm starts: a trained network widened without changing what it computes, so training adds capacity to it.
+"""Warm starts: a trained network grown without changing what it computes, so training adds capacity to it.
 
-A network that has flattened under every loss setting may lack capacity, and starting a wider one from scratch
+A network that has flattened under every loss setting may lack capacity, and starting a bigger one from scratch
 throws away hours of training. Widening (Chen et al. 2016, Net2Net) keeps the trained units and adds new ones
 whose outgoing weights are zero: the wider network starts at the trained one's exact outputs and the optimiser
-moves from there with all parameters free.
+moves from there with all parameters free. New time gates (relaxation times appended to the time basis) start
+the same way: their output heads are zero, so a flow whose time dependence the old gates cannot span can be
+fitted on from the trained network.
 """
 
 from __future__ import annotations
@@ -18,8 +20,9 @@ from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import System
 
 
-def widened(base: PINN, hidden: Sequence[int], seed: int) -> PINN:
-    """A copy of `base` with hidden widths `hidden` (same depth, none narrower) and the same outputs."""
+def widened(base: PINN, hidden: Sequence[int], seed: int, time_basis: Sequence[float] | None = None) -> PINN:
+    """A copy of `base` with hidden widths `hidden` (same depth, none narrower), optionally more time gates
+    (`time_basis`: the base's relaxation times first, new ones after), and the same outputs."""
     old = [layer.out_features for layer in base.net.layers[:-1]]
     new = [int(w) for w in hidden]
     if len(new) != len(old) or any(n < o for n, o in zip(new, old)):
@@ -27,20 +30,38 @@ def widened(base: PINN, hidden: Sequence[int], seed: int) -> PINN:
             f"model.hidden={new} cannot start from a network of hidden widths {old}: expected the same depth "
             f"({len(old)} layers) and no layer narrower"
         )
-    model = PINN(**{**base.config, "hidden": new}).to(base.out_scale.dtype)
+    config = {**base.config, "hidden": new}
+    if time_basis is not None:
+        config.update(_grown_basis(base, time_basis))
+    model = PINN(**config).to(base.out_scale.dtype)
     generator = torch.Generator().manual_seed(seed)
     with torch.no_grad():
-        for src, dst in zip(base.net.layers, model.net.layers):
+        for src, dst in zip(base.net.layers[:-1], model.net.layers[:-1]):
             _embed(src, dst, generator)
+        _embed(base.net.layers[-1], model.net.layers[-1], generator, fresh_rows=False)
         model.load_state_dict({**model.state_dict(), **_buffers(base)})
     return model
 
 
-def _embed(src: nn.Linear, dst: nn.Linear, generator: torch.Generator) -> None:
-    """dst = src in its leading block, the trained units deaf to new ones below them; new units' rows are fresh."""
+def _grown_basis(base: PINN, time_basis: Sequence[float]) -> dict[str, object]:
+    """PINN settings for `time_basis`, which must extend the base's (its relaxation times first, in order)."""
+    have, want = list(base.config["time_basis"]), [float(v) for v in time_basis]
+    if want[: len(have)] != have or base.config["ic"] == "soft":
+        raise ValueError(
+            f"model.time_basis={want} cannot start from a network with time basis {have} (ic={base.config['ic']!r}): "
+            f"expected its relaxation times first, in order, then any new ones"
+        )
+    return {"time_basis": want, "ic": "gated" if want else base.config["ic"]}
+
+
+def _embed(src: nn.Linear, dst: nn.Linear, generator: torch.Generator, fresh_rows: bool = True) -> None:
+    """dst = src in its leading block, the trained units deaf to new ones below them; new units' rows are fresh
+    (fresh_rows), or zero for an output layer, whose new rows are new gates' heads that start switched off."""
     o, i = src.weight.shape
     fresh = torch.randn(dst.weight.shape, generator=generator, dtype=dst.weight.dtype)
     fresh *= (2.0 / sum(dst.weight.shape)) ** 0.5  # the Xavier-normal scale the network starts with
+    if not fresh_rows:
+        fresh[o:] = 0.0
     fresh[:o, :i] = src.weight
     fresh[:o, i:] = 0.0  # the trained units ignore the new ones below them until training turns them on
     dst.weight.copy_(fresh)
@@ -53,11 +74,19 @@ def _buffers(model: PINN) -> dict[str, torch.Tensor]:
     return {k: v for k, v in model.state_dict().items() if not k.startswith("net.")}
 
 
-def grown_model(system: System, path: str, tau: float, t_max: float, hidden: Sequence[int], seed: int) -> PINN:
-    """The trained surrogate at `path` (init_from) widened to `hidden`, checked against this run's system."""
+def grown_model(
+    system: System,
+    path: str,
+    tau: float,
+    t_max: float,
+    hidden: Sequence[int],
+    seed: int,
+    time_basis: Sequence[float] | None = None,
+) -> PINN:
+    """The trained surrogate at `path` (init_from) grown to `hidden` and `time_basis`, checked against this run."""
     surrogate = load_surrogate(path, state_names=tuple(system.state_names))
     base = surrogate.model
     for what, have, want in (("tau", surrogate.tau, tau), ("t_max", base.t_max, t_max)):
         if abs(have - want) > 1e-12:
             raise ValueError(f"init_from={path} was trained with {what}={have}; this run has {what}={want}")
-    return widened(base, hidden, seed)
+    return widened(base, hidden, seed, time_basis)
