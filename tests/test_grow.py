@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from pinnmpc.pinn import PINN
 from pinnmpc.settings import SettingError, validate_train
 from pinnmpc.surrogate import load_surrogate, shipped
 from pinnmpc.systems import PowerCube
@@ -92,3 +93,23 @@ def test_init_from_a_network_of_another_system_is_refused(make_cfg):
     cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={shipped('planar3')}"])
     with pytest.raises(ValueError, match="trained for states"):
         build_model(cfg, PowerCube())
+
+
+def _small(ic: str, time_basis: list[float]) -> PINN:
+    """An untrained PowerCube-box network of the given form (init weights: any outputs will do)."""
+    box = PowerCube()
+    low, high = box.state_box, box.input_box
+    torch.manual_seed(0)
+    return PINN(low.low, low.high, high.low, high.high, 0.25, [8, 8], ic=ic, time_basis=time_basis).double()
+
+
+def test_gates_go_on_a_hard_ic_network_exactly_and_a_soft_one_keeps_its_form():
+    hard = _small("hard", [])
+    gated = widened(hard, [8, 8], 0, [0.01])
+    assert gated.ic == "gated" and gated.n_gates == 2
+    t, x0, u = _points()
+    torch.testing.assert_close(gated(t, x0, u), hard(t, x0, u), rtol=0, atol=1e-13)
+    soft = _small("soft", [])
+    torch.testing.assert_close(widened(soft, [12, 8], 0, [])(t, x0, u), soft(t, x0, u), rtol=0, atol=1e-13)
+    with pytest.raises(ValueError, match=r"cannot start from a network with time basis \[\] \(ic='soft'\)"):
+        widened(soft, [8, 8], 0, [0.01])

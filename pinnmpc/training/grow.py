@@ -46,6 +46,8 @@ def widened(base: PINN, hidden: Sequence[int], seed: int, time_basis: Sequence[f
 def _grown_basis(base: PINN, time_basis: Sequence[float]) -> dict[str, object]:
     """PINN settings for `time_basis`, which must extend the base's (its relaxation times first, in order)."""
     have, want = list(base.config["time_basis"]), [float(v) for v in time_basis]
+    if want == have:
+        return {}
     if want[: len(have)] != have or base.config["ic"] == "soft":
         raise ValueError(
             f"model.time_basis={want} cannot start from a network with time basis {have} (ic={base.config['ic']!r}): "
