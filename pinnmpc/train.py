@@ -129,6 +129,14 @@ def read_ckpt(path: str, label: str) -> dict[str, Any]:
     return ckpt
 
 
+def recorded_best(ckpt: dict[str, Any]) -> float | None:
+    """The best validation RMSE a training checkpoint's 'best' callback had recorded (None: none)."""
+    for key, state in ckpt.get("callbacks", {}).items():
+        if "val/rmse_position" in key and isinstance(state, dict) and state.get("best_model_score") is not None:
+            return float(state["best_model_score"])
+    return None
+
+
 def check_fits(ckpt: dict[str, Any], label: str, module: L.LightningModule) -> None:
     """The checkpoint's network has this configuration's parameter shapes (else Lightning fails mid-restore)."""
     have = {k: tuple(v.shape) for k, v in ckpt["state_dict"].items() if isinstance(v, torch.Tensor)}
@@ -231,8 +239,10 @@ def train(
     # which load_surrogate reads with torch.load(weights_only=True)
     datamodule = build_datamodule(cfg, system)
     module = instantiate(cfg.module, _partial_=True, _convert_="all")(system=system, model=model, tau=cfg.tau)
+    recorded = None
     if ckpt is not None:
         check_fits(ckpt, label, module)
+        recorded = recorded_best(ckpt)
         del ckpt
     ckpt_dir = run_dir / "checkpoints"
     best = AtomicCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/rmse_position", mode="min")
@@ -271,12 +281,22 @@ def train(
         "training_time_s": training_time(trainer, wall) + base_training_time(cfg.stage.base or cfg.get("init_from")),
         "epochs": trainer.current_epoch,
         "best_val_rmse_position": float(best.best_model_score) if best.best_model_score is not None else None,
+        "resumed_best_val_rmse_position": recorded,  # what the checkpoint resumed from had reached (None: fresh)
         "final_metrics": {k: float(v) for k, v in trainer.callback_metrics.items()},
     }
     if distributed is not None:
         meta["distributed"] = distributed
     if not trainer.is_global_zero:  # DDP: rank 0 writes the run's files
         return {**meta, "best_checkpoint": source or None, "rank": trainer.global_rank}
+    if recorded is not None and best.best_model_score is not None and float(best.best_model_score) > recorded:
+        say(  # Lightning keeps only the best path of a checkpoint from another directory, not its score
+            f"warning: this run's best validation RMSE {float(best.best_model_score):.4g} is above the {recorded:.4g} "
+            "recorded in the checkpoint it resumed from: surrogate.pt is this run's best, not that one (which "
+            "stays in the run dir the checkpoint came from)",
+            run_dir,
+            "pinnmpc.train",
+            err=True,
+        )
     if source and Path(source).is_file():
         surrogate = load_surrogate(source)
         surrogate.meta = meta

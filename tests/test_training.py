@@ -267,6 +267,17 @@ def test_resume_continues_from_last_checkpoint(make_cfg, tmp_path):
     assert second["epoch"] == first["epoch"] + 2
 
 
+def test_a_run_resumed_from_another_dir_reports_the_best_it_started_from(make_cfg, tmp_path, capsys):
+    first = train(make_cfg("train", [*TINY, "trainer.max_epochs=2"]), tmp_path / "a")
+    ckpt = tmp_path / "a" / "checkpoints" / "last.ckpt"
+    capsys.readouterr()
+    summary = train(make_cfg("train", [*TINY, "trainer.max_epochs=3", f"ckpt_path={ckpt}"]), tmp_path / "b")
+    assert summary["resumed_best_val_rmse_position"] == pytest.approx(first["best_val_rmse_position"], rel=1e-12)
+    # Lightning forgets the score of a best checkpoint in another dir: a worse continuation says so
+    worse = summary["best_val_rmse_position"] > first["best_val_rmse_position"]
+    assert ("warning: this run's best validation RMSE" in capsys.readouterr().err) == worse
+
+
 def test_a_resumed_run_weighs_its_loss_as_configured_now(make_cfg, tmp_path):
     train(make_cfg("train", [*TINY, "trainer.max_epochs=1", "module.kinematic_weight=3.0"]), tmp_path)
     before = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True)["state_dict"]["res_scale"]
