@@ -390,6 +390,17 @@ def hydra_run_dir() -> Path:
     return Path(HydraConfig.get().runtime.output_dir)
 
 
+def job_system(cfg: DictConfig, validate: Callable[[DictConfig, Any], None]) -> Any:
+    """The job's System from cfg.system, its settings checked against it and the CPU threads set: how jobs start."""
+    from pinnmpc.systems.registry import build_system  # torch and the arms load only when a job runs
+    from pinnmpc.threads import use_threads
+
+    system = build_system(cfg.system)
+    validate(cfg, system)
+    use_threads(cfg.threads)
+    return system
+
+
 def run_job(body: Callable[[Path], T], prog: str, summary: Callable[[T, Path], str]) -> T:
     """An entry point's whole job: run body in Hydra's run dir under run_cli, then print and log its summary."""
     run_dir = hydra_run_dir()

@@ -13,7 +13,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
-from pinnmpc.cli import StopSignal, run_cli, say
+from pinnmpc.cli import StopSignal, job_system, run_cli, say
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
 from pinnmpc.io import save_json, save_npz
@@ -22,8 +22,6 @@ from pinnmpc.references import Reference, load_reference, out_of_box, resolve_re
 from pinnmpc.settings import SettingError, validate_closed_loop
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import Box, System
-from pinnmpc.systems.registry import build_system
-from pinnmpc.threads import use_threads
 
 log = logging.getLogger(__name__)
 
@@ -222,9 +220,7 @@ def system_reference(cfg: DictConfig, system: System, tau: float) -> Reference:
 def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = None) -> dict[str, Any]:
     """Check the settings, load controller and reference, run the loop (until the end, a plant failure or a signal
     to stop), write metrics.json, trajectory.npz and plots."""
-    system: System = build_system(cfg.system)
-    validate_closed_loop(cfg, system)
-    use_threads(cfg.threads)
+    system: System = job_system(cfg, validate_closed_loop)
     controller, domain, tau = build_controller(cfg, system)
     if cfg.tau is not None and abs(cfg.tau - tau) > 1e-12:
         raise ValueError(

@@ -17,14 +17,12 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from pinnmpc.cli import run_job
+from pinnmpc.cli import job_system, run_job
 from pinnmpc.io import save_json
 from pinnmpc.pinn import PINN
 from pinnmpc.settings import validate_residuals
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import System
-from pinnmpc.systems.registry import build_system
-from pinnmpc.threads import use_threads
 from pinnmpc.training.data import collocation_box, lhs_box
 
 
@@ -68,9 +66,7 @@ def _summary(m: dict[str, Any], run_dir: Path) -> str:
 
 def run_residuals(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """The table of a surrogate as residuals.json, and residuals.png (a heat map)."""
-    system = build_system(cfg.system)
-    validate_residuals(cfg, system)
-    use_threads(cfg.threads)
+    system = job_system(cfg, validate_residuals)
     surrogate = load_surrogate(
         cfg.checkpoint, system=system.name if cfg.checkpoint is None else None, state_names=system.state_names
     )

@@ -11,14 +11,12 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from pinnmpc.cli import run_job
+from pinnmpc.cli import job_system, run_job
 from pinnmpc.io import save_json, save_npz
 from pinnmpc.plant import ScipyPlant
 from pinnmpc.settings import validate_self_loop
 from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
-from pinnmpc.systems.registry import build_system
-from pinnmpc.threads import use_threads
 
 
 def sine_inputs(steps: int, amplitude: Sequence[float]) -> np.ndarray:
@@ -48,9 +46,7 @@ def rollout_plant(plant: ScipyPlant, x0: np.ndarray, u: np.ndarray) -> np.ndarra
 
 def run_self_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Both rollouts, the error per state, metrics.json, self_loop.npz and a plot."""
-    system: System = build_system(cfg.system)
-    validate_self_loop(cfg, system)
-    use_threads(cfg.threads)
+    system: System = job_system(cfg, validate_self_loop)
     surrogate = load_surrogate(
         cfg.checkpoint, system=system.name if cfg.checkpoint is None else None, state_names=system.state_names
     )

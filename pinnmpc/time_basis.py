@@ -22,14 +22,12 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from pinnmpc.cli import run_job
+from pinnmpc.cli import job_system, run_job
 from pinnmpc.integrators import n_steps, rk4_fixed
 from pinnmpc.io import save_json
 from pinnmpc.pinn import time_gates
 from pinnmpc.settings import validate_time_basis
 from pinnmpc.systems.base import System
-from pinnmpc.systems.registry import build_system
-from pinnmpc.threads import use_threads
 from pinnmpc.training.data import random_pairs
 
 
@@ -126,9 +124,7 @@ def _summary(m: dict[str, Any], run_dir: Path) -> str:
 
 def run_time_basis(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """time_basis.json, and time_basis.png (misfit per state for the basis and its greedy extensions)."""
-    system = build_system(cfg.system)
-    validate_time_basis(cfg, system)
-    use_threads(cfg.threads)
+    system = job_system(cfg, validate_time_basis)
     result = basis_report(
         system,
         list(cfg.time_basis),
@@ -143,16 +139,22 @@ def run_time_basis(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         int(cfg.seed),
     )
     save_json(run_dir / "time_basis.json", result)
-    if cfg.plots:  # matplotlib only when a figure is wanted
-        from pinnmpc.plots import basis_figure, save_figure
-
-        rows = [result["basis"], *result["greedy"]]
-        labels = [str(r["time_basis"]) for r in rows]
-        title = f"{system.name}: gate misfit over [0, t_max] ({cfg.points} random steps)"
+    if cfg.plots:
         targets = cfg.system.get("targets", {}).get("one_step_rmse")
-        fig = basis_figure([r["rms"] for r in rows], labels, result["state_names"], targets, title)
-        save_figure(fig, run_dir / "time_basis.png")
+        _draw(result, f"{system.name}: gate misfit over [0, t_max] ({cfg.points} random steps)", targets, run_dir)
     return result
+
+
+def _draw(result: dict[str, Any], title: str, targets: Sequence[float | None] | None, run_dir: Path) -> None:
+    """time_basis.png: the basis and its greedy extensions (matplotlib imported only when a figure is wanted)."""
+    from pinnmpc.plots import basis_figure, save_figure
+
+    rows = [result["basis"], *result["greedy"]]
+    labels = [str(r["time_basis"]) for r in rows]
+    save_figure(
+        basis_figure([r["rms"] for r in rows], labels, result["state_names"], targets, title),
+        run_dir / "time_basis.png",
+    )
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="time_basis")
