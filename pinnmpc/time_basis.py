@@ -6,7 +6,7 @@ polynomial in t over one step (the smooth time dependence a network builds easil
 least-squares fit of the true increment; what it misses the network has to build from its time input through
 units over a normalised t, which a stiff mode much faster than the fastest gate makes hard. This check fits true
 trajectories (fine RK4), shows the misfit per state, and which relaxation times added to the basis reduce it
-most: seconds of work before hours of training. The misfit is no bound (a network can go below it): compare
+most: a cheap check before a long training. The misfit is no bound (a network can go below it): compare
 bases with it, and add gates where a state's misfit is near or above its one-step target.
 """
 
