@@ -90,13 +90,20 @@ def basis_report(
     size = inc[samples].square().mean(dim=0).sqrt().clamp_min(1e-12).numpy()
     basis = [float(v) for v in basis]
     fresh = [float(c) for c in candidates if float(c) not in basis]
-    single = [{"added": c, **gate_misfit(t, inc, t_max, [*basis, c], samples, degree)} for c in fresh]
+    fits: dict[tuple[float, ...], dict[str, list[float]]] = {}
+
+    def fit(trial: list[float]) -> dict[str, list[float]]:
+        """gate_misfit of one basis, each basis fitted once (the greedy's first round is the single additions)."""
+        if tuple(trial) not in fits:
+            fits[tuple(trial)] = gate_misfit(t, inc, t_max, trial, samples, degree)
+        return fits[tuple(trial)]
+
+    single = [{"added": c, **fit([*basis, c])} for c in fresh]
     chosen, steps = list(basis), []
     for _ in range(min(greedy, len(fresh))):
-        trials = [(c, gate_misfit(t, inc, t_max, [*chosen, c], samples, degree)) for c in fresh if c not in chosen]
-        best, fit = min(trials, key=lambda trial: _score(trial[1], size))
+        best = min((c for c in fresh if c not in chosen), key=lambda c: _score(fit([*chosen, c]), size))
         chosen.append(best)
-        steps.append({"time_basis": list(chosen), **fit})
+        steps.append({"time_basis": list(chosen), **fit(chosen)})
     return {
         "state_names": list(system.state_names),
         "tau": tau,
@@ -104,7 +111,7 @@ def basis_report(
         "points": n,
         "increment_rms_at_tau": size.tolist(),
         "degree": degree,
-        "basis": {"time_basis": basis, **gate_misfit(t, inc, t_max, basis, samples, degree)},
+        "basis": {"time_basis": basis, **fit(basis)},
         "single": single,
         "greedy": steps,
     }
