@@ -53,7 +53,7 @@ def _grown_basis(base: PINN, time_basis: Sequence[float]) -> dict[str, object]:
             f"model.time_basis={want} cannot start from a network with time basis {have} (ic={base.config['ic']!r}): "
             f"expected its relaxation times first, in order, then any new ones"
         )
-    return {"time_basis": want, "ic": "gated" if want else base.config["ic"]}
+    return {"time_basis": want, "ic": "gated"}  # past the checks, want is the longer: new gates
 
 
 def _embed(src: nn.Linear, dst: nn.Linear, generator: torch.Generator, fresh_rows: bool = True) -> None:
