@@ -98,20 +98,24 @@ FUSED = {"silu": _silu_full}  # value, slope and curvature sharing work; others 
 
 
 def _folded_input(model: PINN, tau: float) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """First layer on raw (x0, u) with t = tau and the input normalisation folded in (periodic states through
-    their sine and cosine weights), and its d/dt."""
+    """First layer on raw (x0, u) with t = tau and the input normalisation folded in (periodic states and angle
+    sums through their sine and cosine weights), and its d/dt."""
     w1, b1 = _np(model.net.layers[0].weight), _np(model.net.layers[0].bias)
     center, half = _np(model.in_center), _np(model.in_half)
     n_raw, periodic = model.nx + model.nu, np.asarray(model.periodic, dtype=np.intp)
+    n_sums = len(model.sum_map)
     w_in = w1[:, 1 : 1 + n_raw] / half[1:]
     w_in[:, periodic] = 0.0  # periodic states enter through w_sin, w_cos only
     b_in = b1 + w1[:, 0] * (tau - center[0]) / half[0] - w_in @ center[1:]
+    cos_cols = 1 + n_raw + np.arange(len(periodic))  # network input: cosines of the periodic states, then the sums'
+    sum_cols = 1 + n_raw + len(periodic) + np.arange(n_sums)
     first = {
         "w_in": np.ascontiguousarray(w_in.T),
         "b_in": b_in,
         "periodic": periodic,
-        "w_sin": np.ascontiguousarray(w1[:, 1 + periodic].T),
-        "w_cos": np.ascontiguousarray(w1[:, 1 + n_raw :].T),
+        "sums": _np(model.sum_map) if n_sums else None,
+        "w_sin": np.ascontiguousarray(w1[:, np.concatenate((1 + periodic, sum_cols))].T),
+        "w_cos": np.ascontiguousarray(w1[:, np.concatenate((cos_cols, sum_cols + n_sums))].T),
     }
     return first, w1[:, 0] / half[0]
 
@@ -192,8 +196,9 @@ class NumpyFlow:
     nx: int
     nu: int
     periodic: np.ndarray | None = None  # indices of the states entering as (sin, cos); their rows of w_in are zero
-    w_sin: np.ndarray | None = None  # (n_periodic, width): first layer acting on sin of the periodic states
-    w_cos: np.ndarray | None = None  # (n_periodic, width): ... and on their cosines
+    sums: np.ndarray | None = None  # (n_sums, nx): angle sums entering as (sin, cos) too (None: none)
+    w_sin: np.ndarray | None = None  # (n_periodic + n_sums, width): first layer acting on sin of the angles, sums
+    w_cos: np.ndarray | None = None  # (n_periodic + n_sums, width): ... and on their cosines
     tau: float = 0.0  # the period folded in, s: the FlowMap facts (pinnmpc.flowmap) from here on
     state_names: tuple[str, ...] = ()  # empty: x0, x1, ...
     input_names: tuple[str, ...] = ()  # empty: u0, u1, ...
@@ -245,19 +250,21 @@ class NumpyFlow:
 
     def _first_layer(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
         """Pre-activation of the first layer (GEMMs on x0 and u, no concatenation), and (sin, cos) of the
-        periodic states, (..., n_periodic) each, or None without periodic states."""
+        periodic states and angle sums, (..., n_periodic + n_sums) each, or None without periodic states."""
         a = x0 @ self.w_in[: self.nx]
         a += u @ self.w_in[self.nx :]
         a += self.b_in
         if not self.periodic.size:
             return a, None
         angle = x0[..., self.periodic]
+        if self.sums is not None:
+            angle = np.concatenate((angle, x0 @ self.sums.T), axis=-1)
         trig = np.sin(angle), np.cos(angle)
         a += np.concatenate(trig, axis=-1) @ self.w_trig
         return a, trig
 
     def _angle_rows(self, trig: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray | None:
-        """d(first-layer pre-activation)/d(periodic state), (batch, n_periodic, width): cos w_sin - sin w_cos."""
+        """d(first-layer pre-activation)/d(angle), (batch, n_periodic + n_sums, width): cos w_sin - sin w_cos."""
         if trig is None:
             return None
         sin, cos = trig
@@ -266,8 +273,12 @@ class NumpyFlow:
     def _input_tangents(self, factor: np.ndarray, angle_rows: np.ndarray | None, out: np.ndarray) -> None:
         """factor * d(first-layer pre-activation)/d(x0, u) into out (batch, nx + nu, width)."""
         np.multiply(factor[:, None, :], self.w_in, out=out)
-        if angle_rows is not None:
-            out[:, self.periodic] = factor[:, None, :] * angle_rows
+        if angle_rows is None:
+            return
+        n_periodic = self.periodic.size
+        out[:, self.periodic] = factor[:, None, :] * angle_rows[:, :n_periodic]
+        if self.sums is not None:  # a sum's row reaches every state it adds up
+            out[:, : self.nx] += factor[:, None, :] * (self.sums.T @ angle_rows[:, n_periodic:])
 
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """x(tau) for x0 (..., nx), u (..., nu)."""

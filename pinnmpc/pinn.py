@@ -74,6 +74,20 @@ CURVATURES: dict[str, Callable[[Tensor, Tensor, Tensor], Tensor]] = {  # second 
 }
 
 
+def _checked_sums(angle_sums: Sequence[Sequence[int]], periodic: Sequence[int]) -> list[list[int]]:
+    """angle_sums as sorted index lists, each of two or more distinct periodic coordinates, none twice."""
+    sums = [sorted(int(i) for i in coords) for coords in angle_sums]
+    for coords in sums:
+        if len(coords) < 2 or len(set(coords)) != len(coords) or not set(coords) <= set(periodic):
+            raise ValueError(
+                f"angle_sums must list sums of two or more distinct periodic state indices {list(periodic)}, "
+                f"got {[list(c) for c in angle_sums]}"
+            )
+    if len({tuple(c) for c in sums}) != len(sums):
+        raise ValueError(f"angle_sums lists a sum twice: {sums}")
+    return sums
+
+
 class TangentMLP(nn.Module):
     """MLP that can carry tangents along: y, dy = f(z), Df(z) dz for dz (..., k, in)."""
 
@@ -154,6 +168,9 @@ class PINN(nn.Module):
     periodic lists state coordinates the dynamics see only through sin and cos (joint angles): the network
     gets sin and cos of them instead of the normalised value, so the flow increment it has to represent is
     smooth on the circle (no seam at the box edge, no sine to build from tanh) and holds beyond the box.
+    angle_sums lists sums of periodic coordinates whose sin and cos are further inputs: the absolute link
+    angles of an arm whose joint axes are parallel (q1 + q2, q1 + q2 + q3 of a planar arm), in which its gravity
+    and inertia terms are single sines; from the joint angles alone a network has to build them as products.
 
     second_order=True is for mechanical systems x = (q, dq/dt): the network models the positions only,
     q = q0 + v0 t + scale_v * sum_k G_k(t) N_k(.) with G_k the time integral of gate g_k, and the velocity
@@ -175,6 +192,7 @@ class PINN(nn.Module):
         time_basis: Sequence[float] = (),
         second_order: bool = False,
         periodic: Sequence[int] = (),
+        angle_sums: Sequence[Sequence[int]] = (),
     ) -> None:
         super().__init__()
         if ic not in IC_MODES:
@@ -197,6 +215,7 @@ class PINN(nn.Module):
         periodic = [int(i) for i in periodic]
         if len(set(periodic)) != len(periodic) or any(not 0 <= i < len(state_low) for i in periodic):
             raise ValueError(f"periodic must list distinct state indices in [0, {len(state_low)}), got {periodic}")
+        angle_sums = _checked_sums(angle_sums, periodic)
         self.config = {
             "state_low": [float(v) for v in state_low],
             "state_high": [float(v) for v in state_high],
@@ -210,6 +229,7 @@ class PINN(nn.Module):
             "time_basis": time_basis,
             "second_order": bool(second_order),
             "periodic": periodic,
+            "angle_sums": angle_sums,
         }  # everything needed to rebuild the module from a checkpoint
         self.nx, self.nu = len(state_low), len(input_low)
         self.ic = ic
@@ -243,7 +263,12 @@ class PINN(nn.Module):
         self.register_buffer("sin_cols", self.angles + 1, persistent=False)  # their columns of the network input
         n_lin = 1 + self.nx + self.nu  # t, x0, u; periodic x0 columns hold the sine, their cosines follow
         self.register_buffer("cos_cols", torch.arange(len(periodic), dtype=torch.long) + n_lin, persistent=False)
-        self.net = TangentMLP(n_lin + len(periodic), self.n_head * self.n_gates, hidden, activation)
+        sum_map = torch.zeros(len(angle_sums), self.nx)
+        for row, coords in zip(sum_map, angle_sums):
+            row[coords] = 1.0
+        self.register_buffer("sum_map", sum_map, persistent=False)  # (n_sums, nx): the angle sums of x0
+        n_trig = len(periodic) + 2 * len(angle_sums)  # cosines of the periodic states, then sin and cos of the sums
+        self.net = TangentMLP(n_lin + n_trig, self.n_head * self.n_gates, hidden, activation)
 
     @property
     def head_scale(self) -> Tensor:
@@ -262,7 +287,11 @@ class PINN(nn.Module):
         if not self.periodic:
             return z
         angle = x0[..., self.angles]
-        return torch.cat((z.index_copy(-1, self.sin_cols, torch.sin(angle)), torch.cos(angle)), dim=-1)
+        parts = [z.index_copy(-1, self.sin_cols, torch.sin(angle)), torch.cos(angle)]
+        if len(self.sum_map):
+            total = x0 @ self.sum_map.T
+            parts += [torch.sin(total), torch.cos(total)]
+        return torch.cat(parts, dim=-1)
 
     def gates(self, t: Tensor) -> tuple[Tensor, Tensor]:
         """Time gates g(t) (..., n_gates), all zero at t = 0, and dg/dt."""
@@ -346,6 +375,12 @@ class PINN(nn.Module):
         dz = dz.clone()
         dz[..., self.angles, self.sin_cols] = z[..., self.cos_cols]  # d sin(q) / dq = cos(q), read off the input
         dz[..., self.angles, self.cos_cols] = -z[..., self.sin_cols]
+        n_sums = len(self.sum_map)
+        if n_sums:  # d sin(a.x) / dx = cos(a.x) a for each sum a, on the x0 rows
+            sums = self.sum_map.T.to(z.dtype)  # (nx, n_sums)
+            sin, cos = z[..., -2 * n_sums : -n_sums].unsqueeze(-2), z[..., -n_sums:].unsqueeze(-2)
+            dz[..., : self.nx, -2 * n_sums : -n_sums] = sums * cos
+            dz[..., : self.nx, -n_sums:] = -sums * sin
         return dz
 
     def _second_order_jacobian(self, t: Tensor, x0: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:
@@ -379,8 +414,14 @@ class PINN(nn.Module):
 
 
 STAGE_BOX = ("state_low", "state_high", "input_low", "input_high", "t_max")  # where the network is trained
-STAGE_FORM = ("activation", "ic", "time_basis", "second_order", "periodic")  # how its output becomes a state
+STAGE_FORM = ("activation", "ic", "time_basis", "second_order", "periodic", "angle_sums")  # input and output form
 STAGE_SHARED = STAGE_BOX + STAGE_FORM  # what base and correction must share to merge into one network
+STAGE_DEFAULTS = {"angle_sums": []}  # settings that checkpoints written before they existed do not hold
+
+
+def _setting(config: dict, key: str) -> object:
+    """A network setting of a checkpoint's config, with its default where the checkpoint predates it."""
+    return config.get(key, STAGE_DEFAULTS.get(key))
 
 
 class StagedPINN(nn.Module):
@@ -395,7 +436,7 @@ class StagedPINN(nn.Module):
 
     def __init__(self, base: dict, correction: dict, residual_level: float) -> None:
         super().__init__()
-        differ = [k for k in STAGE_SHARED if base.get(k) != correction.get(k)]
+        differ = [k for k in STAGE_SHARED if _setting(base, k) != _setting(correction, k)]
         if differ or len(base["hidden"]) != len(correction["hidden"]):
             raise ValueError(
                 f"a correction network must share {list(STAGE_SHARED)} and the depth with its base; differs in "

@@ -40,8 +40,14 @@ def build_model(cfg: DictConfig, system: System) -> PINN | StagedPINN:
     if cfg.stage.base:
         return build_staged(cfg, system)
     if cfg.get("init_from"):
-        hidden, basis = list(cfg.model.hidden), list(cfg.model.time_basis)
-        return grown_model(system, cfg.init_from, cfg.tau, cfg.t_max, hidden, cfg.seed, basis)
+        hidden, basis, sums = list(cfg.model.hidden), list(cfg.model.time_basis), _angle_sums(cfg)
+        return grown_model(system, cfg.init_from, cfg.tau, cfg.t_max, hidden, cfg.seed, basis, sums)
+    return fresh_model(cfg, system)
+
+
+def fresh_model(cfg: DictConfig, system: System) -> PINN:
+    """A new network of cfg.model for this system's training box (output scale estimated from the flow when
+    'auto'): what training and the capacity check start from."""
     scale = cfg.model.output_scale
     if scale == "auto":
         a = cfg.model.auto_scale
@@ -59,7 +65,13 @@ def build_model(cfg: DictConfig, system: System) -> PINN | StagedPINN:
         time_basis=list(cfg.model.time_basis) if cfg.model.ic == "gated" else [],
         second_order=cfg.model.get("second_order", False),
         periodic=list(cfg.model.get("periodic", [])),
+        angle_sums=_angle_sums(cfg),
     )
+
+
+def _angle_sums(cfg: DictConfig) -> list[list[int]]:
+    """model.angle_sums as plain lists (none when the model config predates the setting)."""
+    return [list(c) for c in cfg.model.get("angle_sums") or []]
 
 
 def build_staged(cfg: DictConfig, system: System) -> StagedPINN:

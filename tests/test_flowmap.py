@@ -37,12 +37,12 @@ def systems() -> dict[str, System]:
 
 def _planar3_surrogate(system: System) -> Surrogate:
     """A small untrained second-order PINN for the planar arm's boxes (weights seeded): a contract needs no
-    training, and second order with periodic angles takes the numpy path's most involved branch."""
+    training, and second order with periodic angles and their sums takes the numpy path's most involved branch."""
     torch.manual_seed(0)
     box, ubox = system.state_box, system.input_box
     model = PINN(
         box.low, box.high, ubox.low, ubox.high, t_max=0.125, hidden=[16, 16], activation="silu", ic="gated",
-        time_basis=[0.004, 0.05], second_order=True, periodic=[0, 1, 2],
+        time_basis=[0.004, 0.05], second_order=True, periodic=[0, 1, 2], angle_sums=[[0, 1], [0, 1, 2], [1, 2]],
     )  # fmt: skip
     return Surrogate(model, system.tau, system.state_names, system.input_names)
 

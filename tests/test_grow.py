@@ -113,3 +113,18 @@ def test_gates_go_on_a_hard_ic_network_exactly_and_a_soft_one_keeps_its_form():
     torch.testing.assert_close(widened(soft, [12, 8], 0, [])(t, x0, u), soft(t, x0, u), rtol=0, atol=1e-13)
     with pytest.raises(ValueError, match=r"cannot start from a network with time basis \[\] \(ic='soft'\)"):
         widened(soft, [8, 8], 0, [0.01])
+
+
+def test_angle_sums_grown_onto_a_trained_network_start_deaf():
+    base = load_surrogate(system="planar3").model  # periodic angles, no angle sums: the shipped network
+    hidden, basis = base.config["hidden"], base.config["time_basis"]
+    two = widened(base, hidden, 0, basis, angle_sums=[[0, 1], [0, 1, 2]])
+    three = widened(two, hidden, 1, basis, angle_sums=[[0, 1], [0, 1, 2], [1, 2]])  # old sums' columns move
+    assert three.net.layers[0].in_features == base.net.layers[0].in_features + 6
+    g = torch.Generator().manual_seed(0)
+    t = 0.1 * torch.rand(20, 1, generator=g, dtype=torch.float64)
+    x0, u = 2 * torch.rand(20, 6, generator=g, dtype=torch.float64) - 1, torch.rand(20, 3, dtype=torch.float64)
+    for model in (two, three):
+        torch.testing.assert_close(model(t, x0, u), base(t, x0, u), rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match=r"cannot start from a network with angle sums \[\[0, 1\], \[0, 1, 2\]\]"):
+        widened(two, hidden, 0, basis, angle_sums=[[1, 2]])

@@ -30,6 +30,14 @@ VARIANTS = {  # output structures: the paper's soft IC, x0 + t N, and x0 + t N_0
     "periodic gated": {"ic": "gated", "time_basis": [0.02, 0.045], "periodic": [0, 1]},  # angles as (sin, cos)
     "periodic second-order": {"ic": "gated", "time_basis": [0.02], "second_order": True, "periodic": [1]},
     "periodic soft": {"ic": "soft", "periodic": [0]},
+    "angle sums gated": {"ic": "gated", "time_basis": [0.02], "periodic": [0, 1], "angle_sums": [[0, 1]]},
+    "angle sums second-order": {
+        "ic": "gated",
+        "time_basis": [0.02],
+        "second_order": True,
+        "periodic": [0, 1],
+        "angle_sums": [[1, 0]],
+    },  # fmt: skip
 }
 
 
@@ -102,7 +110,7 @@ def test_second_order_velocity_is_the_position_derivative(variant):
     assert model.net.layers[-1].out_features == 2 * model.n_gates  # one head per gate for the 2 positions only
 
 
-@pytest.mark.parametrize("variant", ["periodic gated", "periodic second-order"])
+@pytest.mark.parametrize("variant", ["periodic gated", "periodic second-order", "angle sums second-order"])
 def test_periodic_states_give_a_periodic_flow(variant):
     torch.manual_seed(9)
     model = PINN(**BOX, hidden=[16, 16], output_scale=[0.3, 0.4, 3.0, 3.5], **VARIANTS[variant]).double()
@@ -113,7 +121,8 @@ def test_periodic_states_give_a_periodic_flow(variant):
     other = torch.tensor([0.0, 0.0, 0.1, 0.0], dtype=torch.float64)  # velocities are not periodic
     assert (model(t, x0 + other, u) - model(t, x0, u) - other).abs().max() > 1e-6
     n_in = model.net.layers[0].in_features
-    assert n_in == 7 + len(model.periodic)  # one extra cosine input per periodic state
+    n_sums = len(model.config["angle_sums"])
+    assert n_in == 7 + len(model.periodic) + 2 * n_sums  # an extra cosine per periodic state, (sin, cos) per sum
 
 
 def test_time_gates_start_at_zero_and_relax():
@@ -166,6 +175,12 @@ def test_bad_configuration_is_named():
         PINN(**BOX, periodic=[0, 4])
     with pytest.raises(ValueError, match=r"distinct state indices.*got \[1, 1\]"):
         PINN(**BOX, periodic=[1, 1])
+    with pytest.raises(ValueError, match=r"sums of two or more distinct periodic state indices \[0\]"):
+        PINN(**BOX, periodic=[0], angle_sums=[[0, 1]])  # state 1 is not periodic
+    with pytest.raises(ValueError, match=r"angle_sums must list sums of two or more.*got \[\[0\]\]"):
+        PINN(**BOX, periodic=[0, 1], angle_sums=[[0]])
+    with pytest.raises(ValueError, match=r"angle_sums lists a sum twice: \[\[0, 1\], \[0, 1\]\]"):
+        PINN(**BOX, periodic=[0, 1], angle_sums=[[0, 1], [1, 0]])
     with pytest.raises(ValueError, match="t_max must be > 0"):
         PINN(**{**BOX, "t_max": 0.0})
     with pytest.raises(ValueError, match=r"time_basis must hold positive relaxation times in s, got \[0.02, -1.0\]"):

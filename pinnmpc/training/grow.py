@@ -5,7 +5,7 @@ throws away hours of training. Widening (Chen et al. 2016, Net2Net) keeps the tr
 whose outgoing weights are zero: the wider network starts at the trained one's exact outputs and the optimiser
 moves from there with all parameters free. New time gates (relaxation times appended to the time basis) start
 the same way: their output heads are zero, so a flow whose time dependence the old gates cannot span can be
-fitted on from the trained network.
+fitted on from the trained network. New angle-sum inputs start deaf: the first layer's weights on them are zero.
 """
 
 from __future__ import annotations
@@ -13,16 +13,23 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import System
 
 
-def widened(base: PINN, hidden: Sequence[int], seed: int, time_basis: Sequence[float] | None = None) -> PINN:
+def widened(
+    base: PINN,
+    hidden: Sequence[int],
+    seed: int,
+    time_basis: Sequence[float] | None = None,
+    angle_sums: Sequence[Sequence[int]] | None = None,
+) -> PINN:
     """A copy of `base` with hidden widths `hidden` (same depth, none narrower), optionally more time gates
-    (`time_basis`: the base's relaxation times first, new ones after), and the same outputs."""
+    (`time_basis`: the base's relaxation times first, new ones after) and angle-sum inputs (`angle_sums`: the
+    base's first), and the same outputs."""
     old = [layer.out_features for layer in base.net.layers[:-1]]
     new = [int(w) for w in hidden]
     if len(new) != len(old) or any(n < o for n, o in zip(new, old)):
@@ -33,11 +40,13 @@ def widened(base: PINN, hidden: Sequence[int], seed: int, time_basis: Sequence[f
     config = {**base.config, "hidden": new}
     if time_basis is not None:
         config.update(_grown_basis(base, time_basis))
+    if angle_sums is not None:
+        config.update(_grown_sums(base, angle_sums))
     model = PINN(**config).to(base.out_scale.dtype)
     generator = torch.Generator().manual_seed(seed)
     with torch.no_grad():
-        for src, dst in zip(base.net.layers[:-1], model.net.layers[:-1]):
-            _embed(src, dst, generator)
+        for i, (src, dst) in enumerate(zip(base.net.layers[:-1], model.net.layers[:-1])):
+            _embed(src, dst, generator, columns=_input_columns(base, model) if i == 0 else None)
         _embed(base.net.layers[-1], model.net.layers[-1], generator, fresh_rows=False)
         model.load_state_dict({**model.state_dict(), **_buffers(base)})
     return model
@@ -56,16 +65,40 @@ def _grown_basis(base: PINN, time_basis: Sequence[float]) -> dict[str, object]:
     return {"time_basis": want, "ic": "gated"}  # past the checks, want is the longer: new gates
 
 
-def _embed(src: nn.Linear, dst: nn.Linear, generator: torch.Generator, fresh_rows: bool = True) -> None:
+def _grown_sums(base: PINN, angle_sums: Sequence[Sequence[int]]) -> dict[str, object]:
+    """PINN settings for `angle_sums`, which must extend the base's (its sums first, in order)."""
+    have, want = base.config.get("angle_sums", []), [sorted(int(i) for i in c) for c in angle_sums]
+    if want[: len(have)] != have:
+        raise ValueError(
+            f"model.angle_sums={[list(c) for c in angle_sums]} cannot start from a network with angle sums {have}: "
+            f"expected its sums first, in order, then any new ones"
+        )
+    return {"angle_sums": want}
+
+
+def _input_columns(base: PINN, model: PINN) -> torch.Tensor:
+    """Where each network input of `base` sits in `model`'s input: (t, x0, u, cosines) in place, the angle
+    sums' sines and cosines each moved past the new sums' sines."""
+    n_lead = base.net.layers[0].in_features - 2 * len(base.sum_map)
+    n_old, n_new = len(base.sum_map), len(model.sum_map)
+    lead = torch.arange(n_lead)
+    return torch.cat((lead, n_lead + torch.arange(n_old), n_lead + n_new + torch.arange(n_old)))
+
+
+def _embed(
+    src: nn.Linear, dst: nn.Linear, generator: torch.Generator, fresh_rows: bool = True, columns: Tensor | None = None
+) -> None:
     """dst = src in its leading block, the trained units deaf to new ones below them; new units' rows are fresh
-    (fresh_rows), or zero for an output layer, whose new rows are new gates' heads that start switched off."""
+    (fresh_rows), or zero for an output layer, whose new rows are new gates' heads that start switched off.
+    columns says where src's inputs sit among dst's (default: the leading ones); the others are new inputs."""
     o, i = src.weight.shape
+    columns = torch.arange(i) if columns is None else columns
     fresh = torch.randn(dst.weight.shape, generator=generator, dtype=dst.weight.dtype)
     fresh *= (2.0 / sum(dst.weight.shape)) ** 0.5  # the Xavier-normal scale the network starts with
     if not fresh_rows:
         fresh[o:] = 0.0
-    fresh[:o, :i] = src.weight
-    fresh[:o, i:] = 0.0  # the trained units ignore the new ones below them until training turns them on
+    fresh[:o] = 0.0  # the trained units ignore new units and new inputs until training turns them on
+    fresh[:o, columns] = src.weight
     dst.weight.copy_(fresh)
     dst.bias.zero_()
     dst.bias[:o] = src.bias
@@ -84,11 +117,13 @@ def grown_model(
     hidden: Sequence[int],
     seed: int,
     time_basis: Sequence[float] | None = None,
+    angle_sums: Sequence[Sequence[int]] | None = None,
 ) -> PINN:
-    """The trained surrogate at `path` (init_from) grown to `hidden` and `time_basis`, checked against this run."""
+    """The trained surrogate at `path` (init_from) grown to `hidden`, `time_basis` and `angle_sums`, checked
+    against this run."""
     surrogate = load_surrogate(path, state_names=tuple(system.state_names))
     base = surrogate.model
     for what, have, want in (("tau", surrogate.tau, tau), ("t_max", base.t_max, t_max)):
         if abs(have - want) > 1e-12:
             raise ValueError(f"init_from={path} was trained with {what}={have}; this run has {what}={want}")
-    return widened(base, hidden, seed, time_basis)
+    return widened(base, hidden, seed, time_basis, angle_sums)
