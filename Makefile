@@ -18,7 +18,7 @@ CLI_NAMES := $(call uniq,$(call reverse,$(foreach d,$(subst \$(space),^,$(MAKEOV
 shell_quote = '$(subst ','\'',$(1))'
 OVERRIDES = $(foreach v,$(filter-out $(KNOBS),$(CLI_NAMES)),$(call shell_quote,$(v)=$($(v)))) $(ARGS)
 
-.PHONY: install train self-loop residuals time-basis closed-loop closed-loop-paper robustness evaluate bench sweep sweep-optuna tensorboard test test-all lint format contract clean
+.PHONY: install train self-loop residuals time-basis capacity closed-loop closed-loop-paper robustness evaluate bench sweep sweep-optuna tensorboard test test-all lint format contract clean
 
 install: $(VENV)/.installed  ## venv with a CPU build of torch, the package (editable) and its extras
 
@@ -40,6 +40,9 @@ residuals: install  ## where the shipped network breaks the physics: ODE residua
 
 time-basis: install  ## can the time gates span the flow? misfit per state, and the relaxation times that help
 	$(PY) -m pinnmpc.time_basis $(OVERRIDES)
+
+capacity: install  ## can the network represent the one-step map? a direct fit to true steps, against the targets
+	$(PY) -m pinnmpc.capacity $(OVERRIDES)
 
 closed-loop: install  ## NMPC tracks the built-in reference on the RK45 plant (the main job)
 	$(PY) -m pinnmpc.closed_loop $(OVERRIDES)

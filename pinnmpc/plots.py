@@ -258,9 +258,11 @@ def basis_figure(
     state_names: Sequence[str],
     targets: Sequence[float | None] | None = None,
     title: str = "",
+    ylabel: str = "RMS misfit over the step (state units)",
+    legend: str = "time_basis, s",
 ) -> Figure:
-    """One line per time basis: its gate misfit per state (log scale), the basis under test first; the system's
-    one-step targets as marks, where it has them."""
+    """One line per time basis (or per error measured): its misfit per state (log scale), the basis under test
+    first; the system's one-step targets as marks, where it has them."""
     fig = Figure(figsize=SCALING_FIGSIZE, layout="constrained")
     ax = fig.subplots()
     for values, label in zip(misfit, labels):
@@ -269,8 +271,8 @@ def basis_figure(
         given = [(i, v) for i, v in enumerate(targets) if v is not None]
         ax.plot([i for i, _ in given], [v for _, v in given], "k_", markersize=20, label="one-step target")
     ax.set_xticks(range(len(state_names)), labels=list(state_names), rotation=45, ha="right")
-    ax.set_ylabel("RMS misfit over the step (state units)")
-    ax.legend(title="time_basis, s", fontsize="x-small")
+    ax.set_ylabel(ylabel)
+    ax.legend(title=legend, fontsize="x-small")
     if title:
         ax.set_title(title, fontsize="small")
     return fig

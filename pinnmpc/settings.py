@@ -215,6 +215,21 @@ TIME_BASIS: dict[str, Check] = {
     "plots": boolean(),
 }
 
+CAPACITY: dict[str, Check] = {
+    "tau": positive(),
+    "t_max": positive(),
+    "points": integer(1),
+    "val_points": integer(1),
+    "h": positive(),
+    "minutes": positive(),
+    "max_steps": optional(integer(1)),
+    "seed": SEED,
+    "threads": integer(1),
+    "progress": boolean(),
+    "plots": boolean(),
+    "model.hidden": listof(integer(1)),
+}
+
 TRAIN: dict[str, Check] = {
     "tau": positive(),
     "t_max": positive(),
@@ -297,6 +312,13 @@ def validate_time_basis(cfg: DictConfig, system: Any) -> None:
     validate(cfg, TIME_BASIS, system_dims(system))
     if cfg.t_max < cfg.tau:
         raise SettingError(f"t_max={cfg.t_max} is below tau={cfg.tau}: expected t_max >= tau (the misfit is at tau)")
+
+
+def validate_capacity(cfg: DictConfig, system: Any) -> None:
+    """capacity settings."""
+    validate(cfg, CAPACITY, system_dims(system))
+    if cfg.t_max < cfg.tau:
+        raise SettingError(f"t_max={cfg.t_max} is below tau={cfg.tau}: expected t_max >= tau (the fit is at tau)")
 
 
 def validate_train(cfg: DictConfig, system: Any) -> None:

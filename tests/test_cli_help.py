@@ -19,6 +19,7 @@ COMMANDS = {  # module: its primary config
     "self_loop": "self_loop",
     "residuals": "residuals",
     "time_basis": "time_basis",
+    "capacity": "capacity",
     "robustness": "robustness",
     "bench": "bench",
 }

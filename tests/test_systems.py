@@ -158,7 +158,7 @@ GROUP_OPTIONS = {
 
 @pytest.mark.parametrize("system", ["powercube", "planar3", "panda"])
 @pytest.mark.parametrize(
-    "entry", ["train", "closed_loop", "self_loop", "residuals", "time_basis", "robustness", "bench"]
+    "entry", ["train", "closed_loop", "self_loop", "residuals", "time_basis", "capacity", "robustness", "bench"]
 )
 def test_every_config_composes_and_instantiates(entry: str, system: str) -> None:
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):

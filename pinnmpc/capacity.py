@@ -1,0 +1,175 @@
+"""`python -m pinnmpc.capacity`: can the configured network represent the one-step map at all?
+
+The PINN learns x(tau) from the ODE residual (plus anchors) over hours. This check fits the same network
+(model.*: widths, activation, gates, periodic inputs, angle sums) directly to true one-step results from fine RK4
+at t = tau, by full-batch L-BFGS for a few minutes: plain regression of the one map the controller uses, the
+easiest problem that network can be given. If its validation error stays above a state's one-step target, more
+training of the PINN is unlikely to reach it: change the network (width, inputs) first. On planar3 a short fit
+lands near where hours of PINN training ended (docs/results.md), so it also tells what a long training can give.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+import torch
+from omegaconf import DictConfig
+from torch import Tensor
+
+from pinnmpc.cli import job_system, run_job, say
+from pinnmpc.io import save_json
+from pinnmpc.pinn import PINN
+from pinnmpc.settings import validate_capacity
+from pinnmpc.systems.base import System
+from pinnmpc.training.data import random_pairs, reference_flow
+
+
+def one_step_data(system: System, tau: float, n: int, h: float, seed: int) -> tuple[Tensor, Tensor, Tensor]:
+    """n random (x0, u) over the training box and their true x(tau) (RK4 at step h), float64."""
+    x0, u = random_pairs(system, n, seed)
+    x0, u = x0.double(), u.double()
+    return x0, u, reference_flow(system, x0, u, tau, h).double()
+
+
+def _rmse(model: PINN, tau: float, x0: Tensor, u: Tensor, x1: Tensor) -> Tensor:
+    """One-step RMSE per state, in state units."""
+    dtype = model.out_scale.dtype
+    with torch.no_grad():
+        t = torch.full((len(x0), 1), tau, dtype=dtype)
+        return (model(t, x0.to(dtype), u.to(dtype)).double() - x1).pow(2).mean(0).sqrt()
+
+
+def fit_one_step(
+    model: PINN,
+    train: tuple[Tensor, Tensor, Tensor],
+    val: tuple[Tensor, Tensor, Tensor],
+    tau: float,
+    minutes: float,
+    max_steps: int | None,
+    report: Any = None,
+) -> dict[str, Any]:
+    """Full-batch L-BFGS on the squared error of x(tau) in output units, for `minutes` (or `max_steps` optimiser
+    calls of 50 iterations); the history of the validation RMSE and the best state's errors."""
+    dtype = model.out_scale.dtype
+    x0, u, x1 = (a.to(dtype) for a in train)
+    t = torch.full((len(x0), 1), tau, dtype=dtype)
+    unit = model.out_scale
+    optimiser = torch.optim.LBFGS(
+        model.parameters(), lr=1.0, max_iter=50, history_size=50, line_search_fn="strong_wolfe",
+        tolerance_grad=0.0, tolerance_change=0.0,
+    )  # fmt: skip  # zero tolerances: the loss sits near 1e-6 in output units, below torch's absolute defaults
+
+    def closure() -> Tensor:
+        optimiser.zero_grad()
+        loss = ((model(t, x0, u) - x1) / unit).pow(2).mean()
+        loss.backward()
+        return loss
+
+    def score(rmse: Tensor) -> float:
+        """The validation loss: squared errors in output units, as fitted."""
+        return float((rmse / unit.double()).pow(2).sum())
+
+    start, history, steps = time.perf_counter(), [], 0
+    initial = _rmse(model, tau, *val)
+    best = score(initial)
+    best_state = {k: v.clone() for k, v in model.state_dict().items()}
+    while time.perf_counter() - start < 60.0 * minutes and (max_steps is None or steps < max_steps):
+        loss = optimiser.step(closure)
+        steps += 1
+        if not torch.isfinite(loss):
+            break  # a diverged step: keep the best state so far
+        rmse = _rmse(model, tau, *val)
+        history.append({"seconds": time.perf_counter() - start, "val_rmse": rmse.tolist()})
+        if score(rmse) < best:  # keep the best validation state, as training keeps its best checkpoint
+            best, best_state = score(rmse), {k: v.clone() for k, v in model.state_dict().items()}
+        if report is not None:
+            report(steps, history[-1])
+    model.load_state_dict(best_state)
+    return {
+        "initial_val_rmse": initial.tolist(),
+        "val_rmse": _rmse(model, tau, *val).tolist(),
+        "train_rmse": _rmse(model, tau, *train).tolist(),
+        "steps": steps,
+        "seconds": time.perf_counter() - start,
+        "history": history,
+    }
+
+
+def run_capacity(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """capacity.json and capacity.png: the network's one-step error after a direct fit, against the targets."""
+    from pinnmpc.train import fresh_model  # Lightning loads only when the check runs
+
+    system = job_system(cfg, validate_capacity)
+    torch.manual_seed(int(cfg.seed))
+    model = fresh_model(cfg, system)
+    tau, h = float(cfg.tau), float(cfg.h)
+    train = one_step_data(system, tau, int(cfg.points), h, int(cfg.seed))
+    val = one_step_data(system, tau, int(cfg.val_points), h, int(cfg.seed) + 1)
+    every = max(1.0, 60.0 * float(cfg.minutes) / 10)  # about ten progress lines per run
+    last = [0.0]
+
+    def report(step: int, entry: dict[str, Any]) -> None:
+        if cfg.progress and entry["seconds"] - last[0] >= every:
+            last[0] = entry["seconds"]
+            worst = ", ".join(f"{n} {v:.2e}" for n, v in zip(system.state_names, entry["val_rmse"]))
+            say(f"{entry['seconds']:5.0f} s, step {step}: validation RMSE {worst}", run_dir, "pinnmpc.capacity")
+
+    fit = fit_one_step(model, train, val, tau, float(cfg.minutes), cfg.max_steps, report)
+    targets = cfg.system.get("targets", {}).get("one_step_rmse")
+    result = {
+        "system": system.name,
+        "state_names": list(system.state_names),
+        "model": {k: model.config[k] for k in ("hidden", "activation", "ic", "time_basis", "periodic", "angle_sums")},
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "points": int(cfg.points),
+        "val_points": int(cfg.val_points),
+        "targets": None if targets is None else list(targets),
+        **fit,
+    }
+    save_json(run_dir / "capacity.json", result)
+    if cfg.plots:
+        _draw(result, run_dir)
+    return result
+
+
+def _draw(result: dict[str, Any], run_dir: Path) -> None:
+    """capacity.png: validation and training RMSE per state against the targets."""
+    from pinnmpc.plots import basis_figure, save_figure
+
+    m = result["model"]
+    title = (
+        f"{result['system']}: {m['hidden']} {m['activation']} fitted to {result['points']} true steps "
+        f"for {result['seconds'] / 60:.1f} min"
+    )
+    fig = basis_figure(
+        [result["val_rmse"], result["train_rmse"]], ["validation", "training"], result["state_names"],
+        result["targets"], title, ylabel="one-step RMSE at tau (state units)", legend="direct fit",
+    )  # fmt: skip
+    save_figure(fig, run_dir / "capacity.png")
+
+
+def _summary(m: dict[str, Any], run_dir: Path) -> str:
+    """The validation RMSE per state against its target, and where the outputs went."""
+    targets = m["targets"] or [None] * len(m["state_names"])
+    parts = []
+    for name, value, target in zip(m["state_names"], m["val_rmse"], targets):
+        mark = "" if target is None else (" (target met)" if value <= target else f" ({value / target:.1f}x target)")
+        parts.append(f"{name} {value:.2e}{mark}")
+    net = f"{m['model']['hidden']} {m['model']['activation']}"
+    return (
+        f"direct fit of {net} to x(tau), {m['steps']} L-BFGS calls in {m['seconds'] / 60:.1f} min, validation RMSE: "
+        f"{', '.join(parts)}\noutputs in {run_dir}"
+    )
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="capacity")
+def main(cfg: DictConfig) -> None:
+    """CLI: the one-step error the configured network reaches by direct fitting, and where the outputs went."""
+    run_job(lambda run_dir: run_capacity(cfg, run_dir), "pinnmpc.capacity", _summary)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,32 @@
+"""python -m pinnmpc.capacity: the configured network fitted directly to true one-step results."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pinnmpc.capacity import run_capacity
+from pinnmpc.settings import SettingError
+
+TINY = ["points=256", "val_points=64", "max_steps=4", "model.hidden=[16,16]", "model.auto_scale.samples=64"]
+
+
+def test_a_direct_fit_learns_the_map_and_writes_its_report(make_cfg, tmp_path) -> None:
+    sums = "system.network.angle_sums=[[0,1],[0,1,2],[1,2]]"  # the planar arm's absolute and relative link angles
+    m = run_capacity(make_cfg("capacity", ["system=planar3", sums, *TINY]), tmp_path)
+    assert m["steps"] == 4 and m["model"]["angle_sums"] == [[0, 1], [0, 1, 2], [1, 2]]
+    assert np.all(np.array(m["val_rmse"]) < 0.7 * np.array(m["initial_val_rmse"]))  # it learned every state
+    assert len(m["val_rmse"]) == 6 and m["targets"] == [1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2]
+    assert json.loads((tmp_path / "capacity.json").read_text())["val_rmse"] == m["val_rmse"]
+    assert (tmp_path / "capacity.png").stat().st_size > 10_000
+
+
+def test_bad_settings_are_refused_in_one_line(make_cfg, tmp_path) -> None:
+    with pytest.raises(SettingError, match="points=0: expected an integer >= 1"):
+        run_capacity(make_cfg("capacity", ["points=0"]), tmp_path / "a")
+    with pytest.raises(SettingError, match="t_max=0.1 is below tau=0.2"):
+        run_capacity(make_cfg("capacity", ["t_max=0.1"]), tmp_path / "b")
+    with pytest.raises(ValueError, match="angle_sums must list sums of two or more distinct periodic"):
+        run_capacity(make_cfg("capacity", ["system=panda", "system.network.angle_sums=[[0,1]]", *TINY]), tmp_path / "c")
