@@ -155,8 +155,10 @@ def check_fits(ckpt: dict[str, Any], label: str, module: L.LightningModule) -> N
     want = {k: tuple(v.shape) for k, v in module.state_dict().items()}
     if have != want:
         diff = next((k for k in sorted(set(have) | set(want)) if have.get(k) != want.get(k)), "")
+        inputs = diff.endswith("layers.0.weight") and have.get(diff, (0,))[0] == want.get(diff, (0,))[0]
+        hint = " (other network inputs: see system.network.periodic and angle_sums)" if inputs else ""
         raise ValueError(
-            f"{label} holds another network ({diff}: {have.get(diff)} in the file, {want.get(diff)} here); "
+            f"{label} holds another network ({diff}: {have.get(diff)} in the file, {want.get(diff)} here{hint}); "
             "expected a checkpoint of this configuration (same system, model and stage settings)"
         )
 

@@ -201,6 +201,7 @@ def test_planar3_trains_and_tracks(make_cfg, tmp_path: Path) -> None:
     train(make_cfg("train", overrides), tmp_path / "train")
     surrogate = load_surrogate(tmp_path / "train" / "surrogate.pt")
     assert surrogate.state_names == load_system("planar3").state_names
+    assert surrogate.model.config["angle_sums"] == [[0, 1], [0, 1, 2], [1, 2]]  # the config's link-angle inputs
     cfg = make_cfg(
         "closed_loop",
         ["system=planar3", f"checkpoint={tmp_path / 'train' / 'surrogate.pt'}", "max_steps=6", "progress=false"],
