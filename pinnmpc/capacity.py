@@ -3,9 +3,9 @@
 The PINN learns x(tau) from the ODE residual (plus anchors) over hours. This check fits the same network
 (model.*: widths, activation, gates, periodic inputs, angle sums) directly to true one-step results from fine RK4
 at t = tau, by full-batch L-BFGS for a few minutes: plain regression of the one map the controller uses, the
-easiest problem that network can be given. If its validation error stays above a state's one-step target, more
-training of the PINN is unlikely to reach it: change the network (width, inputs) first. On planar3 a short fit
-lands near where hours of PINN training ended (docs/results.md), so it also tells what a long training can give.
+easiest problem that network can be given. If its validation error stops falling above a state's one-step
+target, more training of the PINN is unlikely to reach it: change the network (width, inputs) first. On planar3 a
+short fit gets about where hours of PINN training ended (docs/training.md).
 """
 
 from __future__ import annotations
