@@ -103,19 +103,18 @@ def _folded_input(model: PINN, tau: float) -> tuple[dict[str, np.ndarray], np.nd
     w1, b1 = _np(model.net.layers[0].weight), _np(model.net.layers[0].bias)
     center, half = _np(model.in_center), _np(model.in_half)
     n_raw, periodic = model.nx + model.nu, np.asarray(model.periodic, dtype=np.intp)
-    n_sums = len(model.sum_map)
     w_in = w1[:, 1 : 1 + n_raw] / half[1:]
     w_in[:, periodic] = 0.0  # periodic states enter through w_sin, w_cos only
     b_in = b1 + w1[:, 0] * (tau - center[0]) / half[0] - w_in @ center[1:]
     cos_cols = 1 + n_raw + np.arange(len(periodic))  # network input: cosines of the periodic states, then the sums'
-    sum_cols = 1 + n_raw + len(periodic) + np.arange(n_sums)
+    sum_sin, sum_cos = (np.arange(w1.shape[1])[cols] for cols in model.sum_columns)
     first = {
         "w_in": np.ascontiguousarray(w_in.T),
         "b_in": b_in,
         "periodic": periodic,
-        "sums": _np(model.sum_map) if n_sums else None,
-        "w_sin": np.ascontiguousarray(w1[:, np.concatenate((1 + periodic, sum_cols))].T),
-        "w_cos": np.ascontiguousarray(w1[:, np.concatenate((cos_cols, sum_cols + n_sums))].T),
+        "sums": _np(model.sum_map) if len(model.sum_map) else None,
+        "w_sin": np.ascontiguousarray(w1[:, np.concatenate((1 + periodic, sum_sin))].T),
+        "w_cos": np.ascontiguousarray(w1[:, np.concatenate((cos_cols, sum_cos))].T),
     }
     return first, w1[:, 0] / half[0]
 

@@ -271,6 +271,13 @@ class PINN(nn.Module):
         self.net = TangentMLP(n_lin + n_trig, self.n_head * self.n_gates, hidden, activation)
 
     @property
+    def sum_columns(self) -> tuple[slice, slice]:
+        """Columns of the network input holding the sines and the cosines of the angle sums (the last ones)."""
+        n_sums = len(self.sum_map)
+        end = self.net.layers[0].in_features
+        return slice(end - 2 * n_sums, end - n_sums), slice(end - n_sums, end)
+
+    @property
     def head_scale(self) -> Tensor:
         """Output scale of the network heads: the velocity part of out_scale for second-order models."""
         return self.out_scale[self.nx - self.n_head :]
@@ -375,12 +382,12 @@ class PINN(nn.Module):
         dz = dz.clone()
         dz[..., self.angles, self.sin_cols] = z[..., self.cos_cols]  # d sin(q) / dq = cos(q), read off the input
         dz[..., self.angles, self.cos_cols] = -z[..., self.sin_cols]
-        n_sums = len(self.sum_map)
-        if n_sums:  # d sin(a.x) / dx = cos(a.x) a for each sum a, on the x0 rows
+        if len(self.sum_map):  # d sin(a.x) / dx = cos(a.x) a for each sum a, on the x0 rows
             sums = self.sum_map.T.to(z.dtype)  # (nx, n_sums)
-            sin, cos = z[..., -2 * n_sums : -n_sums].unsqueeze(-2), z[..., -n_sums:].unsqueeze(-2)
-            dz[..., : self.nx, -2 * n_sums : -n_sums] = sums * cos
-            dz[..., : self.nx, -n_sums:] = -sums * sin
+            sin_cols, cos_cols = self.sum_columns
+            sin, cos = z[..., sin_cols].unsqueeze(-2), z[..., cos_cols].unsqueeze(-2)
+            dz[..., : self.nx, sin_cols] = sums * cos
+            dz[..., : self.nx, cos_cols] = -sums * sin
         return dz
 
     def _second_order_jacobian(self, t: Tensor, x0: Tensor, z: Tensor) -> tuple[Tensor, Tensor]:

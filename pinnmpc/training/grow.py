@@ -77,12 +77,13 @@ def _grown_sums(base: PINN, angle_sums: Sequence[Sequence[int]]) -> dict[str, ob
 
 
 def _input_columns(base: PINN, model: PINN) -> torch.Tensor:
-    """Where each network input of `base` sits in `model`'s input: (t, x0, u, cosines) in place, the angle
-    sums' sines and cosines each moved past the new sums' sines."""
-    n_lead = base.net.layers[0].in_features - 2 * len(base.sum_map)
-    n_old, n_new = len(base.sum_map), len(model.sum_map)
-    lead = torch.arange(n_lead)
-    return torch.cat((lead, n_lead + torch.arange(n_old), n_lead + n_new + torch.arange(n_old)))
+    """Where each network input of `base` sits in `model`'s input: (t, x0, u, cosines) in place, its angle sums'
+    sines and cosines at the head of the grown network's (new sums follow each)."""
+    (old_sin, _), (new_sin, new_cos) = base.sum_columns, model.sum_columns
+    n_old = len(base.sum_map)
+    return torch.cat(
+        (torch.arange(old_sin.start), new_sin.start + torch.arange(n_old), new_cos.start + torch.arange(n_old))
+    )
 
 
 def _embed(
