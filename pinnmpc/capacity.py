@@ -10,6 +10,7 @@ short fit gets about where hours of PINN training ended (docs/training.md).
 
 from __future__ import annotations
 
+import copy
 import time
 from pathlib import Path
 from typing import Any
@@ -98,8 +99,9 @@ def fit_one_step(
     }
 
 
-def run_capacity(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """capacity.json and capacity.png: the network's one-step error after a direct fit, against the targets."""
+def run_capacity(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnmpc.capacity") -> dict[str, Any]:
+    """capacity.json, capacity.png and surrogate.pt: the network's one-step error after a direct fit, against the
+    targets, and the fitted network (`command` goes into its provenance)."""
     from pinnmpc.train import fresh_model  # Lightning loads only when the check runs
 
     system = job_system(cfg, validate_capacity)
@@ -130,9 +132,25 @@ def run_capacity(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         **fit,
     }
     save_json(run_dir / "capacity.json", result)
+    _save_network(model, system, tau, {**result, "trained_with": command}, run_dir)
     if cfg.plots:
         _draw(result, run_dir)
     return result
+
+
+def _save_network(model: PINN, system: System, tau: float, result: dict[str, Any], run_dir: Path) -> None:
+    """surrogate.pt: the fitted network, for a closed loop (it is right at t = tau only, all the controller uses) or
+    as init_from of a training."""
+    from pinnmpc.surrogate import Surrogate  # it converts the network it is given: a copy
+
+    meta = {
+        "trained_with": result["trained_with"],
+        "kind": "direct fit of x(tau) to fine RK4, no physics loss: x(t) for t != tau is untrained",
+        "training_time_s": result["seconds"],
+        "val_rmse": result["val_rmse"],
+    }
+    names = tuple(system.state_names), tuple(system.input_names)
+    Surrogate(copy.deepcopy(model), tau, *names, meta).save(run_dir / "surrogate.pt")
 
 
 def _draw(result: dict[str, Any], run_dir: Path) -> None:
@@ -161,14 +179,16 @@ def _summary(m: dict[str, Any], run_dir: Path) -> str:
     net = f"{m['model']['hidden']} {m['model']['activation']}"
     return (
         f"direct fit of {net} to x(tau), {m['steps']} L-BFGS calls in {m['seconds'] / 60:.1f} min, validation RMSE: "
-        f"{', '.join(parts)}\noutputs in {run_dir}"
+        f"{', '.join(parts)}\noutputs in {run_dir} (surrogate.pt: the fitted network, right at t = tau only)"
     )
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="capacity")
 def main(cfg: DictConfig) -> None:
     """CLI: the one-step error the configured network reaches by direct fitting, and where the outputs went."""
-    run_job(lambda run_dir: run_capacity(cfg, run_dir), "pinnmpc.capacity", _summary)
+    overrides = hydra.core.hydra_config.HydraConfig.get().overrides.task
+    command = " ".join(["python -m pinnmpc.capacity", *overrides])
+    run_job(lambda run_dir: run_capacity(cfg, run_dir, command), "pinnmpc.capacity", _summary)
 
 
 if __name__ == "__main__":

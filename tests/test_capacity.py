@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from pinnmpc.capacity import run_capacity
+from pinnmpc import load_surrogate, load_system
+from pinnmpc.capacity import one_step_data, run_capacity
 from pinnmpc.settings import SettingError
 
 TINY = ["points=256", "val_points=64", "max_steps=4", "model.hidden=[16,16]", "model.auto_scale.samples=64"]
@@ -21,6 +22,11 @@ def test_a_direct_fit_learns_the_map_and_writes_its_report(make_cfg, tmp_path) -
     assert len(m["val_rmse"]) == 6 and m["targets"] == [1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2]
     assert json.loads((tmp_path / "capacity.json").read_text())["val_rmse"] == m["val_rmse"]
     assert (tmp_path / "capacity.png").stat().st_size > 10_000
+    net = load_surrogate(tmp_path / "surrogate.pt")  # the fitted network, usable as a flow map
+    x0, u, x1 = one_step_data(load_system("planar3"), net.tau, 64, 5e-4, 1)  # the validation points (seed + 1)
+    rmse = (net.step(x0, u) - x1).pow(2).mean(0).sqrt().numpy()
+    np.testing.assert_allclose(rmse, m["val_rmse"], rtol=1e-4)
+    assert net.meta["training_time_s"] == m["seconds"] and "capacity" in net.meta["trained_with"]
 
 
 def test_bad_settings_are_refused_in_one_line(make_cfg, tmp_path) -> None:
