@@ -79,10 +79,11 @@ class Surrogate(Dimensions):
         self.input_box = Box(cfg["input_low"], cfg["input_high"])
         self.t_max = cfg["t_max"]
         self.meta = meta or {}
-        periodic = set(cfg.get("periodic", ()))
-        self.domain = Box(  # where predictions are trained: unbounded in periodic states, exact there by design
-            [-math.inf if i in periodic else v for i, v in enumerate(cfg["state_low"])],
-            [math.inf if i in periodic else v for i, v in enumerate(cfg["state_high"])],
+        low, high = cfg["state_low"], cfg["state_high"]
+        turning = {i for i in cfg.get("periodic", ()) if high[i] - low[i] >= 2 * math.pi - 1e-9}
+        self.domain = Box(  # where predictions are trained: unbounded in angles whose box is a full turn (exact
+            [-math.inf if i in turning else v for i, v in enumerate(low)],  # there by design); a limited joint fed
+            [math.inf if i in turning else v for i, v in enumerate(high)],  # as (sin, cos) keeps its limits
         )
 
     def _check(self, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:

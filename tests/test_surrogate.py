@@ -261,6 +261,9 @@ def test_periodic_model_round_trip_and_domain(s: Surrogate, tmp_path: Path) -> N
     assert loaded.domain.low[:2] == (-float("inf"),) * 2 and loaded.domain.high[2:] == s.state_box.high[2:]
     linear = Surrogate(PINN(**{**config, "periodic": []}), s.tau, s.state_names, s.input_names)
     assert linear.domain == linear.state_box  # with linear angle inputs the domain is the training box
+    limited = {**config, "state_low": [-2.0, *config["state_low"][1:]], "state_high": [1.0, *config["state_high"][1:]]}
+    part = Surrogate(PINN(**limited), s.tau, s.state_names, s.input_names)  # joint 1 periodic, its box under a turn
+    assert part.domain.low[:2] == (-2.0, -float("inf")) and part.domain.high[:2] == (1.0, float("inf"))
 
 
 def test_save_load_round_trip_keeps_float64_weights(s: Surrogate, tmp_path: Path) -> None:
