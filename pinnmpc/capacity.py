@@ -11,6 +11,7 @@ short fit gets about where hours of PINN training ended (docs/training.md).
 from __future__ import annotations
 
 import copy
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -73,15 +74,26 @@ def fit_one_step(
         """The validation loss: squared errors in output units, as fitted."""
         return float((rmse / unit.double()).pow(2).sum())
 
-    start, history, steps = time.perf_counter(), [], 0
+    start, history, steps, resets, stuck = time.perf_counter(), [], 0, 0, 0
     initial = _rmse(model, tau, *val)
     best = score(initial)
     best_state = {k: v.clone() for k, v in model.state_dict().items()}
+    first, last = next(iter(model.parameters())), math.inf
     while time.perf_counter() - start < 60.0 * minutes and (max_steps is None or steps < max_steps):
-        loss = optimiser.step(closure)
+        evals = optimiser.state[first].get("func_evals", 0)
+        loss = float(optimiser.step(closure).detach())  # the loss this call started from: where the last one ended
         steps += 1
-        if not torch.isfinite(loss):
+        if not math.isfinite(loss):
             break  # a diverged step: keep the best state so far
+        if optimiser.state[first]["func_evals"] - evals < 3 or loss >= last:
+            # a line search that finds no decrease returns at once, and would again every call: forget the history
+            optimiser.state.clear()
+            resets, stuck = resets + 1, stuck + 1
+            if stuck >= 3:  # no decrease from a fresh history either: converged at this precision
+                break
+        else:
+            stuck = 0
+        last = loss
         rmse = _rmse(model, tau, *val)
         history.append({"seconds": time.perf_counter() - start, "val_rmse": rmse.tolist()})
         if score(rmse) < best:  # keep the best validation state, as training keeps its best checkpoint
@@ -94,6 +106,8 @@ def fit_one_step(
         "val_rmse": _rmse(model, tau, *val).tolist(),
         "train_rmse": _rmse(model, tau, *train).tolist(),
         "steps": steps,
+        "resets": resets,
+        "stopped": "no decrease" if stuck >= 3 else "budget",
         "seconds": time.perf_counter() - start,
         "history": history,
     }
@@ -106,7 +120,7 @@ def run_capacity(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnm
 
     system = job_system(cfg, validate_capacity)
     torch.manual_seed(int(cfg.seed))
-    model = fresh_model(cfg, system)
+    model = fresh_model(cfg, system).to(getattr(torch, cfg.dtype))
     tau, h = float(cfg.tau), float(cfg.h)
     train = one_step_data(system, tau, int(cfg.points), h, int(cfg.seed))
     val = one_step_data(system, tau, int(cfg.val_points), h, int(cfg.seed) + 1)
@@ -129,6 +143,7 @@ def run_capacity(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnm
         "points": int(cfg.points),
         "val_points": int(cfg.val_points),
         "targets": None if targets is None else list(targets),
+        "dtype": str(cfg.dtype),
         **fit,
     }
     save_json(run_dir / "capacity.json", result)
@@ -176,9 +191,11 @@ def _summary(m: dict[str, Any], run_dir: Path) -> str:
     for name, value, target in zip(m["state_names"], m["val_rmse"], targets):
         mark = "" if target is None else (" (target met)" if value <= target else f" ({value / target:.1f}x target)")
         parts.append(f"{name} {value:.2e}{mark}")
-    net = f"{m['model']['hidden']} {m['model']['activation']}"
+    net = f"{m['model']['hidden']} {m['model']['activation']} ({m['dtype']})"
+    end = "stopped: no decrease from a fresh L-BFGS history, " if m["stopped"] == "no decrease" else ""
     return (
-        f"direct fit of {net} to x(tau), {m['steps']} L-BFGS calls in {m['seconds'] / 60:.1f} min, validation RMSE: "
+        f"direct fit of {net} to x(tau), {m['steps']} L-BFGS calls ({m['resets']} history resets) in "
+        f"{m['seconds'] / 60:.1f} min, {end}validation RMSE: "
         f"{', '.join(parts)}\noutputs in {run_dir} (surrogate.pt: the fitted network, right at t = tau only)"
     )
 

@@ -227,6 +227,7 @@ CAPACITY: dict[str, Check] = {
     "threads": integer(1),
     "progress": boolean(),
     "plots": boolean(),
+    "dtype": one_of("float32", "float64"),
     "model.hidden": listof(integer(1)),
 }
 
