@@ -55,6 +55,8 @@ def fit_one_step(
 ) -> dict[str, Any]:
     """Full-batch L-BFGS on the squared error of x(tau) in output units, for `minutes` (or `max_steps` optimiser
     calls of 50 iterations); the history of the validation RMSE and the best state's errors."""
+    from pinnmpc.training.module import lbfgs_evals, stalled  # the training's stall test; Lightning loads here
+
     dtype = model.out_scale.dtype
     x0, u, x1 = (a.to(dtype) for a in train)
     t = torch.full((len(x0), 1), tau, dtype=dtype)
@@ -64,11 +66,15 @@ def fit_one_step(
         tolerance_grad=0.0, tolerance_change=0.0,
     )  # fmt: skip  # zero tolerances: the loss sits near 1e-6 in output units, below torch's absolute defaults
 
+    def loss() -> Tensor:
+        """The fitted loss: mean squared error of x(tau) in output units."""
+        return ((model(t, x0, u) - x1) / unit).pow(2).mean()
+
     def closure() -> Tensor:
         optimiser.zero_grad()
-        loss = ((model(t, x0, u) - x1) / unit).pow(2).mean()
-        loss.backward()
-        return loss
+        value = loss()
+        value.backward()
+        return value
 
     def score(rmse: Tensor) -> float:
         """The validation loss: squared errors in output units, as fitted."""
@@ -78,14 +84,15 @@ def fit_one_step(
     initial = _rmse(model, tau, *val)
     best = score(initial)
     best_state = {k: v.clone() for k, v in model.state_dict().items()}
-    first, last = next(iter(model.parameters())), math.inf
     while time.perf_counter() - start < 60.0 * minutes and (max_steps is None or steps < max_steps):
-        evals = optimiser.state[first].get("func_evals", 0)
-        loss = float(optimiser.step(closure).detach())  # the loss this call started from: where the last one ended
+        evals = lbfgs_evals(optimiser)
+        start_loss = float(optimiser.step(closure).detach())  # torch optimizers return the first closure value
         steps += 1
-        if not math.isfinite(loss):
+        with torch.no_grad():
+            end_loss = float(loss())
+        if not math.isfinite(end_loss):
             break  # a diverged step: keep the best state so far
-        if optimiser.state[first]["func_evals"] - evals < 3 or loss >= last:
+        if stalled(start_loss, end_loss, lbfgs_evals(optimiser) - evals):
             # a line search that finds no decrease returns at once, and would again every call: forget the history
             optimiser.state.clear()
             resets, stuck = resets + 1, stuck + 1
@@ -93,7 +100,6 @@ def fit_one_step(
                 break
         else:
             stuck = 0
-        last = loss
         rmse = _rmse(model, tau, *val)
         history.append({"seconds": time.perf_counter() - start, "val_rmse": rmse.tolist()})
         if score(rmse) < best:  # keep the best validation state, as training keeps its best checkpoint

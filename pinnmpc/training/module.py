@@ -17,6 +17,20 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 OPTIMIZERS = ("lbfgs", "ssbfgs")  # limited-memory BFGS (the paper's) | dense self-scaled BFGS (ssbfgs.py)
 
 
+def lbfgs_evals(opt: torch.optim.Optimizer) -> int:
+    """Total function evaluations L-BFGS has made (its state lives on the first parameter)."""
+    inner = getattr(opt, "optimizer", opt)
+    first = next(iter(inner.param_groups[0]["params"]))
+    return int(inner.state.get(first, {}).get("func_evals", 0))
+
+
+def stalled(start_loss: float, end_loss: float, evals: int, min_evals: int = 3, rel_tol: float = 0.0) -> bool:
+    """Whether an L-BFGS call is stuck: too few evaluations (a tolerance was hit), or no progress at all (float32
+    line searches that find no decrease spend a whole call of evaluations on it, over and over), or below rel_tol."""
+    progress = (start_loss - end_loss) / max(abs(start_loss), 1e-30)
+    return evals < min_evals or progress <= 0.0 or progress < rel_tol
+
+
 class PINNModule(L.LightningModule):
     """Data loss at t = 0 plus ODE-residual loss at collocation points, minimised full-batch.
 
@@ -188,7 +202,7 @@ class PINNModule(L.LightningModule):
             self.manual_backward(loss)  # under DDP: gradients averaged over the processes
             return self._across_processes(loss)
 
-        evals_before = self._lbfgs_evals(lbfgs)
+        evals_before = lbfgs_evals(lbfgs)
         start_loss = float(opt.step(closure=closure).detach())  # torch optimizers return the first closure value
         with torch.no_grad():
             parts = self.losses(batch)
@@ -199,7 +213,7 @@ class PINNModule(L.LightningModule):
                 f"training loss became {float(parts['total'])} at epoch {self.current_epoch}; "
                 "the last good checkpoint is kept (try a smaller lbfgs_lr or an Adam warm-up)"
             )
-        if not use_adam and self._stalled(start_loss, float(parts["total"]), self._lbfgs_evals(lbfgs) - evals_before):
+        if not use_adam and self._stalled(start_loss, float(parts["total"]), lbfgs_evals(lbfgs) - evals_before):
             self._recover_from_stall(lbfgs)
         for name, value in parts.items():
             self.log(
@@ -216,17 +230,8 @@ class PINNModule(L.LightningModule):
         return self.trainer.strategy.reduce(value.detach().clone(), reduce_op="mean")  # in place: a copy
 
     def _stalled(self, start_loss: float, end_loss: float, evals: int) -> bool:
-        """Too few evaluations (a tolerance was hit), or no progress at all (float32 line searches that find
-        no decrease spend a whole epoch of evaluations on it, over and over), or less than stall_rel_tol."""
-        progress = (start_loss - end_loss) / max(abs(start_loss), 1e-30)
-        return evals < self.hparams.stall_min_evals or progress <= 0.0 or progress < self.hparams.stall_rel_tol
-
-    @staticmethod
-    def _lbfgs_evals(opt: torch.optim.Optimizer) -> int:
-        """Total function evaluations L-BFGS has made (its state lives on the first parameter)."""
-        inner = getattr(opt, "optimizer", opt)
-        first = next(iter(inner.param_groups[0]["params"]))
-        return int(inner.state.get(first, {}).get("func_evals", 0))
+        """stalled() with this module's stall settings."""
+        return stalled(start_loss, end_loss, evals, self.hparams.stall_min_evals, self.hparams.stall_rel_tol)
 
     def _recover_from_stall(self, opt: torch.optim.Optimizer) -> None:
         """PyTorch's L-BFGS returns at once after hitting a tolerance: forget its history (and redraw points)."""
