@@ -12,6 +12,7 @@ import torch
 from scipy.special import expit
 
 from pinnmpc.pinn import PINN
+from pinnmpc.prior import CompiledPrior
 from pinnmpc.systems.base import Box
 
 
@@ -203,6 +204,7 @@ class NumpyFlow:
     input_names: tuple[str, ...] = ()  # empty: u0, u1, ...
     state_box: Box | None = None  # the network's training box (None: unbounded)
     input_box: Box | None = None
+    start: CompiledPrior | None = None  # the prior at tau (pinnmpc.prior): the output adds to x_p, not to x0
 
     array_api: ClassVar[str] = "numpy"
 
@@ -230,6 +232,8 @@ class NumpyFlow:
         facts = _facts(model, tau, state_names, input_names)
         if model.second_order:
             return SecondOrderNumpyFlow.from_second_order_pinn(model, tau, facts)
+        if model.prior is not None:
+            facts["start"] = model.prior.compiled(tau)
         first, _ = _folded_input(model, tau)
         hard = model.exact_ic
         if hard:  # the time gates are constants at t = tau: x(tau) - x0 = scale * sum_k g_k N_k
@@ -285,6 +289,9 @@ class NumpyFlow:
         for w, b in self.hidden:
             z = self.value(z @ w + b)
         n = z @ self.w_out + self.b_out
+        if self.start is not None:
+            lead = x0.shape[:-1]
+            return self.start.value(x0.reshape(-1, self.nx), u.reshape(-1, self.nu))[0].reshape(*lead, self.nx) + n
         return x0 + n if self.hard_ic else n
 
     def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -314,7 +321,11 @@ class NumpyFlow:
         x1 = out[:batch]
         x1 += self.b_out
         jac = out[batch:].reshape(batch, n_in, nx).swapaxes(-1, -2)  # (batch, nx, n_in)
-        if self.hard_ic:
+        if self.start is not None:
+            xp, jp = self.start.with_jacobian(x0, u)
+            x1 += xp
+            jac += jp.reshape(batch, nx, n_in)
+        elif self.hard_ic:
             x1 += x0
             jac[:, :, :nx] += self.eye
         jac = jac.reshape(*lead, nx, n_in)

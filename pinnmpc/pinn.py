@@ -14,6 +14,8 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
+from pinnmpc.prior import FrozenArmPrior, check_prior
+
 
 def _tanh(a: Tensor) -> tuple[Tensor, Tensor]:
     """tanh and its derivative, reusing the value."""
@@ -72,6 +74,21 @@ CURVATURES: dict[str, Callable[[Tensor, Tensor, Tensor], Tensor]] = {  # second 
     "silu": _silu_curvature,
     "softplus": _softplus_curvature,
 }
+
+
+def _checked_prior(prior: dict | None, ic: str, second_order: bool) -> dict | None:
+    """prior as {'kind', 'system'}: a known kind, on a first-order network with an exact initial condition."""
+    if prior is None:
+        return None
+    if not isinstance(prior, dict) or set(prior) != {"kind", "system"}:
+        raise ValueError(f"prior must be null or {{'kind': ..., 'system': ...}}, got {prior!r}")
+    check_prior(prior["kind"])
+    if ic == "soft" or second_order:
+        raise ValueError(
+            f"a prior needs a first-order network with an exact initial condition; got ic={ic!r}, "
+            f"second_order={second_order}"
+        )
+    return {"kind": str(prior["kind"]), "system": str(prior["system"])}
 
 
 def _checked_sums(angle_sums: Sequence[Sequence[int]], periodic: Sequence[int]) -> list[list[int]]:
@@ -193,6 +210,7 @@ class PINN(nn.Module):
         second_order: bool = False,
         periodic: Sequence[int] = (),
         angle_sums: Sequence[Sequence[int]] = (),
+        prior: dict | None = None,
     ) -> None:
         super().__init__()
         if ic not in IC_MODES:
@@ -216,6 +234,7 @@ class PINN(nn.Module):
         if len(set(periodic)) != len(periodic) or any(not 0 <= i < len(state_low) for i in periodic):
             raise ValueError(f"periodic must list distinct state indices in [0, {len(state_low)}), got {periodic}")
         angle_sums = _checked_sums(angle_sums, periodic)
+        prior = _checked_prior(prior, ic, second_order)
         self.config = {
             "state_low": [float(v) for v in state_low],
             "state_high": [float(v) for v in state_high],
@@ -230,6 +249,7 @@ class PINN(nn.Module):
             "second_order": bool(second_order),
             "periodic": periodic,
             "angle_sums": angle_sums,
+            "prior": prior,
         }  # everything needed to rebuild the module from a checkpoint
         self.nx, self.nu = len(state_low), len(input_low)
         self.ic = ic
@@ -269,6 +289,7 @@ class PINN(nn.Module):
         self.register_buffer("sum_map", sum_map, persistent=False)  # (n_sums, nx): the angle sums of x0
         n_trig = len(periodic) + 2 * len(angle_sums)  # cosines of the periodic states, then sin and cos of the sums
         self.net = TangentMLP(n_lin + n_trig, self.n_head * self.n_gates, hidden, activation)
+        self.prior = None if prior is None else FrozenArmPrior(prior["system"])  # no parameters, no state
 
     @property
     def sum_columns(self) -> tuple[slice, slice]:
@@ -331,10 +352,14 @@ class PINN(nn.Module):
         v = v0 + self.head_scale * (self._gated(g, n) + self._gated(big_g, dn))
         return torch.cat((q, v), dim=-1)
 
-    def _assemble(self, t: Tensor, x0: Tensor, n: Tensor) -> Tensor:
+    def _start(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor | None]:
+        """What the gated network output is added to, and its time derivative: x0 (None), or the prior's x_p(t)."""
+        return (x0, None) if self.prior is None else self.prior(t, x0, u)
+
+    def _assemble(self, t: Tensor, x0: Tensor, u: Tensor, n: Tensor) -> Tensor:
         """Network output to state, enforcing x(0) = x0 unless ic='soft'."""
         if self.exact_ic:
-            return x0 + self.out_scale * self._gated(self.gates(t)[0], n)
+            return self._start(t, x0, u)[0] + self.out_scale * self._gated(self.gates(t)[0], n)
         return self.out_center + self.out_scale * n
 
     def forward(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
@@ -344,7 +369,7 @@ class PINN(nn.Module):
             n, dn = self.net.forward_tangent(z, self._time_tangent(z).unsqueeze(-2))
             g, _, big_g = self._second_order_gates(t)
             return self._kinematic(t, x0, g, big_g, n, dn.squeeze(-2))
-        return self._assemble(t, x0, self.net(z))
+        return self._assemble(t, x0, u, self.net(z))
 
     def with_time_derivative(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """x(t) and dx/dt in one forward-mode pass, for the physics residual."""
@@ -356,9 +381,10 @@ class PINN(nn.Module):
         dn = dn.squeeze(-2)
         if self.exact_ic:
             g, dg = self.gates(t)
-            x = x0 + self.out_scale * self._gated(g, n)
+            start, dstart = self._start(t, x0, u)
+            x = start + self.out_scale * self._gated(g, n)
             dxdt = self.out_scale * (self._gated(dg, n) + self._gated(g, dn))
-            return x, dxdt
+            return x, dxdt if dstart is None else dxdt + dstart
         return self.out_center + self.out_scale * n, self.out_scale * dn
 
     def _second_order_time_derivative(
@@ -413,17 +439,19 @@ class PINN(nn.Module):
         n, dn = self.net.forward_tangent(z, dz)
         if self.exact_ic:
             g = self.gates(t)[0]
-            x = x0 + self.out_scale * self._gated(g, n)
             jac = self.out_scale.unsqueeze(-1) * self._gated(g.unsqueeze(-2), dn).transpose(-1, -2)
-            jac = jac + torch.eye(self.nx, self.nx + self.nu, dtype=z.dtype, device=z.device)
-            return x, jac  # (..., nx, nx + nu)
+            if self.prior is None:
+                start, dstart = x0, torch.eye(self.nx, self.nx + self.nu, dtype=z.dtype, device=z.device)
+            else:
+                start, dstart = self.prior.with_jacobian(t, x0, u)
+            return start + self.out_scale * self._gated(g, n), jac + dstart  # jac (..., nx, nx + nu)
         return self.out_center + self.out_scale * n, self.out_scale.unsqueeze(-1) * dn.transpose(-1, -2)
 
 
 STAGE_BOX = ("state_low", "state_high", "input_low", "input_high", "t_max")  # where the network is trained
-STAGE_FORM = ("activation", "ic", "time_basis", "second_order", "periodic", "angle_sums")  # input and output form
+STAGE_FORM = ("activation", "ic", "time_basis", "second_order", "periodic", "angle_sums", "prior")  # in/out form
 STAGE_SHARED = STAGE_BOX + STAGE_FORM  # what base and correction must share to merge into one network
-STAGE_DEFAULTS = {"angle_sums": []}  # settings that checkpoints written before they existed do not hold
+STAGE_DEFAULTS = {"angle_sums": [], "prior": None}  # settings that checkpoints written before they existed do not hold
 
 
 def _setting(config: dict, key: str) -> object:
@@ -452,6 +480,8 @@ class StagedPINN(nn.Module):
             )
         if base["ic"] == "soft":
             raise ValueError("staged training needs an exact initial condition (ic='hard' or 'gated'), got ic='soft'")
+        if _setting(base, "prior") is not None:
+            raise ValueError(f"staged training does not support model.prior; got {base['prior']}: set model.prior=null")
         if not (math.isfinite(residual_level) and residual_level > 0):
             raise ValueError(f"residual_level must be a positive number, got {residual_level}")
         self.base = PINN(**base).requires_grad_(False)

@@ -10,6 +10,8 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from pinnmpc.prior import KINDS as PRIOR_KINDS
+
 Dims = Mapping[str, int]  # {"nx": ..., "nu": ...} of the system the run is for
 Check = Callable[[Any, Dims], str | None]  # None when the value is allowed, else what is allowed
 _ABSENT = object()  # a key a Python caller's config leaves out: nothing to check
@@ -229,6 +231,7 @@ CAPACITY: dict[str, Check] = {
     "plots": boolean(),
     "dtype": one_of("float32", "float64"),
     "model.hidden": listof(integer(1)),
+    "model.prior": optional(one_of(*PRIOR_KINDS)),
 }
 
 TRAIN: dict[str, Check] = {
@@ -251,6 +254,7 @@ TRAIN: dict[str, Check] = {
     "stage.samples": integer(1),
     "stage.h": positive(),
     "model.hidden": listof(integer(1)),
+    "model.prior": optional(one_of(*PRIOR_KINDS)),
     "trainer.max_epochs": integer(-1),
     "trainer.max_time": optional(duration()),
     "trainer.check_val_every_n_epoch": optional(integer(1)),

@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 from pinnmpc.cli import StopSignal, run_cli, say
 from pinnmpc.io import save_json
 from pinnmpc.pinn import PINN, StagedPINN
+from pinnmpc.prior import FrozenArmPrior
 from pinnmpc.settings import validate_train
 from pinnmpc.surrogate import FORMAT, load_surrogate
 from pinnmpc.systems.base import System
@@ -48,10 +49,13 @@ def build_model(cfg: DictConfig, system: System) -> PINN | StagedPINN:
 def fresh_model(cfg: DictConfig, system: System) -> PINN:
     """A new network of cfg.model for this system's training box (output scale estimated from the flow when
     'auto'): what training and the capacity check start from."""
+    kind = cfg.model.get("prior")
+    prior = None if kind is None else {"kind": str(kind), "system": system.name}
     scale = cfg.model.output_scale
     if scale == "auto":
         a = cfg.model.auto_scale
-        scale = flow_scale(system, cfg.t_max, a.samples, a.h, a.quantile, cfg.seed)
+        start = None if prior is None else FrozenArmPrior(system.name)
+        scale = flow_scale(system, cfg.t_max, a.samples, a.h, a.quantile, cfg.seed, start)
     return PINN(
         state_low=system.state_box.low,
         state_high=system.state_box.high,
@@ -66,6 +70,7 @@ def fresh_model(cfg: DictConfig, system: System) -> PINN:
         second_order=cfg.model.get("second_order", False),
         periodic=list(cfg.model.get("periodic", [])),
         angle_sums=_angle_sums(cfg),
+        prior=prior,
     )
 
 

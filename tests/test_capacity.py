@@ -17,7 +17,8 @@ TINY = ["points=256", "val_points=64", "max_steps=4", "model.hidden=[16,16]", "m
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_a_direct_fit_learns_the_map_and_writes_its_report(make_cfg, tmp_path, dtype: str) -> None:
     sums = "system.network.angle_sums=[[0,1],[0,1,2],[1,2]]"  # the planar arm's absolute and relative link angles
-    m = run_capacity(make_cfg("capacity", ["system=planar3", sums, f"dtype={dtype}", *TINY]), tmp_path)
+    plain = "system.network.prior=null"  # the network alone (the prior has tests/test_prior.py)
+    m = run_capacity(make_cfg("capacity", ["system=planar3", sums, plain, f"dtype={dtype}", *TINY]), tmp_path)
     assert m["steps"] == 4 and m["model"]["angle_sums"] == [[0, 1], [0, 1, 2], [1, 2]]
     assert np.all(np.array(m["val_rmse"]) < 0.7 * np.array(m["initial_val_rmse"]))  # it learned every state
     assert len(m["val_rmse"]) == 6 and m["targets"] == [1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2]

@@ -221,6 +221,34 @@ class RigidArm:
         g = kd.gravity_term(base, q).reshape(b, n + 6)[:, 6:] if self.actuation == "velocity_servo" else 0 * h
         return self.mass_scale * m, h, g
 
+    # -- the arm frozen at q0: the linear part a learned flow map builds on (pinnmpc.prior) -----------------------
+    @property
+    def linear_gain(self) -> tuple[float, ...]:
+        """kv of the frozen model: the actuation's torque per unit joint velocity (D, or K of a servo), scaled."""
+        gain = self.viscous if self.actuation == "torque" else self.servo_gain
+        return tuple(self.friction_scale * g for g in gain)
+
+    def frozen_terms(self, q: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """M(q) (B, n, n) and c0 (B, n) of M(q) dv/dt = c0 - kv v: the arm held at q, without Coriolis and
+        Coulomb terms; its exact solution over a period carries most of the flow (the rest is learned)."""
+        m, g, _ = self.dynamics_terms(q, torch.zeros_like(q))  # h at v = 0 is gravity
+        return m, self._frozen_drive(g, u)
+
+    def casadi_frozen_terms(self) -> ca.Function:
+        """The same (q, u) -> (M, c0) as a CasADi SX function (adam's CasADi backend)."""
+        kd, n = self._casadi_kindyn(), self.nq
+        q, u = ca.SX.sym("q", n), ca.SX.sym("u", n)
+        base = ca.SX.eye(4)
+        m = self.mass_scale * kd.mass_matrix(base, q)[6:, 6:]
+        g = kd.gravity_term(base, q)[6:]
+        return ca.Function(f"{self.name}_frozen", [q, u], [m, self._frozen_drive(g, u)], {"cse": True})
+
+    def _frozen_drive(self, g: Any, u: Any) -> Any:
+        """c0: the actuation at rest less the gravity it must hold (none for a gravity-compensated servo)."""
+        if self.actuation == "torque":
+            return u - self.mass_scale * g
+        return self.friction_scale * self._coeffs("servo_gain", u) * u
+
     def _rhs_torch(self, x: Tensor, u: Tensor) -> Tensor:
         """dx/dt through adam: differentiable to any order."""
         lead, n = x.shape[:-1], self.nq
@@ -274,12 +302,7 @@ class RigidArm:
     # -- CasADi: the classical NMPC and the compiled training path ----------------------------------------
     def casadi_rhs(self) -> ca.Function:
         """dx/dt = f(x, u) as a CasADi SX function (adam's CasADi backend, the joint block of M and h)."""
-        from adam.casadi import KinDynComputations
-
-        n = self.nq
-        kd = KinDynComputations(
-            locked_urdf(Path(self.urdf), self.joints), list(self.joints), gravity=np.array([*self.gravity, 0, 0, 0])
-        )
+        n, kd = self.nq, self._casadi_kindyn()
         x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
         q, v = x[:n], x[n:]
         base = ca.SX.eye(4)
@@ -288,6 +311,13 @@ class RigidArm:
         g = kd.gravity_term(base, q)[6:] if self.actuation == "velocity_servo" else 0
         acc = ca.solve(m, self.actuation_torque(v, u) - self._bias(h, g))
         return ca.Function(f"{self.name}_rhs", [x, u], [ca.vertcat(v, acc)], {"cse": True})
+
+    def _casadi_kindyn(self) -> Any:
+        """adam's CasADi model of the arm (the other joints locked)."""
+        from adam.casadi import KinDynComputations
+
+        text = locked_urdf(Path(self.urdf), self.joints)
+        return KinDynComputations(text, list(self.joints), gravity=np.array([*self.gravity, 0, 0, 0]))
 
     @functools.cached_property
     def compiled(self) -> Any:

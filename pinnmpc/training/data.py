@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import lightning as L
 import numpy as np
@@ -47,10 +48,18 @@ def reference_flow(system: System, x0: Tensor, u: Tensor, tau: float, h: float) 
         return rk4_step(system.fast_rhs, x0.double(), u.double(), tau, h)
 
 
-def flow_scale(system: System, t_max: float, n: int, h: float, quantile: float, seed: int) -> list[float]:
-    """Typical size of x(t_max) - x0 per state, so every network output is O(1)."""
+def flow_scale(
+    system: System, t_max: float, n: int, h: float, quantile: float, seed: int, prior: Any = None
+) -> list[float]:
+    """Typical size of x(t_max) - x0 per state (or of what a prior misses), so every network output is O(1)."""
     x0, u = random_pairs(system, n, seed)
-    delta = (reference_flow(system, x0, u, t_max, h) - x0).abs()
+    start = x0 if prior is None else prior(torch.full_like(x0[:, :1], t_max), x0, u)[0]
+    delta = (reference_flow(system, x0, u, t_max, h) - start).abs()
+    if not torch.isfinite(delta).all():
+        raise ValueError(
+            f"model.auto_scale.h={h}: RK4 at this step diverges on {system.name}'s flow (stiff); expected a smaller "
+            "step, e.g. 1e-3"
+        )
     return torch.quantile(delta, quantile, dim=0).clamp_min(1e-6).tolist()
 
 

@@ -1,0 +1,179 @@
+"""A physics prior for the flow map: the arm frozen at its start configuration, solved exactly.
+
+Over one control period the joint velocities of a damped arm relax towards a steady state with time constants
+from M(q)^-1 kv (planar3: 2 ms to 0.12 s), which is most of x(t). Held at q0, without Coriolis and Coulomb terms,
+the arm is the linear system M(q0) dv/dt = c0 - kv v, dq/dt = v (kv diagonal), whose flow is closed-form:
+
+    v(t) = v_ss + E(t) (v0 - v_ss),   q(t) = q0 + v_ss t + kv^-1 M (I - E(t)) (v0 - v_ss),
+    E(t) = exp(-A t),   A = M^-1 kv,   v_ss = kv^-1 c0.
+
+A network that learns only what this misses (configuration change, Coriolis, Coulomb friction) fits the flow
+several times closer on the same budget (docs/training.md). No parameters: torch for training (memoised, since
+full-batch training evaluates it on the same points every step) and CasADi compiled to C, with its exact Jacobian,
+for the controller's numpy path.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+KINDS = ("frozen_arm",)  # model.prior values besides null
+TAYLOR_DEGREE = 12  # terms of exp(X / 2^s) before squaring; with |X / 2^s| <= 1/2 the remainder is ~1e-14
+SQUARING_NORM = 0.5  # the largest 1-norm of X / 2^s the Taylor series is trusted at
+MEMO_SIZE = 8  # input sets kept (collocation, anchors, validation, data): each holds its inputs alive
+
+
+def _key(*tensors: Tensor) -> tuple[Any, ...]:
+    """Identity of the inputs: storage, layout and version (the memo holds the tensors, so no storage is reused)."""
+    return tuple((a.data_ptr(), a.dtype, tuple(a.shape), a.stride(), a._version) for a in tensors)
+
+
+@dataclass(frozen=True)
+class CompiledPrior:
+    """The prior at a fixed tau for numpy rows x0 (B, nx), u (B, nu)."""
+
+    value: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]  # -> [x_p (B, nx)]
+    with_jacobian: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]  # -> [x_p, J (B, nx (nx + nu)) row-major]
+
+
+class FrozenArmPrior(nn.Module):
+    """x_p(t) of the arm frozen at q0 (see the module docstring) for a URDF arm known by its system name."""
+
+    def __init__(self, system: str) -> None:
+        super().__init__()
+        from pinnmpc.systems import RigidArm, load_system
+
+        arm = load_system(system)
+        if not isinstance(arm, RigidArm):
+            raise ValueError(
+                f"model.prior='frozen_arm' needs an arm from a URDF (a RigidArm); system={system!r} is "
+                f"{type(arm).__name__}: set model.prior=null"
+            )
+        self.arm, self.nq = arm, arm.nq
+        self.kv = torch.tensor(arm.linear_gain, dtype=torch.float64)  # float64 whatever the network's dtype
+        self._memo: dict[tuple[Any, ...], tuple[tuple[Tensor, ...], Tensor, Tensor]] = {}
+
+    def __deepcopy__(self, memo: dict) -> FrozenArmPrior:
+        """Shared, not copied: it has no state to diverge (its robot model holds modules that do not copy)."""
+        return self
+
+    def _terms(self, q: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """M, A = M^-1 kv and v_ss (float64, flat batch)."""
+        m, c0 = self.arm.frozen_terms(q, u)
+        a = torch.linalg.solve(m, torch.diag_embed(self.kv.expand_as(q)))
+        return m, a, c0 / self.kv
+
+    def _solve(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """x_p(t) and dx_p/dt in float64 for flat inputs."""
+        n = self.nq
+        q0, v0 = x0[:, :n], x0[:, n:]
+        m, a, vss = self._terms(q0, u)
+        e = torch.linalg.matrix_exp(-a * t.unsqueeze(-1))
+        d = (v0 - vss).unsqueeze(-1)
+        v = vss + (e @ d).squeeze(-1)
+        q = q0 + vss * t + (m @ (d - e @ d)).squeeze(-1) / self.kv
+        return torch.cat((q, v), -1), torch.cat((v, -(a @ (v - vss).unsqueeze(-1)).squeeze(-1)), -1)
+
+    def forward(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """x_p(t) and dx_p/dt for t (..., 1), x0 (..., nx), u (..., nu), in x0's dtype; x_p(0) = x0."""
+        t, x0, u = torch.broadcast_tensors(t, x0[..., :1], u[..., :1])[0], x0, u
+        lead, nx = x0.shape[:-1], x0.shape[-1]
+        if t.requires_grad or x0.requires_grad or u.requires_grad:  # a graph is wanted: no memo
+            x, dx = self._solve(*(a.reshape(-1, a.shape[-1]).double() for a in (t, x0, u)))
+            return x.to(x0.dtype).reshape(*lead, nx), dx.to(x0.dtype).reshape(*lead, nx)
+        key = _key(t, x0, u)
+        hit = self._memo.get(key)
+        if hit is None:
+            with torch.no_grad():
+                x, dx = self._solve(*(a.reshape(-1, a.shape[-1]).double() for a in (t, x0, u)))
+            if len(self._memo) >= MEMO_SIZE:
+                self._memo.pop(next(iter(self._memo)))
+            hit = self._memo[key] = ((t, x0, u), x.to(x0.dtype).reshape(*lead, nx), dx.to(x0.dtype).reshape(*lead, nx))
+        return hit[1], hit[2]
+
+    def with_jacobian(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """x_p(t) and d x_p / d(x0, u) (..., nx, nx + nu) by reverse mode (the torch path; numpy has compiled())."""
+        with torch.enable_grad():
+            xr, ur = x0.detach().double().requires_grad_(True), u.detach().double().requires_grad_(True)
+            x, _ = self.forward(t.detach().double(), xr, ur)
+            rows = [torch.autograd.grad(x[..., k].sum(), (xr, ur), retain_graph=True) for k in range(x.shape[-1])]
+        jac = torch.stack([torch.cat(r, -1) for r in rows], -2)
+        return x.detach().to(x0.dtype), jac.to(x0.dtype)
+
+    def squarings(self, tau: float, samples: int = 4096) -> int:
+        """Squarings s so that |A tau / 2^s| <= SQUARING_NORM over the boxes (sampled, with a 1.5x margin)."""
+        gen = torch.Generator().manual_seed(0)
+        low, high = self.arm.state_box.tensors()
+        q = (low + (high - low) * torch.rand(samples, len(low), generator=gen, dtype=torch.float64))[:, : self.nq]
+        with torch.no_grad():
+            a = self._terms(q, torch.zeros_like(q))[1]
+        norm = float(torch.linalg.matrix_norm(a * tau, ord=1).max()) * 1.5
+        return max(0, math.ceil(math.log2(norm / SQUARING_NORM)))
+
+    def compiled(self, tau: float) -> CompiledPrior:
+        """x_p(tau), and with its Jacobian, for numpy rows: CasADi's exact AD through a fixed Taylor-and-squaring
+        exponential, compiled to C once (cached)."""
+        from pinnmpc.flowmap import _Buffered
+        from pinnmpc.systems.compiled import compile_functions
+
+        n, s, kv = self.nq, self.squarings(tau), ca.DM(self.kv.numpy())
+        x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
+        q0, v0 = x[:n], x[n:]
+        m, c0 = self.arm.casadi_frozen_terms()(q0, u)
+        vss = c0 / kv
+        e = _expm(-ca.solve(m, ca.diag(kv)) * (tau / 2**s), s)
+        d = v0 - vss
+        ed = ca.mtimes(e, d)
+        xp = ca.vertcat(q0 + vss * tau + ca.mtimes(m, d - ed) / kv, vss + ed)
+        jac = ca.jacobian(xp, ca.vertcat(x, u))
+        tag = f"{self.arm.name}_frozen_prior"
+        value = ca.Function(f"{tag}_value", [x, u], [xp], {"cse": True})
+        full = ca.Function(tag, [x, u], [xp, ca.vec(jac.T)], {"cse": True})
+        lib = compile_functions(tag, [value, full], opt="-O2")
+        fast = CompiledPrior(_Buffered(lib[value.name()]), _Buffered(lib[full.name()]))
+        self._check_compiled(fast.with_jacobian, tau)
+        return fast
+
+    def _check_compiled(self, fast: Any, tau: float, samples: int = 8) -> None:
+        """Refuse a compiled prior that disagrees with the torch one (value or Jacobian) at random points."""
+        gen = torch.Generator().manual_seed(1)
+        low, high = self.arm.state_box.tensors()
+        ulow, uhigh = self.arm.input_box.tensors()
+        x0 = low + (high - low) * torch.rand(samples, len(low), generator=gen, dtype=torch.float64)
+        u = ulow + (uhigh - ulow) * torch.rand(samples, len(ulow), generator=gen, dtype=torch.float64)
+        x, jac = self.with_jacobian(torch.full((samples, 1), tau, dtype=torch.float64), x0, u)
+        xn, jn = fast(x0.numpy(), u.numpy())
+        off = max(
+            float(abs(xn - x.numpy()).max() / (1 + abs(x.numpy()).max())),
+            float(abs(jn.reshape(jac.shape) - jac.numpy()).max() / (1 + abs(jac.numpy()).max())),
+        )
+        if not off < 1e-8:
+            raise RuntimeError(
+                f"the compiled frozen-arm prior of {self.arm.name} disagrees with its torch form (relative {off:.1e}, "
+                "expected < 1e-8): set model.prior=null"
+            )
+
+
+def _expm(x: ca.SX, squarings: int) -> ca.SX:
+    """exp(x 2^s) from exp(x) by a Taylor series (Horner) and s squarings: one smooth formula, no branches."""
+    eye = ca.SX.eye(x.shape[0])
+    out = eye
+    for k in range(TAYLOR_DEGREE, 0, -1):
+        out = eye + ca.mtimes(x, out) / k
+    for _ in range(squarings):
+        out = ca.mtimes(out, out)
+    return out
+
+
+def check_prior(kind: str | None) -> None:
+    """model.prior must be null or a known kind."""
+    if kind is not None and kind not in KINDS:
+        raise ValueError(f"model.prior={kind!r}; expected null or one of {list(KINDS)}")

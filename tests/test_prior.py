@@ -1,0 +1,147 @@
+"""model.prior=frozen_arm: the arm held at q0 solved exactly, the network learning the rest (pinnmpc.prior)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pinnmpc import load_surrogate, load_system
+from pinnmpc.capacity import one_step_data, run_capacity
+from pinnmpc.pinn import PINN
+from pinnmpc.prior import FrozenArmPrior
+from pinnmpc.settings import SettingError
+from pinnmpc.surrogate import Surrogate
+from pinnmpc.train import train
+from tests.conftest import TINY_TRAIN
+
+TAU = 0.1
+
+
+@pytest.fixture(scope="module")
+def prior() -> FrozenArmPrior:
+    return FrozenArmPrior("planar3")
+
+
+@pytest.fixture(scope="module")
+def points() -> tuple[torch.Tensor, torch.Tensor]:
+    arm = load_system("planar3")
+    gen = torch.Generator().manual_seed(3)
+    low, high = arm.state_box.tensors()
+    ulow, uhigh = arm.input_box.tensors()
+    x0 = low + (high - low) * torch.rand(6, 6, generator=gen, dtype=torch.float64)
+    return x0, ulow + (uhigh - ulow) * torch.rand(6, 3, generator=gen, dtype=torch.float64)
+
+
+def test_the_prior_is_the_flow_of_the_arm_frozen_at_its_start(prior, points) -> None:
+    x0, u = points
+    arm = prior.arm
+    m, c0 = arm.frozen_terms(x0[:, :3], u)  # M(q0) dv/dt = c0 - kv v, integrated by fine RK4 independently
+    kv = torch.tensor(arm.viscous, dtype=torch.float64)
+
+    def f(x: torch.Tensor) -> torch.Tensor:
+        acc = torch.linalg.solve(m, (c0 - kv * x[:, 3:]).unsqueeze(-1)).squeeze(-1)
+        return torch.cat((x[:, 3:], acc), -1)
+
+    x, h = x0.clone(), TAU / 2000
+    for _ in range(2000):
+        k1 = f(x)
+        k2 = f(x + h / 2 * k1)
+        k3 = f(x + h / 2 * k2)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + f(x + h * k3))
+    t = torch.full((6, 1), TAU, dtype=torch.float64)
+    xp, dxp = prior(t, x0, u)
+    np.testing.assert_allclose(xp.numpy(), x.numpy(), atol=1e-9)
+    np.testing.assert_allclose(dxp.numpy(), f(xp).numpy(), atol=1e-9)  # its time derivative is the frozen rhs
+    np.testing.assert_allclose(prior(0 * t, x0, u)[0].numpy(), x0.numpy(), atol=1e-14)  # it starts at x0
+    # the true flow differs from it (Coriolis, Coulomb, configuration change): the network's part
+    true = one_step_data(arm, TAU, 64, 5e-4, 2)
+    miss = (prior(torch.full((64, 1), TAU, dtype=torch.float64), *true[:2])[0] - true[2]).abs().max()
+    assert 1e-3 < float(miss) < 0.5 * float((true[2] - true[0]).abs().max())
+
+
+def test_the_memo_follows_in_place_changes_of_its_inputs(prior, points) -> None:
+    x0, u = (a.clone() for a in points)
+    t = torch.full((6, 1), TAU, dtype=torch.float64)
+    first = prior(t, x0, u)[0]
+    assert prior(t, x0, u)[0] is first  # the same tensors: computed once
+    x0[:, 3] += 0.5  # in place: a new version of the same storage
+    moved = prior(t, x0, u)[0]
+    assert not torch.allclose(moved, first)
+    np.testing.assert_allclose(moved.numpy(), prior(t, x0.clone(), u.clone())[0].numpy(), rtol=1e-12)
+
+
+def test_the_compiled_prior_and_its_jacobian_match_torch_and_finite_differences(prior, points) -> None:
+    x0, u = points
+    fast = prior.compiled(TAU)
+    xn, jn = fast.with_jacobian(x0.numpy(), u.numpy())
+    np.testing.assert_allclose(fast.value(x0.numpy(), u.numpy())[0], xn, atol=1e-14)
+    t = torch.full((6, 1), TAU, dtype=torch.float64)
+    x, jac = prior.with_jacobian(t, x0, u)
+    np.testing.assert_allclose(xn, x.numpy(), atol=1e-12)
+    np.testing.assert_allclose(jn.reshape(jac.shape), jac.numpy(), atol=1e-11)
+    z, eps = torch.cat((x0, u), -1), 1e-6
+    for k in range(9):
+        d = torch.zeros(9, dtype=torch.float64)
+        d[k] = eps
+        up, down = (prior(t, (z + s * d)[:, :6].clone(), (z + s * d)[:, 6:].clone())[0] for s in (1, -1))
+        np.testing.assert_allclose(jac[:, :, k].numpy(), ((up - down) / (2 * eps)).numpy(), atol=1e-7)
+
+
+def test_a_network_with_the_prior_is_the_same_in_torch_and_numpy_and_survives_a_save(prior, points, tmp_path) -> None:
+    x0, u = points
+    arm = prior.arm
+    torch.manual_seed(0)
+    net = PINN(
+        *arm.state_box.tensors(), *arm.input_box.tensors(), t_max=0.125, hidden=[16, 16], activation="silu",
+        ic="gated", time_basis=[0.004, 0.05], periodic=[0, 1, 2], prior={"kind": "frozen_arm", "system": "planar3"},
+    ).double()  # fmt: skip
+    s = Surrogate(net, TAU, arm.state_names, arm.input_names, {})
+    x, a, b = s.step_with_jacobian(x0, u)
+    xn, an, bn = s.numpy_flow().step_with_jacobian(x0.numpy(), u.numpy())
+    np.testing.assert_allclose(xn, x.numpy(), atol=1e-12)
+    np.testing.assert_allclose(an, a.numpy(), atol=1e-11)
+    np.testing.assert_allclose(bn, b.numpy(), atol=1e-11)
+    np.testing.assert_allclose(s.numpy_flow().step(x0.numpy(), u.numpy()), xn, atol=1e-14)
+    with torch.no_grad():  # the network's part starts at zero: x(0) = x0 exactly
+        np.testing.assert_allclose(net(torch.zeros(6, 1, dtype=torch.float64), x0, u).numpy(), x0.numpy(), atol=1e-14)
+    back = load_surrogate(s.save(tmp_path / "prior.pt"))
+    assert back.model.config["prior"] == {"kind": "frozen_arm", "system": "planar3"}
+    np.testing.assert_allclose(back.step(x0, u).numpy(), x.numpy(), atol=1e-12)
+
+
+def test_a_direct_fit_with_the_prior_starts_far_closer(make_cfg, tmp_path) -> None:
+    tiny = ["points=256", "val_points=64", "max_steps=1", "model.hidden=[16,16]", "model.auto_scale.samples=64"]
+    plain = ["system=planar3", "plots=false", "system.network.prior=null", *tiny]
+    plain = run_capacity(make_cfg("capacity", plain), tmp_path / "a")
+    with_prior = ["system=planar3", "plots=false", "system.network.prior=frozen_arm", *tiny]
+    m = run_capacity(make_cfg("capacity", with_prior), tmp_path / "b")
+    # untrained networks: the prior alone is already several times closer in every state than x0 plus a random net
+    assert np.all(np.array(m["initial_val_rmse"]) < 0.25 * np.array(plain["initial_val_rmse"]))
+
+
+def test_training_with_the_prior_lowers_the_loss_and_exports_it(make_cfg, tmp_path) -> None:
+    fine = "model.auto_scale.h=1e-3"  # the tiny runs' 1e-2 RK4 step diverges on planar3's stiff flow
+    cfg = make_cfg(
+        "train", ["system=planar3", "system.network.prior=frozen_arm", *TINY_TRAIN, fine, "trainer.max_epochs=3"]
+    )
+    summary = train(cfg, tmp_path)
+    s = load_surrogate(tmp_path / "surrogate.pt")
+    assert s.model.config["prior"]["system"] == "planar3" and summary["epochs"] == 3
+    x0, u, x1 = one_step_data(load_system("planar3"), TAU, 64, 5e-4, 7)
+    assert float((s.step(x0, u) - x1).abs().max()) < float((x1 - x0).abs().max())
+
+
+def test_the_prior_is_refused_where_it_cannot_work(make_cfg, tmp_path) -> None:
+    with pytest.raises(ValueError, match="needs an arm from a URDF.*system='powercube' is PowerCube"):
+        FrozenArmPrior("powercube")
+    box = dict(state_low=[-1.0] * 6, state_high=[1.0] * 6, input_low=[-1.0] * 3, input_high=[1.0] * 3, t_max=0.1)
+    with pytest.raises(ValueError, match="model.prior='euler'; expected null or one of"):
+        PINN(**box, prior={"kind": "euler", "system": "planar3"})
+    with pytest.raises(ValueError, match="a prior needs a first-order network with an exact initial condition"):
+        PINN(**box, ic="soft", prior={"kind": "frozen_arm", "system": "planar3"})
+    coarse = ["system=planar3", *TINY_TRAIN, "model.auto_scale.h=1e-2"]
+    with pytest.raises(ValueError, match="model.auto_scale.h=0.01: RK4 at this step diverges on planar3's flow"):
+        train(make_cfg("train", coarse), tmp_path)
+    with pytest.raises(SettingError, match="model.prior='frozen': expected one of frozen_arm or null"):
+        run_capacity(make_cfg("capacity", ["system=planar3", "system.network.prior=frozen"]), tmp_path / "c")
