@@ -11,7 +11,8 @@ from torch import Tensor
 
 from pinnmpc.flow_numpy import NumpyFlow
 from pinnmpc.io import save_torch
-from pinnmpc.pinn import PINN, pinn_from_state
+from pinnmpc.pinn import PINN
+from pinnmpc.staged import pinn_from_state
 from pinnmpc.systems.base import Box
 
 FORMAT = "pinnmpc-surrogate"

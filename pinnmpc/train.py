@@ -21,9 +21,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.cli import StopSignal, run_cli, say
 from pinnmpc.io import save_json
-from pinnmpc.pinn import PINN, StagedPINN
+from pinnmpc.pinn import PINN
 from pinnmpc.prior import FrozenArmPrior
 from pinnmpc.settings import validate_train
+from pinnmpc.staged import StagedPINN
 from pinnmpc.surrogate import FORMAT, load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import build_system

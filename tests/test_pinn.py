@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from pinnmpc.flow_numpy import BlockDiagonal, NumpyFlow
-from pinnmpc.pinn import ACTIVATIONS, PINN, StagedPINN
+from pinnmpc.pinn import ACTIVATIONS, PINN
+from pinnmpc.staged import StagedPINN
 from pinnmpc.systems import PowerCube
 
 BOX = dict(

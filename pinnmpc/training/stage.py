@@ -7,8 +7,9 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from pinnmpc.pinn import PINN, StagedPINN
+from pinnmpc.pinn import PINN
 from pinnmpc.residuals import scaled_residual
+from pinnmpc.staged import StagedPINN
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import random_pairs, reference_flow
