@@ -167,6 +167,14 @@ def check_fits(ckpt: dict[str, Any], label: str, module: L.LightningModule) -> N
             f"{label} holds another network ({diff}: {have.get(diff)} in the file, {want.get(diff)} here{hint}); "
             "expected a checkpoint of this configuration (same system, model and stage settings)"
         )
+    stored = ckpt.get("pinnmpc", {}).get("model", {})
+    have_prior, want_prior = stored.get("prior"), getattr(module.model, "config", {}).get("prior")
+    if stored and have_prior != want_prior:  # same shapes, another function: the prior is not in the weights
+        kind = (have_prior or {}).get("kind")
+        raise ValueError(
+            f"{label} holds a network trained with model.prior={kind}, this configuration has "
+            f"model.prior={(want_prior or {}).get('kind')}; expected the same (override system.network.prior={kind})"
+        )
 
 
 def check_launcher(trainer: L.Trainer) -> None:

@@ -122,14 +122,16 @@ def test_a_direct_fit_with_the_prior_starts_far_closer(make_cfg, tmp_path) -> No
 
 def test_training_with_the_prior_lowers_the_loss_and_exports_it(make_cfg, tmp_path) -> None:
     fine = "model.auto_scale.h=1e-3"  # the tiny runs' 1e-2 RK4 step diverges on planar3's stiff flow
-    cfg = make_cfg(
-        "train", ["system=planar3", "system.network.prior=frozen_arm", *TINY_TRAIN, fine, "trainer.max_epochs=3"]
-    )
-    summary = train(cfg, tmp_path)
+    overrides = [*TINY_TRAIN, fine, "trainer.max_epochs=3"]
+    summary = train(make_cfg("train", ["system=planar3", "system.network.prior=frozen_arm", *overrides]), tmp_path)
     s = load_surrogate(tmp_path / "surrogate.pt")
     assert s.model.config["prior"]["system"] == "planar3" and summary["epochs"] == 3
     x0, u, x1 = one_step_data(load_system("planar3"), TAU, 64, 5e-4, 7)
     assert float((s.step(x0, u) - x1).abs().max()) < float((x1 - x0).abs().max())
+    # resuming it without the prior would load the same weights into another function: refused
+    plain = make_cfg("train", ["system=planar3", "system.network.prior=null", *overrides, "resume=true"])
+    with pytest.raises(ValueError, match="trained with model.prior=frozen_arm, this configuration has model.prior="):
+        train(plain, tmp_path)
 
 
 def test_the_prior_is_refused_where_it_cannot_work(make_cfg, tmp_path) -> None:
