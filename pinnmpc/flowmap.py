@@ -149,6 +149,9 @@ class _Buffered:
     Python-level call would otherwise be most of what the step table measures."""
 
     def __init__(self, f: ca.Function) -> None:
+        sparse = [j for j in range(f.n_out()) if not f.sparsity_out(j).is_dense()]
+        if sparse:  # the buffer holds only the nonzeros, in CasADi's order: read as dense rows they are garbage
+            raise ValueError(f"{f.name()}: outputs {sparse} are sparse; expected dense outputs (ca.densify them)")
         self.f = f
         self.sizes = [f.numel_out(j) for j in range(f.n_out())]
         self._calls: dict[int, tuple[ca.Function, Any, Any]] = {}  # per batch size: function, buffer, evaluator
@@ -191,7 +194,7 @@ class CompiledRK4(_TrueModel):
             x1 = one(x1, u)
         jac = ca.jacobian(x1, ca.vertcat(x, u))
         step = ca.Function(f"{tag}_step", [x, u], [x1])
-        full = ca.Function(f"{tag}_jac", [x, u], [x1, ca.vec(jac.T)])  # row-major J = [A, B], flat
+        full = ca.Function(f"{tag}_jac", [x, u], [x1, ca.densify(ca.vec(jac.T))])  # row-major J = [A, B], flat
         lib = compile_functions(tag, [step, full])
         self._step, self._full = _Buffered(lib[step.name()]), _Buffered(lib[full.name()])
 

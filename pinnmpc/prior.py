@@ -136,7 +136,7 @@ class FrozenArmPrior(nn.Module):
         jac = ca.jacobian(xp, ca.vertcat(x, u))
         tag = f"{self.arm.name}_frozen_prior"
         value = ca.Function(f"{tag}_value", [x, u], [xp], {"cse": True})
-        full = ca.Function(tag, [x, u], [xp, ca.vec(jac.T)], {"cse": True})
+        full = ca.Function(tag, [x, u], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})  # dense: _Buffered's rows
         lib = compile_functions(tag, [value, full], opt="-O2")
         fast = CompiledPrior(_Buffered(lib[value.name()]), _Buffered(lib[full.name()]))
         self._check_compiled(fast.with_jacobian, tau)

@@ -6,13 +6,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import casadi as ca
 import numpy as np
 import pytest
 import torch
 
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.flow_numpy import NumpyFlow
-from pinnmpc.flowmap import CompiledRK4, FlowMap, RK4Model, check_flow_map, numpy_path
+from pinnmpc.flowmap import CompiledRK4, FlowMap, RK4Model, _Buffered, check_flow_map, numpy_path
 from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.systems import load_system
@@ -187,3 +188,22 @@ def test_numpy_flow_without_names_gets_generic_ones() -> None:
 def test_check_flow_map_names_what_is_missing() -> None:
     with pytest.raises(TypeError, match="lacks.*step_with_jacobian"):
         HorizonOCP(object(), 3, [1.0], [1.0])
+
+
+@pytest.mark.slow  # compiles the Panda's RK4 (~40 s on a fresh machine)
+def test_a_compiled_jacobian_with_structural_zeros_comes_out_right() -> None:
+    # the Panda's flow does not depend on q1 except through q1 itself (gravity compensated, M free of q1): CasADi's
+    # Jacobian is sparse there, and its nonzeros read as dense rows were garbage until outputs were densified
+    system = load_system("panda")
+    fast, slow = CompiledRK4(system, system.tau, 1e-3), RK4Model(system, system.tau, 1e-3)  # stable at 1 ms
+    x, u = _points(system, (2,), 4)
+    _, a, b = fast.step_with_jacobian(x, u)
+    _, at, bt = slow.step_with_jacobian(torch.from_numpy(x), torch.from_numpy(u))
+    np.testing.assert_allclose(a, at.numpy(), atol=1e-9)
+    np.testing.assert_allclose(b, bt.numpy(), atol=1e-9)
+
+
+def test_a_sparse_compiled_output_is_refused_not_misread() -> None:
+    sym = ca.SX.sym("x", 2)
+    with pytest.raises(ValueError, match="outputs \\[0\\] are sparse; expected dense outputs"):
+        _Buffered(ca.Function("sparse", [sym], [ca.jacobian(ca.vertcat(sym[0], 0), sym)]))
