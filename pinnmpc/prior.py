@@ -57,6 +57,11 @@ class FrozenArmPrior(nn.Module):
                 f"model.prior='frozen_arm' needs an arm from a URDF (a RigidArm); system={system!r} is "
                 f"{type(arm).__name__}: set model.prior=null"
             )
+        if not all(k > 0 for k in arm.linear_gain):
+            raise ValueError(
+                f"model.prior='frozen_arm' needs a positive viscous coefficient or servo gain on every joint; "
+                f"{system} has {list(arm.linear_gain)}: set model.prior=null"
+            )
         self.arm, self.nq = arm, arm.nq
         self.kv = torch.tensor(arm.linear_gain, dtype=torch.float64)  # float64 whatever the network's dtype
         self._memo: dict[tuple[Any, ...], tuple[tuple[Tensor, ...], Tensor, Tensor]] = {}
