@@ -43,7 +43,8 @@ def build_model(cfg: DictConfig, system: System) -> PINN | StagedPINN:
         return build_staged(cfg, system)
     if cfg.get("init_from"):
         hidden, basis, sums = list(cfg.model.hidden), list(cfg.model.time_basis), _angle_sums(cfg)
-        return grown_model(system, cfg.init_from, cfg.tau, cfg.t_max, hidden, cfg.seed, basis, sums)
+        prior = cfg.model.get("prior")
+        return grown_model(system, cfg.init_from, cfg.tau, cfg.t_max, hidden, cfg.seed, basis, sums, prior)
     return fresh_model(cfg, system)
 
 

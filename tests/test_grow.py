@@ -8,7 +8,7 @@ import torch
 from pinnmpc.pinn import PINN
 from pinnmpc.settings import SettingError, validate_train
 from pinnmpc.surrogate import load_surrogate, shipped
-from pinnmpc.systems import PowerCube
+from pinnmpc.systems import PowerCube, load_system
 from pinnmpc.train import build_model, train
 from pinnmpc.training.grow import widened
 from tests.conftest import TINY_TRAIN
@@ -93,6 +93,15 @@ def test_init_from_a_network_of_another_system_is_refused(make_cfg):
     cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={shipped('planar3')}"])
     with pytest.raises(ValueError, match="trained for states"):
         build_model(cfg, PowerCube())
+
+
+def test_init_from_a_network_without_the_configured_prior_is_refused(make_cfg):
+    have = (load_surrogate(system="planar3").model.config.get("prior") or {}).get("kind")
+    other = "null" if have else "frozen_arm"  # whichever prior the shipped network has, the other is refused
+    overrides = [f"init_from={shipped('planar3')}", f"system.network.prior={other}"]
+    cfg = make_cfg("train", ["system=planar3", *TINY_TRAIN, *overrides])
+    with pytest.raises(ValueError, match=f"trained with model.prior={have}; this run has model.prior="):
+        build_model(cfg, load_system("planar3"))
 
 
 def _small(ic: str, time_basis: list[float]) -> PINN:

@@ -119,12 +119,19 @@ def grown_model(
     seed: int,
     time_basis: Sequence[float] | None = None,
     angle_sums: Sequence[Sequence[int]] | None = None,
+    prior: str | None = None,
 ) -> PINN:
     """The trained surrogate at `path` (init_from) grown to `hidden`, `time_basis` and `angle_sums`, checked
-    against this run."""
+    against this run (tau, t_max and the prior kind cannot change: they define the function it learned)."""
     surrogate = load_surrogate(path, state_names=tuple(system.state_names))
     base = surrogate.model
     for what, have, want in (("tau", surrogate.tau, tau), ("t_max", base.t_max, t_max)):
         if abs(have - want) > 1e-12:
             raise ValueError(f"init_from={path} was trained with {what}={have}; this run has {what}={want}")
+    have_prior = (base.config.get("prior") or {}).get("kind")
+    if have_prior != prior:
+        raise ValueError(
+            f"init_from={path} was trained with model.prior={have_prior}; this run has model.prior={prior} "
+            f"(override system.network.prior={have_prior or 'null'})"
+        )
     return widened(base, hidden, seed, time_basis, angle_sums)
