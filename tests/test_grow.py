@@ -55,7 +55,7 @@ def test_a_widened_network_starts_at_the_trained_outputs_and_trains_on(make_cfg,
 
 @pytest.mark.parametrize("new_gates", [[], [0.002, 0.008]])
 def test_widening_keeps_a_gated_network_with_periodic_angles_exact(new_gates):
-    base = load_surrogate(system="planar3").model  # periodic angles, gated: the shipped network
+    base = _planar3_net()
     model = widened(base, [w + 8 for w in base.config["hidden"]], 0, base.config["time_basis"] + new_gates)
     assert model.n_gates == base.n_gates + len(new_gates)
     g = torch.Generator().manual_seed(0)
@@ -104,6 +104,16 @@ def test_init_from_a_network_without_the_configured_prior_is_refused(make_cfg):
         build_model(cfg, load_system("planar3"))
 
 
+def _planar3_net() -> PINN:
+    """A planar3 network with periodic angles, gates and no angle sums (seeded weights: any outputs will do)."""
+    arm = load_system("planar3")
+    torch.manual_seed(1)
+    return PINN(
+        *arm.state_box.tensors(), *arm.input_box.tensors(), t_max=0.125, hidden=[16, 16], activation="silu",
+        ic="gated", time_basis=[0.004, 0.015, 0.05], periodic=[0, 1, 2],
+    ).double()  # fmt: skip
+
+
 def _small(ic: str, time_basis: list[float]) -> PINN:
     """An untrained PowerCube-box network of the given form (init weights: any outputs will do)."""
     box = PowerCube()
@@ -125,7 +135,7 @@ def test_gates_go_on_a_hard_ic_network_exactly_and_a_soft_one_keeps_its_form():
 
 
 def test_angle_sums_grown_onto_a_trained_network_start_deaf():
-    base = load_surrogate(system="planar3").model  # periodic angles, no angle sums: the shipped network
+    base = _planar3_net()
     hidden, basis = base.config["hidden"], base.config["time_basis"]
     two = widened(base, hidden, 0, basis, angle_sums=[[0, 1], [0, 1, 2]])
     three = widened(two, hidden, 1, basis, angle_sums=[[0, 1], [0, 1, 2], [1, 2]])  # old sums' columns move
