@@ -65,6 +65,7 @@ class FrozenArmPrior(nn.Module):
         self.arm, self.nq = arm, arm.nq
         self.kv = torch.tensor(arm.linear_gain, dtype=torch.float64)  # float64 whatever the network's dtype
         self._memo: dict[tuple[Any, ...], tuple[tuple[Tensor, ...], Tensor, Tensor]] = {}
+        self._compiled: dict[float, CompiledPrior] = {}  # per tau: every numpy flow of this network shares one
 
     def __deepcopy__(self, memo: dict) -> FrozenArmPrior:
         """Shared, not copied: it has no state to diverge (its robot model holds modules that do not copy)."""
@@ -126,6 +127,8 @@ class FrozenArmPrior(nn.Module):
     def compiled(self, tau: float) -> CompiledPrior:
         """x_p(tau), and with its Jacobian, for numpy rows: CasADi's exact AD through a fixed Taylor-and-squaring
         exponential, compiled to C once (cached)."""
+        if tau in self._compiled:
+            return self._compiled[tau]
         from pinnmpc.flowmap import _Buffered
         from pinnmpc.systems.compiled import compile_functions
 
@@ -145,6 +148,7 @@ class FrozenArmPrior(nn.Module):
         lib = compile_functions(tag, [value, full], opt="-O2")
         fast = CompiledPrior(_Buffered(lib[value.name()]), _Buffered(lib[full.name()]))
         self._check_compiled(fast.with_jacobian, tau)
+        self._compiled[tau] = fast
         return fast
 
     def _check_compiled(self, fast: Any, tau: float, samples: int = 8) -> None:
