@@ -140,8 +140,12 @@ class FrozenArmPrior(nn.Module):
         e = _expm(-ca.solve(m, ca.diag(kv)) * (tau / 2**s), s)
         d = v0 - vss
         ed = ca.mtimes(e, d)
-        xp = ca.vertcat(q0 + vss * tau + ca.mtimes(m, d - ed) / kv, vss + ed)
-        jac = ca.jacobian(xp, ca.vertcat(x, u))
+        lag = ca.mtimes(ca.diag(1 / kv), ca.mtimes(m, ca.SX.eye(n) - e))  # kv^-1 M (I - E): dq(tau)/dv0
+        xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ed)
+        # x_p is linear in (v0, v_ss) given q0: those columns are E's blocks; AD only along q0, through M(q0) and E
+        by_v0 = ca.vertcat(lag, e)
+        by_vss = ca.vertcat(tau * ca.SX.eye(n) - lag, ca.SX.eye(n) - e)
+        jac = ca.horzcat(ca.jacobian(xp, q0), by_v0, ca.mtimes(by_vss, ca.jacobian(vss, u)))
         tag = f"{self.arm.name}_frozen_prior"
         value = ca.Function(f"{tag}_value", [x, u], [xp], {"cse": True})
         full = ca.Function(tag, [x, u], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})  # dense: _Buffered's rows
