@@ -171,10 +171,10 @@ def check_fits(ckpt: dict[str, Any], label: str, module: L.LightningModule) -> N
     stored = ckpt.get("pinnmpc", {}).get("model", {})
     have_prior, want_prior = stored.get("prior"), getattr(module.model, "config", {}).get("prior")
     if stored and have_prior != want_prior:  # same shapes, another function: the prior is not in the weights
-        kind = (have_prior or {}).get("kind")
+        kind, want = ((p or {}).get("kind") or "null" for p in (have_prior, want_prior))
         raise ValueError(
             f"{label} holds a network trained with model.prior={kind}, this configuration has "
-            f"model.prior={(want_prior or {}).get('kind')}; expected the same (override system.network.prior={kind})"
+            f"model.prior={want}; expected the same (override system.network.prior={kind})"
         )
 
 

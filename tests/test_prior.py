@@ -130,7 +130,8 @@ def test_training_with_the_prior_lowers_the_loss_and_exports_it(make_cfg, tmp_pa
     assert float((s.step(x0, u) - x1).abs().max()) < float((x1 - x0).abs().max())
     # resuming it without the prior would load the same weights into another function: refused
     plain = make_cfg("train", ["system=planar3", "system.network.prior=null", *overrides, "resume=true"])
-    with pytest.raises(ValueError, match="trained with model.prior=frozen_arm, this configuration has model.prior="):
+    said = "trained with model.prior=frozen_arm, this configuration has model.prior=null"
+    with pytest.raises(ValueError, match=said):
         train(plain, tmp_path)
 
 

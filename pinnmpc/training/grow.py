@@ -131,7 +131,8 @@ def grown_model(
     have_prior = (base.config.get("prior") or {}).get("kind")
     if have_prior != prior:
         raise ValueError(
-            f"init_from={path} was trained with model.prior={have_prior}; this run has model.prior={prior} "
+            f"init_from={path} was trained with model.prior={have_prior or 'null'}; this run has "
+            f"model.prior={prior or 'null'} "
             f"(override system.network.prior={have_prior or 'null'})"
         )
     return widened(base, hidden, seed, time_basis, angle_sums)
