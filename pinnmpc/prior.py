@@ -116,9 +116,9 @@ class FrozenArmPrior(nn.Module):
 
     def squarings(self, tau: float, samples: int = 4096) -> int:
         """Squarings s so that |A tau / 2^s| <= SQUARING_NORM over the boxes (sampled, with a 1.5x margin)."""
-        gen = torch.Generator().manual_seed(0)
-        low, high = self.arm.state_box.tensors()
-        q = (low + (high - low) * torch.rand(samples, len(low), generator=gen, dtype=torch.float64))[:, : self.nq]
+        from pinnmpc.training.data import random_pairs
+
+        q = random_pairs(self.arm, samples, 0)[0].double()[:, : self.nq]
         with torch.no_grad():
             a = self._terms(q, torch.zeros_like(q))[1]
         norm = float(torch.linalg.matrix_norm(a * tau, ord=1).max()) * 1.5
@@ -157,11 +157,9 @@ class FrozenArmPrior(nn.Module):
 
     def _check_compiled(self, fast: Any, tau: float, samples: int = 8) -> None:
         """Refuse a compiled prior that disagrees with the torch one (value or Jacobian) at random points."""
-        gen = torch.Generator().manual_seed(1)
-        low, high = self.arm.state_box.tensors()
-        ulow, uhigh = self.arm.input_box.tensors()
-        x0 = low + (high - low) * torch.rand(samples, len(low), generator=gen, dtype=torch.float64)
-        u = ulow + (uhigh - ulow) * torch.rand(samples, len(ulow), generator=gen, dtype=torch.float64)
+        from pinnmpc.training.data import random_pairs
+
+        x0, u = (a.double() for a in random_pairs(self.arm, samples, 1))
         x, jac = self.with_jacobian(torch.full((samples, 1), tau, dtype=torch.float64), x0, u)
         xn, jn = fast(x0.numpy(), u.numpy())
         off = max(
