@@ -152,7 +152,7 @@ def test_bad_arm_settings_name_the_setting(changes: dict, fragment: str) -> None
 GROUP_OPTIONS = {
     "controller": ["nmpc", "casadi"],
     "reference": ["builtin"],
-    "experiment": ["paper"],
+    "experiment": ["paper", "planar3"],
 }
 
 
@@ -175,6 +175,27 @@ def test_every_config_composes_and_instantiates(entry: str, system: str) -> None
             for option in GROUP_OPTIONS["controller"]:
                 c = compose(entry, [f"system={system}", f"controller={option}"])
                 OmegaConf.to_container(c, resolve=True)
+
+
+def _differences(shipped: dict, composed: dict, where: str = "") -> list[str]:
+    """Keys whose value the shipped network's recorded config and a composed one disagree on (keys in both)."""
+    out = []
+    for key in shipped.keys() & composed.keys():
+        a, b = shipped[key], composed[key]
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _differences(a, b, f"{where}{key}.")
+        elif a != b:
+            out.append(f"{where}{key}: shipped {a!r}, composed {b!r}")
+    return out
+
+
+def test_experiment_planar3_is_the_shipped_networks_recipe() -> None:
+    recorded = load_surrogate(system="planar3").meta["config"]
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = OmegaConf.to_container(compose("train", ["experiment=planar3"]), resolve=True)
+    sections = ("system", "model", "data", "module", "trainer", "tau", "t_max", "seed", "stage")
+    assert _differences({k: recorded[k] for k in sections}, cfg) == []
+    assert cfg["data"]["n_anchor"] > 4000  # not the defaults: the recipe is what `make train system=planar3` lacks
 
 
 # ---------------------------------------------------------------------------------------------------------------
