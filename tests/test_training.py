@@ -78,6 +78,25 @@ def test_bad_kinematic_weight_is_refused(make_cfg, bad):
         PINNModule(system, build_model(make_cfg("train", TINY), system), tau=0.2, kinematic_weight=bad)
 
 
+def test_anchor_state_weight_weighs_each_states_anchor_error(make_cfg):
+    system = PowerCube()
+    model = build_model(make_cfg("train", TINY), system)
+    sizes = dict(n_collocation=64, n_data=0, n_val=8, val_h=1e-2, n_anchor=32)
+    dm = CollocationDataModule(system, tau=0.2, t_max=0.25, **sizes)
+    dm.setup()
+    plain = PINNModule(system, model, tau=0.2, weight_anchor=1.0)
+    b = plain._cast(dm.batch)
+    err = (model(b["anchor_t"], b["anchor_x0"], b["anchor_u"]) - b["anchor_x0"] - b["anchor_dx"]) / model.out_scale
+    w = [1.0, 2.0, 0.5, 4.0]
+    weighted = PINNModule(system, model, tau=0.2, weight_anchor=1.0, anchor_state_weight=w)
+    expected = (err.square() * torch.tensor(w, dtype=err.dtype)).mean()
+    torch.testing.assert_close(weighted.losses(dm.batch)["anchor"].detach(), expected.detach())
+    torch.testing.assert_close(plain.losses(dm.batch)["anchor"].detach(), err.square().mean().detach())
+    for bad in ([1.0, 1.0], [1.0, 0.0, 1.0, 1.0], [1.0, float("nan"), 1.0, 1.0]):
+        with pytest.raises(ValueError, match=r"module.anchor_state_weight=.*expected null or 4 positive numbers"):
+            PINNModule(system, model, tau=0.2, anchor_state_weight=bad)
+
+
 def test_huber_loss_is_squares_below_delta_and_linear_above(make_cfg):
     cfg = make_cfg("train", TINY)
     system = PowerCube()

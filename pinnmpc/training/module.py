@@ -50,6 +50,7 @@ class PINNModule(L.LightningModule):
         weight_physics: float = 1.0,
         weight_data: float = 1.0,
         weight_anchor: float = 1.0,
+        anchor_state_weight: Sequence[float] | None = None,
         dtype: str = "float32",
         adam_epochs: int = 0,
         adam_lr: float = 1e-3,
@@ -85,6 +86,8 @@ class PINNModule(L.LightningModule):
         self.tau = float(tau)
         scale = self._residual_scale(residual_scale) / self._kinematic_weights(kinematic_weight)
         self.register_buffer("res_scale", scale.to(DTYPES[dtype]))
+        weights = self._anchor_weights(anchor_state_weight).to(DTYPES[dtype])
+        self.register_buffer("anchor_w", weights, persistent=False)  # a setting, not a weight: resumes take the new
         self.stalls = 0
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
@@ -103,6 +106,17 @@ class PINNModule(L.LightningModule):
         if scale.shape != (nx,) or torch.any(scale <= 0):
             raise ValueError(f"residual_scale must be 'auto' or {nx} positive numbers, got {list(residual_scale)}")
         return scale
+
+    def _anchor_weights(self, weights: Sequence[float] | None) -> Tensor:
+        """Per-state multiplier of the anchor loss, so a state whose target is tightest in output units gets more."""
+        nx = self.model.nx
+        if weights is None:
+            return torch.ones(nx, dtype=torch.float64)
+        w = list(weights)
+        numbers = all(isinstance(v, int | float) and not isinstance(v, bool) and 0 < v < math.inf for v in w)
+        if len(w) != nx or not numbers:
+            raise ValueError(f"module.anchor_state_weight={w}; expected null or {nx} positive numbers (one per state)")
+        return torch.tensor(w, dtype=torch.float64)
 
     def _kinematic_weights(self, weight: float) -> Tensor:
         """Per-component weight: `weight` on the kinematic rows dq/dt - v of an x = (q, v) state, 1 elsewhere.
@@ -160,7 +174,7 @@ class PINNModule(L.LightningModule):
             total = total + self.hparams.weight_data * out["data"]
         if "anchor_t" in b and self.hparams.weight_anchor > 0:
             dx = self.model(b["anchor_t"], b["anchor_x0"], b["anchor_u"]) - b["anchor_x0"]
-            out["anchor"] = ((dx - b["anchor_dx"]) / self.model.out_scale).square().mean()
+            out["anchor"] = (((dx - b["anchor_dx"]) / self.model.out_scale).square() * self.anchor_w).mean()
             if "anchor_share" in b:  # a DDP shard, weighted as the physics loss is
                 out["anchor"] = out["anchor"] * b["anchor_share"]
             total = total + self.hparams.weight_anchor * out["anchor"]
