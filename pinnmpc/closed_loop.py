@@ -214,6 +214,7 @@ def system_reference(cfg: DictConfig, system: System, tau: float) -> Reference:
         OmegaConf.to_container(cfg.system.references, resolve=True),
         (box.low[: system.nq], box.high[: system.nq]),
         None if limits is None else (limits.low, limits.high),
+        system,
     )
 
 

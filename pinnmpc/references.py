@@ -85,7 +85,9 @@ def _as_float(value: object, what: str, name: str) -> np.ndarray:
 #       blends between positions reached at rest, so position, velocity and acceleration are continuous;
 #   {kind: sine, amplitude: [...], frequency: [...], offset: [...], duration: s}: sinusoids per joint;
 #   {kind: random, moves: n, duration: s, fraction: f}: quintic moves between random waypoints in the middle
-#       fraction f of the state box (name it `random-<seed>` to pick the seed, default 0).
+#       fraction f of the state box (name it `random-<seed>` to pick the seed, default 0);
+#   {kind: driven, moves, duration, fraction, bandwidth: rad/s, damping}: the true system driven around such a
+#       random path by a loose feedback (pinnmpc/driven.py): a motion the true model makes with in-box inputs.
 
 
 @dataclass(frozen=True)
@@ -134,22 +136,50 @@ def sine_reference(
     return Reference(t=t, x=x, name=f"builtin:{name}")
 
 
-def random_reference(
-    name: str, low: Sequence[float], high: Sequence[float], seed: int, moves: int, duration: float, fraction: float
-) -> Reference:
-    """Quintic moves of every joint between random waypoints in the middle `fraction` of its position range."""
+def random_waypoints(
+    low: Sequence[float], high: Sequence[float], seed: int, moves: int, duration: float, fraction: float
+) -> list[Waypoints]:
+    """Per joint: random waypoints in the middle `fraction` of its position range, `duration` s apart."""
     lo, hi = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
     mid, half = (lo + hi) / 2, fraction * (hi - lo) / 2
     q = mid + half * np.random.default_rng(seed).uniform(-1.0, 1.0, size=(int(moves) + 1, len(lo)))
     q[0] = mid  # start at rest in the middle, where every run of this reference begins
-    joints = [Waypoints(tuple(q[:, j]), (float(duration),) * int(moves)) for j in range(len(lo))]
-    return waypoint_reference(name, joints)
+    return [Waypoints(tuple(q[:, j]), (float(duration),) * int(moves)) for j in range(len(lo))]
+
+
+def random_reference(
+    name: str, low: Sequence[float], high: Sequence[float], seed: int, moves: int, duration: float, fraction: float
+) -> Reference:
+    """Quintic moves of every joint between random waypoints in the middle `fraction` of its position range."""
+    return waypoint_reference(name, random_waypoints(low, high, seed, moves, duration, fraction))
+
+
+def driven_reference(
+    name: str, system: Any, joints: Sequence[Waypoints], bandwidth: object, damping: object
+) -> Reference:
+    """The true system driven around the waypoint path by a loose feedback (pinnmpc/driven.py), sampled."""
+    from pinnmpc.driven import check_gains, drive
+
+    gains = check_gains(name, bandwidth, damping)
+    duration = max(sum(w.durations) for w in joints)
+    t = _grid(duration)
+
+    def path(time: float) -> tuple[np.ndarray, np.ndarray]:
+        """The path's joint positions and velocities at one time."""
+        pos, vel = zip(*(quintic_blend(np.array([time]), w) for w in joints))
+        return np.concatenate(pos), np.concatenate(vel)
+
+    return Reference(t=t, x=drive(system, path, duration, t, *gains), name=f"builtin:{name}")
 
 
 def builtin_reference(
-    name: str, specs: dict[str, Any], position_box: tuple[Sequence[float], Sequence[float]] | None = None
+    name: str,
+    specs: dict[str, Any],
+    position_box: tuple[Sequence[float], Sequence[float]] | None = None,
+    system: Any = None,
 ) -> Reference:
-    """A reference described in the system's config (`references:`), so closed loops run without data files."""
+    """A reference described in the system's config (`references:`), so closed loops run without data files;
+    a driven one also needs the system it drives."""
     spec, seed = specs.get(name), None
     base, _, suffix = name.rpartition("-")
     if spec is None and suffix.isdigit() and base in specs:
@@ -164,16 +194,20 @@ def builtin_reference(
         if kind == "sine":
             keys = ("amplitude", "frequency", "offset", "duration")
             return sine_reference(name, *(spec[k] for k in keys))
-        if kind == "random":
-            if position_box is None:
-                raise ReferenceError(f"built-in reference {name!r} needs the system's joint range")
+        if kind in ("random", "driven"):
+            if position_box is None or (kind == "driven" and system is None):
+                raise ReferenceError(f"built-in reference {name!r} needs the system (its joint range)")
             seed = int(spec.get("seed", 0)) if seed is None else seed
-            return random_reference(
-                name, *position_box, seed, spec["moves"], spec["duration"], spec.get("fraction", 0.5)
-            )
+            keys = (spec["moves"], spec["duration"], spec.get("fraction", 0.5))
+            if kind == "random":
+                return random_reference(name, *position_box, seed, *keys)
+            joints = random_waypoints(*position_box, seed, *keys)
+            return driven_reference(name, system, joints, spec["bandwidth"], spec["damping"])
     except (KeyError, TypeError) as e:
         raise ReferenceError(f"built-in reference {name!r}: malformed spec {spec} ({e!r})") from None
-    raise ReferenceError(f"built-in reference {name!r}: kind={kind!r}; expected waypoints, sine or random")
+    except ValueError as e:
+        raise ReferenceError(str(e)) from None
+    raise ReferenceError(f"built-in reference {name!r}: kind={kind!r}; expected waypoints, sine, random or driven")
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -339,13 +373,15 @@ def load_reference(
     builtins: dict[str, Any],
     position_box: tuple[Sequence[float], Sequence[float]] | None = None,
     joint_limits: tuple[Sequence[float], Sequence[float]] | None = None,
+    system: Any = None,
 ) -> Reference:
     """What the closed-loop CLI needs: a file if given, else the named built-in, on the controller's grid.
 
     builtins is the system's `references:` config; position_box its joint range, for random references;
-    joint_limits (low, high) its joint position limits: a reference that leaves them is refused."""
+    joint_limits (low, high) its joint position limits: a reference that leaves them is refused; system the
+    true model a driven built-in drives."""
     if path is None:
-        ref = check_states(builtin_reference(name, builtins, position_box), state_names)
+        ref = check_states(builtin_reference(name, builtins, position_box, system), state_names)
     else:
         ref = read_reference(path, state_names)
     if joint_limits is not None:

@@ -137,7 +137,7 @@ def test_builtins_of_other_arms_stay_inside_their_box(system: str) -> None:
     specs = OmegaConf.to_container(system_config(system).references)
     positions = (arm.state_box.low[: arm.nq], arm.state_box.high[: arm.nq])
     for name in [*specs, "random-7"]:
-        ref = check_states(_builtin(name, specs, positions), arm.state_names)
+        ref = check_states(_builtin(name, specs, positions, arm), arm.state_names)
         assert ref.x.shape[1] == 2 * arm.nq
         assert np.all(ref.x >= np.array(arm.state_box.low)) and np.all(ref.x <= np.array(arm.state_box.high))
         velocity = np.gradient(ref.x[:, : arm.nq], ref.t, axis=0)
@@ -387,3 +387,33 @@ def test_bad_input_raises_reference_error(tmp_path: Path, make, fragment: str) -
     assert "\n" not in message
     assert str(path) in message
     assert isinstance(info.value, ValueError)
+
+
+def test_driven_reference_is_a_motion_of_the_true_arm_under_in_box_inputs() -> None:
+    arm = load_system("planar3")
+    specs = OmegaConf.to_container(system_config("planar3").references)
+    positions = (arm.state_box.low[:3], arm.state_box.high[:3])
+    ref, path = (
+        _builtin("driven", specs, positions, arm),
+        _builtin("driven", {**specs, "driven": {**specs["driven"], "kind": "random"}}, positions),
+    )
+    assert ref.t[-1] == pytest.approx(20.0) and ref.name == "builtin:driven"
+    lag = np.sqrt(np.mean((ref.x[:, :3] - path.x[:, :3]) ** 2, axis=0))
+    assert np.all(lag > 1e-3) and np.all(lag < 0.1)  # measured 0.03-0.04 rad: it lags the path, it is not the path
+    # the inputs that produce its accelerations (a = a0 + B u, from the rhs) lie in the input box
+    mid = slice(1, -1)
+    acc = np.gradient(ref.x[:, 3:], ref.t, axis=0, edge_order=2)[mid]
+    x = ref.x[mid]
+    a0 = arm.rhs(x, np.zeros((len(x), 3)))[:, 3:]
+    b = np.stack([arm.rhs(x, np.tile(e, (len(x), 1)))[:, 3:] - a0 for e in np.eye(3)], axis=-1)
+    u = np.linalg.solve(b, (acc - a0)[..., None])[..., 0]
+    slack = 0.02 * np.asarray(arm.input_box.high)  # finite-difference accelerations
+    assert np.all(u <= np.asarray(arm.input_box.high) + slack) and np.all(u >= np.asarray(arm.input_box.low) - slack)
+    assert np.abs(u).max(axis=0).min() > 0.1 * np.asarray(arm.input_box.high).min()  # it is driven, not resting
+    np.testing.assert_array_equal(ref.x, _builtin("driven", specs, positions, arm).x)  # reproducible
+    assert not np.allclose(ref.x, _builtin("driven-3", specs, positions, arm).x)
+    with pytest.raises(ReferenceError, match="needs the system"):
+        _builtin("driven", specs, positions)
+    bad = {"driven": {**specs["driven"], "bandwidth": -1.0}}
+    with pytest.raises(ReferenceError, match=r"'driven': bandwidth=-1.0; expected a positive number"):
+        _builtin("driven", bad, positions, arm)
