@@ -39,6 +39,11 @@ def drive(
 ) -> np.ndarray:
     """States of the true system at `times`, driven from rest at the path's start along path(t) -> (q_d, v_d)."""
     nq = system.nq
+    if len(system.input_names) != nq:
+        raise ValueError(
+            f"a driven reference needs one input per joint; {system.name} has {len(system.input_names)} inputs for "
+            f"{nq} joints"
+        )
     low, high = (np.asarray(b, dtype=np.float64) for b in (system.input_box.low, system.input_box.high))
     q_start, _ = path(0.0)
 
