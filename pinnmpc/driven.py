@@ -18,6 +18,8 @@ from typing import Any
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from pinnmpc.settings import positive
+
 RTOL = ATOL = 1e-9  # solve_ivp tolerances of the driven motion: far below any tracking error a reference is used for
 
 
@@ -63,10 +65,8 @@ def drive(
 
 def check_gains(name: str, bandwidth: object, damping: object) -> tuple[float, float]:
     """bandwidth (rad/s) and damping as positive finite numbers, or a one-line error naming the reference."""
-    out = []
     for key, value in (("bandwidth", bandwidth), ("damping", damping)):
-        ok = isinstance(value, int | float) and not isinstance(value, bool) and 0 < value < np.inf
-        if not ok:
-            raise ValueError(f"built-in reference {name!r}: {key}={value!r}; expected a positive number")
-        out.append(float(value))
-    return out[0], out[1]
+        bad = positive()(value, {})
+        if bad is not None:
+            raise ValueError(f"built-in reference {name!r}: {key}={value!r}; expected {bad}")
+    return float(bandwidth), float(damping)  # type: ignore[arg-type]

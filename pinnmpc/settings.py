@@ -255,6 +255,7 @@ TRAIN: dict[str, Check] = {
     "stage.h": positive(),
     "model.hidden": listof(integer(1)),
     "model.prior": optional(one_of(*PRIOR_KINDS)),
+    "module.anchor_state_weight": optional(vector("nx", positive())),
     "trainer.max_epochs": integer(-1),
     "trainer.max_time": optional(duration()),
     "trainer.check_val_every_n_epoch": optional(integer(1)),

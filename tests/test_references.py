@@ -415,5 +415,5 @@ def test_driven_reference_is_a_motion_of_the_true_arm_under_in_box_inputs() -> N
     with pytest.raises(ReferenceError, match="needs the system"):
         _builtin("driven", specs, positions)
     bad = {"driven": {**specs["driven"], "bandwidth": -1.0}}
-    with pytest.raises(ReferenceError, match=r"'driven': bandwidth=-1.0; expected a positive number"):
+    with pytest.raises(ReferenceError, match=r"'driven': bandwidth=-1.0; expected a finite number > 0"):
         _builtin("driven", bad, positions, arm)

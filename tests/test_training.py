@@ -93,7 +93,8 @@ def test_anchor_state_weight_weighs_each_states_anchor_error(make_cfg):
     torch.testing.assert_close(weighted.losses(dm.batch)["anchor"].detach(), expected.detach())
     torch.testing.assert_close(plain.losses(dm.batch)["anchor"].detach(), err.square().mean().detach())
     for bad in ([1.0, 1.0], [1.0, 0.0, 1.0, 1.0], [1.0, float("nan"), 1.0, 1.0]):
-        with pytest.raises(ValueError, match=r"module.anchor_state_weight=.*expected null or 4 positive numbers"):
+        said = r"module.anchor_state_weight=.*expected null or a list of 4 entries \(4\), each a finite number > 0"
+        with pytest.raises(ValueError, match=said):
             PINNModule(system, model, tau=0.2, anchor_state_weight=bad)
 
 

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from pinnmpc.pinn import PINN
+from pinnmpc.settings import positive, vector
 from pinnmpc.systems.base import System
 from pinnmpc.training.ssbfgs import SSBFGS
 
@@ -113,9 +114,9 @@ class PINNModule(L.LightningModule):
         if weights is None:
             return torch.ones(nx, dtype=torch.float64)
         w = list(weights)
-        numbers = all(isinstance(v, int | float) and not isinstance(v, bool) and 0 < v < math.inf for v in w)
-        if len(w) != nx or not numbers:
-            raise ValueError(f"module.anchor_state_weight={w}; expected null or {nx} positive numbers (one per state)")
+        bad = vector(nx, positive())(w, {})
+        if bad is not None:
+            raise ValueError(f"module.anchor_state_weight={w}; expected null or {bad}")
         return torch.tensor(w, dtype=torch.float64)
 
     def _kinematic_weights(self, weight: float) -> Tensor:
