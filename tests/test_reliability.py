@@ -360,7 +360,7 @@ def test_clean_keeps_live_runs_and_shipped_checkpoints(tmp_path):
         ("train", "tau=abc", "tau='abc': expected a finite number > 0"),
         ("train", "trainer.max_time=soon", "trainer.max_time='soon': expected a duration DD:HH:MM:SS"),
         ("train", "t_max=0.1", "t_max=0.1 is below tau=0.2"),
-        ("train", "module.anchor_state_weight=[1,2]", "anchor_state_weight=[1, 2]: expected a list of 4 entries"),
+        ("train", "module.anchor_state_weight=[1]", "module.anchor_state_weight=[1]: expected a list of 4 entries"),
         ("self_loop", "steps=2.5", "steps=2.5: expected an integer >= 2"),
         ("self_loop", "x0=[0,0]", "x0=[0, 0]: expected a list of 4 entries (nx)"),
         ("self_loop", "amplitude=[nan,1]", "amplitude=[nan, 1]: expected a list of 2 entries (nu)"),
