@@ -54,7 +54,8 @@ def drive(
         q_d, v_d = path(t)
         a0, b = _affine_input(system, x)
         command = bandwidth**2 * (q_d - x[:nq]) + 2.0 * damping * bandwidth * (v_d - x[nq:])
-        return np.asarray(system.rhs(x, np.clip(np.linalg.solve(b, command - a0), low, high)), dtype=np.float64)
+        u = np.clip(np.linalg.solve(b, command - a0), low, high)
+        return np.concatenate([x[nq:], a0 + b @ u])  # the rhs at u, from the terms already evaluated
 
     x0 = np.concatenate([q_start, np.zeros(nq)])
     sol = solve_ivp(closed_loop, (0.0, duration), x0, method="RK45", t_eval=times, rtol=RTOL, atol=ATOL)
