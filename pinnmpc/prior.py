@@ -9,8 +9,8 @@ the arm is the linear system M(q0) dv/dt = c0 - kv v, dq/dt = v (kv diagonal), w
 
 A network that learns only what this misses (configuration change, Coriolis, Coulomb friction) fits the flow
 several times closer on the same budget (docs/training.md). No parameters: torch for training (memoised, since
-full-batch training evaluates it on the same points every step) and CasADi compiled to C, with its exact Jacobian,
-for the controller's numpy path.
+full-batch training evaluates it on the same points every step) and CasADi compiled to C, with its exact Jacobian
+(by AD, or by eigendecomposition on larger arms: pinnmpc.prior_eigen), for the controller's numpy path.
 """
 
 from __future__ import annotations
@@ -29,6 +29,8 @@ KINDS = ("frozen_arm",)  # model.prior values besides null
 TAYLOR_DEGREE = 12  # terms of exp(X / 2^s) before squaring; with |X / 2^s| <= 1/2 the remainder is ~1e-14
 SQUARING_NORM = 0.5  # the largest 1-norm of X / 2^s the Taylor series is trusted at
 MEMO_SIZE = 8  # input sets kept (collocation, anchors, validation, data): each holds its inputs alive
+EIGEN_FROM_JOINTS = 5  # arms with this many joints or more differentiate the prior by eigendecomposition
+#   (pinnmpc/prior_eigen.py), smaller ones by CasADi's AD through the series: the cheaper of the two (docs/design.md)
 
 
 def _key(*tensors: Tensor) -> tuple[Any, ...]:
@@ -125,8 +127,9 @@ class FrozenArmPrior(nn.Module):
         return max(0, math.ceil(math.log2(norm / SQUARING_NORM)))
 
     def compiled(self, tau: float) -> CompiledPrior:
-        """x_p(tau), and with its Jacobian, for numpy rows: CasADi's exact AD through a fixed Taylor-and-squaring
-        exponential, compiled to C once (cached)."""
+        """x_p(tau), and with its Jacobian, for numpy rows: the value as a fixed Taylor-and-squaring exponential
+        compiled to C by CasADi, the Jacobian by CasADi's exact AD through it or, on larger arms, exactly by
+        eigendecomposition (pinnmpc.prior_eigen); built once per tau and checked against the torch form."""
         if tau in self._compiled:
             return self._compiled[tau]
         from pinnmpc.flowmap import _Buffered
@@ -139,18 +142,23 @@ class FrozenArmPrior(nn.Module):
         vss = c0 / kv
         e = _expm(-ca.solve(m, ca.diag(kv)) * (tau / 2**s), s)
         d = v0 - vss
-        ed = ca.mtimes(e, d)
         lag = ca.mtimes(ca.diag(1 / kv), ca.mtimes(m, ca.SX.eye(n) - e))  # kv^-1 M (I - E): dq(tau)/dv0
-        xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ed)
-        # x_p is linear in (v0, v_ss) given q0: those columns are E's blocks; AD only along q0, through M(q0) and E
-        by_v0 = ca.vertcat(lag, e)
-        by_vss = ca.vertcat(tau * ca.SX.eye(n) - lag, ca.SX.eye(n) - e)
-        jac = ca.horzcat(ca.jacobian(xp, q0), by_v0, ca.mtimes(by_vss, ca.jacobian(vss, u)))
+        xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d))
         tag = f"{self.arm.name}_frozen_prior"
         value = ca.Function(f"{tag}_value", [x, u], [xp], {"cse": True})
-        full = ca.Function(tag, [x, u], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})  # dense: _Buffered's rows
-        lib = compile_functions(tag, [value, full], opt="-O2")
-        fast = CompiledPrior(_Buffered(lib[value.name()]), _Buffered(lib[full.name()]))
+        if n >= EIGEN_FROM_JOINTS:
+            from pinnmpc.prior_eigen import EigenPriorJacobian
+
+            lib = compile_functions(tag, [value], opt="-O2")
+            fast = CompiledPrior(_Buffered(lib[value.name()]), EigenPriorJacobian(self.arm, tau, self.kv.numpy()))
+        else:
+            # x_p is linear in (v0, v_ss) given q0: those columns are E's blocks; AD only along q0, through M and E
+            by_v0 = ca.vertcat(lag, e)
+            by_vss = ca.vertcat(tau * ca.SX.eye(n) - lag, ca.SX.eye(n) - e)
+            jac = ca.horzcat(ca.jacobian(xp, q0), by_v0, ca.mtimes(by_vss, ca.jacobian(vss, u)))
+            full = ca.Function(tag, [x, u], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})  # dense: _Buffered's rows
+            lib = compile_functions(tag, [value, full], opt="-O2")
+            fast = CompiledPrior(_Buffered(lib[value.name()]), _Buffered(lib[full.name()]))
         self._check_compiled(fast.with_jacobian, tau)
         self._compiled[tau] = fast
         return fast

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
 import pytest
 import torch
@@ -9,7 +10,8 @@ import torch
 from pinnmpc import load_surrogate, load_system
 from pinnmpc.capacity import one_step_data, run_capacity
 from pinnmpc.pinn import PINN
-from pinnmpc.prior import FrozenArmPrior
+from pinnmpc.prior import EIGEN_FROM_JOINTS, FrozenArmPrior
+from pinnmpc.prior_eigen import EigenPriorJacobian, divided_differences
 from pinnmpc.settings import SettingError
 from pinnmpc.surrogate import Surrogate
 from pinnmpc.train import train
@@ -86,6 +88,49 @@ def test_the_compiled_prior_and_its_jacobian_match_torch_and_finite_differences(
         d[k] = eps
         up, down = (prior(t, (z + s * d)[:, :6].clone(), (z + s * d)[:, 6:].clone())[0] for s in (1, -1))
         np.testing.assert_allclose(jac[:, :, k].numpy(), ((up - down) / (2 * eps)).numpy(), atol=1e-7)
+
+
+def test_the_eigen_jacobian_agrees_with_ad_through_the_series(prior, points) -> None:
+    """Two exact derivations (Daleckii-Krein on the eigendecomposition, CasADi AD through Taylor and squarings)."""
+    x0, u = (a.numpy() for a in points)
+    eigen = EigenPriorJacobian(prior.arm, TAU, prior.kv.numpy())
+    x, jac = eigen(x0, u)
+    xa, ja = prior.compiled(TAU).with_jacobian(x0, u)
+    np.testing.assert_allclose(x, xa, atol=1e-12)
+    np.testing.assert_allclose(jac.reshape(6, 6, 9), ja.reshape(6, 6, 9), atol=1e-10)
+    assert np.abs(ja.reshape(6, 6, 9)[:, :3, :3] - np.eye(3)).max() > 1e-2  # the q0 columns carry M(q0)'s change
+
+
+def test_a_seven_joint_arm_takes_the_eigen_path_and_it_matches_finite_differences() -> None:
+    panda = FrozenArmPrior("panda")
+    arm, tau, n = panda.arm, panda.arm.tau, panda.nq
+    fast = panda.compiled(tau)
+    assert n >= EIGEN_FROM_JOINTS and isinstance(fast.with_jacobian, EigenPriorJacobian)
+    gen = torch.Generator().manual_seed(4)
+    (low, high), (ulow, uhigh) = arm.state_box.tensors(), arm.input_box.tensors()
+    x0 = low + (high - low) * torch.rand(3, 2 * n, generator=gen, dtype=torch.float64)
+    u = ulow + (uhigh - ulow) * torch.rand(3, n, generator=gen, dtype=torch.float64)
+    xn, jn = fast.with_jacobian(x0.numpy(), u.numpy())
+    np.testing.assert_allclose(fast.value(x0.numpy(), u.numpy())[0], xn, atol=1e-12)
+    t = torch.full((3, 1), tau, dtype=torch.float64)
+    z, eps = torch.cat((x0, u), -1), 1e-6
+    for k in range(3 * n):
+        d = torch.zeros(3 * n, dtype=torch.float64)
+        d[k] = eps
+        up, down = (panda(t, (z + s * d)[:, : 2 * n].clone(), (z + s * d)[:, 2 * n :].clone())[0] for s in (1, -1))
+        np.testing.assert_allclose(jn.reshape(3, 2 * n, 3 * n)[:, :, k], ((up - down) / (2 * eps)).numpy(), atol=1e-6)
+
+
+def test_divided_differences_at_a_double_eigenvalue_are_the_derivative() -> None:
+    lam = [ca.SX.sym(f"l{k}") for k in range(3)]
+    f = [ca.exp(-a) for a in lam]
+    fun = ca.Function("dd", lam, [divided_differences(lam, f, [-v for v in f])])
+    at = [2.0, 2.0 * (1 + 1e-9), 5.0]
+    out = np.array(fun(*at))
+    assert np.isfinite(out).all()
+    np.testing.assert_allclose(np.diag(out), -np.exp(-np.array(at)), rtol=1e-12)
+    np.testing.assert_allclose(out[0, 1], -np.exp(-2.0), rtol=1e-8)  # f' where the pair (nearly) coincides
+    np.testing.assert_allclose(out[0, 2], (np.exp(-2.0) - np.exp(-5.0)) / (2.0 - 5.0), rtol=1e-12)
 
 
 def test_a_network_with_the_prior_is_the_same_in_torch_and_numpy_and_survives_a_save(prior, points, tmp_path) -> None:

@@ -1,0 +1,103 @@
+"""The frozen-arm prior's Jacobian through an eigendecomposition, for arms where AD through its exponential is costly.
+
+With Kh = kv^1/2 the prior's matrices are functions of one symmetric positive definite matrix S = Kh M(q0)^-1 Kh
+(pinnmpc.prior has the prior itself):
+
+    E = exp(-M^-1 kv tau) = Kh^-1 f0(S) Kh,   kv^-1 M (I - E) = Kh^-1 f1(S) Kh,
+    f0(l) = exp(-l tau),   f1(l) = (1 - exp(-l tau)) / l.
+
+With S = V diag(l) V^T, a change dS of S changes f(S) by V (F o (V^T dS V)) V^T (Daleckii-Krein), F_ab the divided
+difference (f(l_a) - f(l_b)) / (l_a - l_b) (f' where l_a = l_b). Along q0_j, dS = -Kh M^-1 (dM/dq0_j) M^-1 Kh, with
+dM/dq0 from CasADi's AD of the arm's mass matrix compiled to C. This costs one eigendecomposition and a few small
+matrix products per sample, where AD through a Taylor series with squarings carries n tangents through every
+product: on a 7-joint arm the exponential needs many squarings (its time constants span 1 ms to 0.2 s against a
+50 ms period), so this path is the cheaper there; small arms keep the AD one (docs/design.md).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import casadi as ca
+import numpy as np
+
+if TYPE_CHECKING:
+    from pinnmpc.systems import RigidArm
+
+CLOSE = 1e-7  # eigenvalues closer than this (relative) share a divided difference: f' at the first
+
+
+def divided_differences(lam: list, f: list, df: list) -> ca.SX:
+    """Divided differences F_ab of one function with values f and derivatives df at the eigenvalues lam."""
+    n = len(lam)
+    out = ca.SX(n, n)
+    for a in range(n):
+        for b in range(n):
+            if a == b:
+                out[a, b] = df[a]
+                continue
+            gap = lam[a] - lam[b]
+            close = ca.fabs(gap) <= CLOSE * ca.fabs(lam[a])
+            out[a, b] = ca.if_else(close, df[a], (f[a] - f[b]) / ca.if_else(close, 1, gap))
+    return out
+
+
+class EigenPriorJacobian:
+    """x_p(tau) and its Jacobian d x_p / d(x0, u) (B, nx (nx + nu), row-major) for numpy rows x0 (B, nx), u (B, nu):
+    S by one compiled function, its eigendecomposition by numpy, the rest by a second compiled function."""
+
+    def __init__(self, arm: RigidArm, tau: float, kv: np.ndarray) -> None:
+        from pinnmpc.flowmap import _Buffered
+        from pinnmpc.systems.compiled import compile_functions
+
+        n = self.n = arm.nq
+        kh = ca.DM(np.sqrt(kv))
+        q, u, lam, vt = ca.SX.sym("q", n), ca.SX.sym("u", n), ca.SX.sym("lam", n), ca.SX.sym("v", n * n)
+        x0 = ca.SX.sym("x", 2 * n)
+        m = arm.casadi_frozen_terms()(q, u)[0]
+        s_of_q = ca.mtimes(ca.diag(kh), ca.solve(m, ca.diag(kh)))  # S = Kh M^-1 Kh
+        tag = f"{arm.name}_frozen_eigen"
+        spd = ca.Function(f"{tag}_s", [q], [ca.densify(ca.vec(s_of_q))], {"cse": True})
+        # the rest at q = q0: V from its row-major rows (CasADi reshapes column-major, so those read as V^T)
+        q0, v0 = x0[:n], x0[n:]
+        m, c0 = arm.casadi_frozen_terms()(q0, u)
+        vss = c0 / ca.DM(kv)
+        vec = ca.reshape(vt, n, n).T
+        em = [ca.expm1(-lam[a] * tau) for a in range(n)]
+        f0, f1 = [e + 1 for e in em], [-e / lam[a] for a, e in enumerate(em)]
+        df0 = [-tau * (e + 1) for e in em]
+        df1 = [(lam[a] * tau * (e + 1) + e) / lam[a] ** 2 for a, e in enumerate(em)]
+        left, right = ca.mtimes(ca.diag(1 / kh), vec), ca.mtimes(vec.T, ca.diag(kh))  # Kh^-1 V and V^T Kh
+        e = ca.mtimes(ca.mtimes(left, ca.diag(ca.vertcat(*f0))), right)  # E
+        lag = ca.mtimes(ca.mtimes(left, ca.diag(ca.vertcat(*f1))), right)  # kv^-1 M (I - E)
+        d = v0 - vss
+        z = ca.mtimes(right, d)  # V^T Kh (v0 - v_ss)
+        p = ca.solve(m, right.T).T  # V^T Kh M^-1, so V^T dS_j V = -p dM_j p^T
+        lams = [lam[a] for a in range(n)]
+        big0, big1 = divided_differences(lams, f0, df0), divided_differences(lams, f1, df1)
+        cols0, cols1 = [], []
+        for j in range(n):
+            t = ca.mtimes(ca.mtimes(p, _dm(m, q0, j)), p.T)
+            cols0.append(-ca.mtimes(left, ca.mtimes(big0 * t, z)))
+            cols1.append(-ca.mtimes(left, ca.mtimes(big1 * t, z)))
+        eye = ca.SX.eye(n)
+        by_vss = ca.vertcat(tau * eye - lag, eye - e)
+        by_q = ca.vertcat(eye + ca.horzcat(*cols1), ca.horzcat(*cols0)) + ca.mtimes(by_vss, ca.jacobian(vss, q0))
+        jac = ca.horzcat(by_q, ca.vertcat(lag, e), ca.mtimes(by_vss, ca.jacobian(vss, u)))
+        xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d))
+        rest = ca.Function(tag, [x0, u, lam, vt], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})
+        lib = compile_functions(tag, [spd, rest], opt="-O2")
+        self.spd, self.rest = _Buffered(lib[spd.name()]), _Buffered(lib[rest.name()])
+
+    def __call__(self, x0: np.ndarray, u: np.ndarray) -> list[np.ndarray]:
+        """[x_p (B, nx), J (B, nx (nx + nu)) row-major], the CompiledPrior.with_jacobian contract."""
+        n = self.n
+        s = self.spd(x0[:, :n])[0].reshape(-1, n, n)  # symmetric: its column-major vec reads back as S
+        lam, vec = np.linalg.eigh(s)
+        return self.rest(x0, u, lam, vec.reshape(-1, n * n))
+
+
+def _dm(m: ca.SX, q: ca.SX, j: int) -> ca.SX:
+    """dM/dq_j as an n x n matrix."""
+    n = m.shape[0]
+    return ca.reshape(ca.jacobian(ca.vec(m), q[j]), n, n)
