@@ -33,7 +33,7 @@ EIGEN_FROM_JOINTS = 5  # arms with this many joints or more differentiate the pr
 #   (pinnmpc/prior_eigen.py), smaller ones by CasADi's AD through the series: the cheaper of the two (docs/design.md)
 
 
-def _key(*tensors: Tensor) -> tuple[Any, ...]:
+def tensor_key(*tensors: Tensor) -> tuple[Any, ...]:
     """Identity of the inputs: storage, layout and version (the memo holds the tensors, so no storage is reused)."""
     return tuple((a.data_ptr(), a.dtype, tuple(a.shape), a.stride(), a._version) for a in tensors)
 
@@ -97,7 +97,7 @@ class FrozenArmPrior(nn.Module):
         if t.requires_grad or x0.requires_grad or u.requires_grad:  # a graph is wanted: no memo
             x, dx = self._solve(*(a.reshape(-1, a.shape[-1]).double() for a in (t, x0, u)))
             return x.to(x0.dtype).reshape(*lead, nx), dx.to(x0.dtype).reshape(*lead, nx)
-        key = _key(t, x0, u)
+        key = tensor_key(t, x0, u)
         hit = self._memo.get(key)
         if hit is None:
             with torch.no_grad():

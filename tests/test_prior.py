@@ -15,6 +15,8 @@ from pinnmpc.prior_eigen import EigenPriorJacobian, divided_differences
 from pinnmpc.settings import SettingError
 from pinnmpc.surrogate import Surrogate
 from pinnmpc.train import train
+from pinnmpc.training.data import CollocationDataModule
+from pinnmpc.training.module import PINNModule
 from tests.conftest import TINY_TRAIN
 
 TAU = 0.1
@@ -193,3 +195,28 @@ def test_the_prior_is_refused_where_it_cannot_work(make_cfg, tmp_path) -> None:
         train(make_cfg("train", coarse), tmp_path)
     with pytest.raises(SettingError, match="model.prior='frozen': expected one of frozen_arm or null"):
         run_capacity(make_cfg("capacity", ["system=planar3", "system.network.prior=frozen"]), tmp_path / "c")
+
+
+def test_training_steps_on_the_same_points_compute_the_prior_once(prior) -> None:
+    """The float64 points are cast to float32 once per draw, so the prior's memo holds across steps."""
+    arm = prior.arm
+    net = PINN(
+        *arm.state_box.tensors(), *arm.input_box.tensors(), t_max=0.125, hidden=[16, 16], activation="silu",
+        ic="gated", time_basis=[0.004, 0.05], periodic=[0, 1, 2], prior={"kind": "frozen_arm", "system": "planar3"},
+    )  # fmt: skip
+    dm = CollocationDataModule(arm, TAU, 0.125, n_collocation=128, n_data=8, n_val=16, val_h=1e-3, n_anchor=32)
+    dm.setup()
+    module = PINNModule(arm, net, tau=TAU)
+
+    def sets() -> set:
+        """The memo's keys for the collocation and anchor points (the data loss's t = 0 is built anew each call)."""
+        return {k for k in net.prior._memo if k[0][2][0] >= 32}
+
+    first = float(module.losses(dm.batch)["total"].detach())
+    before = sets()
+    assert len(before) == 2
+    assert float(module.losses(dm.batch)["total"].detach()) == first
+    assert sets() == before  # the same copies: nothing recomputed
+    dm.batch["x0"].mul_(1.0)  # changed in place (the same values): a new copy, a new prior for those points
+    module.losses(dm.batch)
+    assert len(sets() - before) == 1
