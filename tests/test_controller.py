@@ -29,7 +29,7 @@ from pinnmpc.controller import (
 )
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.ocp import psd_sqrt
-from pinnmpc.controller.shooting import linearise
+from pinnmpc.controller.shooting import chain_solve, linearise
 from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import Surrogate, load_surrogate
 
@@ -485,6 +485,17 @@ def test_lifted_linearisation_matches_the_rollout_and_its_jacobian(s: Surrogate)
     np.testing.assert_allclose(pred0, X, rtol=0, atol=1e-13)
     np.testing.assert_allclose(sens0.reshape(sens_ref.shape), sens_ref, rtol=0, atol=1e-12)
     assert float(defect0[0]) < 1e-13
+
+
+def test_chain_solve_is_the_block_triangular_solve() -> None:
+    g = np.random.default_rng(5)
+    batch, horizon, nx, k = 3, 4, 5, 6
+    a, rhs = g.normal(size=(batch, horizon, nx, nx)), g.normal(size=(batch, horizon, nx, k))
+    chain = np.zeros((batch, horizon, nx, horizon, nx))  # I - L, L: A_1..A_{H-1} on the block subdiagonal
+    chain[:, np.arange(horizon), :, np.arange(horizon), :] = np.eye(nx)
+    chain[:, np.arange(1, horizon), :, np.arange(horizon - 1), :] = -a[:, 1:].swapaxes(0, 1)
+    dense = np.linalg.solve(chain.reshape(batch, horizon * nx, -1), rhs.reshape(batch, horizon * nx, k))
+    np.testing.assert_allclose(chain_solve(a, rhs).reshape(dense.shape), dense, rtol=1e-10, atol=1e-10)
 
 
 @pytest.mark.parametrize(("name", "kind", "shape"), [("gauss_newton", "sensitivities", (1, 5, NX, 5 * NU)),

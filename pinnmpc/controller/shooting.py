@@ -2,7 +2,7 @@
 
 Single shooting chains the step Jacobians through a rollout (torch or numpy, plus a numpy hot path with a
 receding-horizon warm start); multiple shooting linearises at lifted states in one batched call and
-condenses the chain with one block-triangular solve. Nothing here knows the cost: HorizonOCP turns
+condenses the chain by block forward substitution. Nothing here knows the cost: HorizonOCP turns
 states and sensitivities into residuals and their Jacobian.
 """
 
@@ -94,53 +94,52 @@ def linearise(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Multiple shooting: one batched network call at all nodes (B, H, nx), then the linearised predictions
     x_1..x_H (B, H, nx), their sensitivities to U (B, H*nx, H*nu), the largest defect per problem and the
-    chain matrix; H steps in one call instead of H sequential ones.
+    step Jacobians A_i (B, H, nx, nx) that chain them; H steps in one call instead of H sequential ones.
 
-    The chain x_i = y_i + A_i (x_{i-1} - s_i) over the horizon is one block-triangular solve with the
-    chain matrix I - L (L: the A_i on the block subdiagonal): for the predictions and all H*nu input
-    directions at once.
+    The chain x_i = y_i + A_i (x_{i-1} - s_i) over the horizon is solved for the predictions and all H*nu
+    input directions at once (chain_solve).
     """
     batch, horizon, nx = nodes.shape
     nu = model.nu
     y, a, b = model.step_with_jacobian(nodes, U.reshape(batch, horizon, nu))
-    chain = chain_matrix(a)
     rhs = np.zeros((batch, horizon, nx, horizon * nu + 1))
     blocks = rhs[..., :-1].reshape(batch, horizon, nx, horizon, nu)
     diag = np.arange(horizon)
     blocks[:, diag, :, diag, :] = b.swapaxes(0, 1)  # x_i depends directly on u_i only through B_i
     rhs[..., -1] = y
     rhs[:, 1:, :, -1] -= (a[:, 1:] @ nodes[:, 1:, :, None])[..., 0]
-    sol = np.linalg.solve(chain, rhs.reshape(batch, horizon * nx, -1))
+    sol = chain_solve(a, rhs).reshape(batch, horizon * nx, -1)
     defect = np.abs(y[:, :-1] - nodes[:, 1:]).reshape(batch, -1).max(-1, initial=0.0)
-    return sol[..., -1].reshape(batch, horizon, nx), sol[..., :-1], defect, chain
+    return sol[..., -1].reshape(batch, horizon, nx), sol[..., :-1], defect, a
 
 
 def reached(
-    model: Predictor, x0: np.ndarray, nodes: np.ndarray, U: np.ndarray, chain: np.ndarray, tol_final_defect: float
+    model: Predictor, x0: np.ndarray, nodes: np.ndarray, U: np.ndarray, a: np.ndarray, tol_final_defect: float
 ) -> np.ndarray:
     """The states U reaches from x0 (B, H, nx) without a sequential rollout where the lifted states have converged.
 
-    One batched network call at the final nodes, their defects carried through the last linearisation
-    (x_i - y_i = A_i (x_{i-1} - y_{i-1} + gap_{i-1}), exact to second order in the defects, which are
+    One batched network call at the final nodes, their defects carried through the last linearisation's step
+    Jacobians a (x_i - y_i = A_i (x_{i-1} - y_{i-1} + gap_{i-1}), exact to second order in the defects, which are
     tiny at convergence); a full rollout where one is larger than tol_final_defect.
     """
     batch, horizon, nx = nodes.shape
     y = model.step(nodes, U)
     gap = np.zeros((batch, horizon, nx))  # gap_i = F(s_i, u_i) - s_{i+1}: the defect at the end of step i
     gap[:, :-1] = y[:, :-1] - nodes[:, 1:]
-    X = y + np.linalg.solve(chain, gap.reshape(batch, -1, 1)).reshape(batch, horizon, nx) - gap
+    X = y + chain_solve(a, gap[..., None])[..., 0] - gap
     far = np.flatnonzero(np.abs(gap).reshape(batch, -1).max(-1) > tol_final_defect)
     if far.size:
         X[far] = rollout(model, x0[far], U[far])
     return X
 
 
-def chain_matrix(a: np.ndarray) -> np.ndarray:
-    """I - L for step Jacobians a (B, H, nx, nx), L holding A_1..A_{H-1} on the block subdiagonal: the linearised
-    chain of multiple shooting as one matrix, so one solve condenses it."""
-    batch, horizon, nx, _ = a.shape
-    chain = np.zeros((batch, horizon, nx, horizon, nx))
-    diag, sub = np.arange(horizon), np.arange(1, horizon)
-    chain[:, diag, :, diag, :] = np.eye(nx)
-    chain[:, sub, :, sub - 1, :] = -a[:, 1:].swapaxes(0, 1)
-    return chain.reshape(batch, horizon * nx, horizon * nx)
+def chain_solve(a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """x (B, H, nx, k) with x_0 = r_0, x_i = r_i + A_i x_{i-1}: the linearised chain of multiple shooting
+    ((I - L) x = r, L holding A_1..A_{H-1} on the block subdiagonal) by forward substitution, H small products
+    instead of a dense (H nx)^2 solve."""
+    out = np.empty_like(rhs)
+    out[:, 0] = rhs[:, 0]
+    for i in range(1, rhs.shape[1]):
+        np.matmul(a[:, i], out[:, i - 1], out=out[:, i])
+        out[:, i] += rhs[:, i]
+    return out

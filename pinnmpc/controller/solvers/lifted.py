@@ -89,7 +89,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         for _ in range(self.lifted_max_iter):
             # the whole batch every time (no row gathering: batch-1 solves are dominated by per-op overhead);
             # problems that stopped take no further steps, their states only settle onto the prediction
-            pred, sens, defect, chain = linearise(ocp, nodes, U)
+            pred, sens, defect, steps = linearise(ocp, nodes, U)
             f, jtj, grad = ocp.gauss_newton_model(pred, sens, U, refb, upb)
             if start_cost is None:
                 start_cost = f
@@ -114,7 +114,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             if not running.any():
                 break
         U3 = U.reshape(-1, horizon, nu)
-        X = reached(ocp, x0b, nodes, U3, chain, self.tol_final_defect)
+        X = reached(ocp, x0b, nodes, U3, steps, self.tol_final_defect)
         cost = (ocp.residuals(X, U3, refb, upb) ** 2).sum(-1)
         # a stop is confirmed only where the cost reached keeps the model's promise: above it, the model (states
         # with defects, or a Gauss-Newton model poor under large residuals) was optimistic, and so were the
