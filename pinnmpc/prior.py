@@ -68,16 +68,37 @@ class FrozenArmPrior(nn.Module):
         self.kv = torch.tensor(arm.linear_gain, dtype=torch.float64)  # float64 whatever the network's dtype
         self._memo: dict[tuple[Any, ...], tuple[tuple[Tensor, ...], Tensor, Tensor]] = {}
         self._compiled: dict[float, CompiledPrior] = {}  # per tau: every numpy flow of this network shares one
+        self._terms_c: Callable[[np.ndarray, np.ndarray], list[np.ndarray]] | None = None  # M, c0 in C (no graph)
 
     def __deepcopy__(self, memo: dict) -> FrozenArmPrior:
         """Shared, not copied: it has no state to diverge (its robot model holds modules that do not copy)."""
         return self
 
     def _terms(self, q: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """M, A = M^-1 kv and v_ss (float64, flat batch)."""
-        m, c0 = self.arm.frozen_terms(q, u)
+        """M, A = M^-1 kv and v_ss (float64, flat batch): through adam in torch where a graph is wanted, else the
+        same adam model's CasADi form compiled to C (adam's per-call cost in torch dominates small batches, such as
+        a surrogate stepping one state)."""
+        if q.requires_grad or u.requires_grad:
+            m, c0 = self.arm.frozen_terms(q, u)
+        else:
+            rows = self._compiled_terms()(q.cpu().numpy(), u.cpu().numpy())
+            m, c0 = (torch.from_numpy(a).to(q.device) for a in rows)
+            m = m.reshape(-1, self.nq, self.nq)  # M is symmetric: its column-major vec reads back as M
         a = torch.linalg.solve(m, torch.diag_embed(self.kv.expand_as(q)))
         return m, a, c0 / self.kv
+
+    def _compiled_terms(self) -> Callable[[np.ndarray, np.ndarray], list[np.ndarray]]:
+        """(q, u) rows -> [vec M, c0] rows, compiled once."""
+        if self._terms_c is None:
+            from pinnmpc.flowmap import _Buffered
+            from pinnmpc.systems.compiled import compile_functions
+
+            q, u = ca.SX.sym("q", self.nq), ca.SX.sym("u", self.nq)
+            m, c0 = self.arm.casadi_frozen_terms()(q, u)
+            name = f"{self.arm.name}_frozen_terms_value"
+            f = ca.Function(name, [q, u], [ca.densify(ca.vec(m)), c0], {"cse": True})
+            self._terms_c = _Buffered(compile_functions(name, [f], opt="-O2")[name])
+        return self._terms_c
 
     def _solve(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """x_p(t) and dx_p/dt in float64 for flat inputs."""

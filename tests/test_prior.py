@@ -83,6 +83,7 @@ def test_the_compiled_prior_and_its_jacobian_match_torch_and_finite_differences(
     t = torch.full((6, 1), TAU, dtype=torch.float64)
     x, jac = prior.with_jacobian(t, x0, u)
     np.testing.assert_allclose(xn, x.numpy(), atol=1e-12)
+    np.testing.assert_allclose(prior(t, x0.clone(), u.clone())[0].numpy(), x.numpy(), atol=1e-12)  # M in C, no graph
     np.testing.assert_allclose(jn.reshape(jac.shape), jac.numpy(), atol=1e-11)
     z, eps = torch.cat((x0, u), -1), 1e-6
     for k in range(9):
