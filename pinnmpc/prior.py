@@ -28,7 +28,8 @@ from torch import Tensor, nn
 KINDS = ("frozen_arm",)  # model.prior values besides null
 TAYLOR_DEGREE = 12  # terms of exp(X / 2^s) before squaring; with |X / 2^s| <= 1/2 the remainder is ~1e-14
 SQUARING_NORM = 0.5  # the largest 1-norm of X / 2^s the Taylor series is trusted at
-MEMO_SIZE = 8  # input sets kept (collocation, anchors, validation, data): each holds its inputs alive
+MEMO_SIZE = 8  # input sets kept, least recently used out first (collocation, anchors, validation, and the data
+#   loss's t = 0, new at every step): each holds its inputs alive
 EIGEN_FROM_JOINTS = 5  # arms with this many joints or more differentiate the prior by eigendecomposition
 #   (pinnmpc/prior_eigen.py), smaller ones by CasADi's AD through the series: the cheaper of the two (docs/design.md)
 
@@ -119,13 +120,14 @@ class FrozenArmPrior(nn.Module):
             x, dx = self._solve(*(a.reshape(-1, a.shape[-1]).double() for a in (t, x0, u)))
             return x.to(x0.dtype).reshape(*lead, nx), dx.to(x0.dtype).reshape(*lead, nx)
         key = tensor_key(t, x0, u)
-        hit = self._memo.get(key)
+        hit = self._memo.pop(key, None)  # re-inserted below: the least recently used set goes first
         if hit is None:
             with torch.no_grad():
                 x, dx = self._solve(*(a.reshape(-1, a.shape[-1]).double() for a in (t, x0, u)))
             if len(self._memo) >= MEMO_SIZE:
                 self._memo.pop(next(iter(self._memo)))
-            hit = self._memo[key] = ((t, x0, u), x.to(x0.dtype).reshape(*lead, nx), dx.to(x0.dtype).reshape(*lead, nx))
+            hit = ((t, x0, u), x.to(x0.dtype).reshape(*lead, nx), dx.to(x0.dtype).reshape(*lead, nx))
+        self._memo[key] = hit
         return hit[1], hit[2]
 
     def with_jacobian(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
