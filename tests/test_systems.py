@@ -152,7 +152,7 @@ def test_bad_arm_settings_name_the_setting(changes: dict, fragment: str) -> None
 GROUP_OPTIONS = {
     "controller": ["nmpc", "casadi"],
     "reference": ["builtin"],
-    "experiment": ["paper", "planar3"],
+    "experiment": ["paper", "planar3", "panda"],
 }
 
 
@@ -189,13 +189,14 @@ def _differences(shipped: dict, composed: dict, where: str = "") -> list[str]:
     return out
 
 
-def test_experiment_planar3_is_the_shipped_networks_recipe() -> None:
-    recorded = load_surrogate(system="planar3").meta["config"]
+@pytest.mark.parametrize("system", ["planar3", "panda"])
+def test_each_arms_experiment_is_its_shipped_networks_recipe(system: str) -> None:
+    recorded = load_surrogate(system=system).meta["config"]
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = OmegaConf.to_container(compose("train", ["experiment=planar3"]), resolve=True)
+        cfg = OmegaConf.to_container(compose("train", [f"experiment={system}"]), resolve=True)
     sections = ("system", "model", "data", "module", "trainer", "tau", "t_max", "seed", "stage")
     assert _differences({k: recorded[k] for k in sections}, cfg) == []
-    assert cfg["data"]["n_anchor"] > 4000  # not the defaults: the recipe is what `make train system=planar3` lacks
+    assert cfg["data"]["n_anchor"] > 4000  # not the defaults: the recipe is what `make train system=<arm>` lacks
 
 
 # ---------------------------------------------------------------------------------------------------------------
