@@ -54,13 +54,14 @@ class EigenPriorJacobian:
         kh = ca.DM(np.sqrt(kv))
         q, u, lam, vt = ca.SX.sym("q", n), ca.SX.sym("u", n), ca.SX.sym("lam", n), ca.SX.sym("v", n * n)
         x0 = ca.SX.sym("x", 2 * n)
-        m = arm.casadi_frozen_terms()(q, u)[0]
+        frozen = arm.casadi_frozen_terms()  # (q, u) -> (M, c0), built once, called at q and at q0 below
+        m = frozen(q, u)[0]
         s_of_q = ca.mtimes(ca.diag(kh), ca.solve(m, ca.diag(kh)))  # S = Kh M^-1 Kh
         tag = f"{arm.name}_frozen_eigen"
         spd = ca.Function(f"{tag}_s", [q], [ca.densify(ca.vec(s_of_q))], {"cse": True})
         # the rest at q = q0: V from its row-major rows (CasADi reshapes column-major, so those read as V^T)
         q0, v0 = x0[:n], x0[n:]
-        m, c0 = arm.casadi_frozen_terms()(q0, u)
+        m, c0 = frozen(q0, u)
         vss = c0 / ca.DM(kv)
         vec = ca.reshape(vt, n, n).T
         em = [ca.expm1(-lam[a] * tau) for a in range(n)]
