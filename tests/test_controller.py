@@ -468,6 +468,15 @@ def test_warm_start_reaches_the_same_optimum(
         solver.solve(problem, U_shift, other)  # another solver's warm state belongs to that solver's iterates
 
 
+def test_fast_phase_extrapolates_from_one_ratio() -> None:
+    # a full step whose decrease fell 1e5x below the first: the latest ratio alone extrapolates from the second step
+    # on; a step a bound cut short (not fast) still needs two ratios
+    solver = LiftedGaussNewtonSolver()
+    previous = np.array([[1.0, np.nan], [1.0, np.nan]])
+    left = solver._remaining(np.array([1e-5, 1e-5]), previous, np.array([True, False]))
+    assert left[0] == pytest.approx(1e-5 * 1e-5 / (1 - 1e-5), rel=1e-12) and np.isinf(left[1])
+
+
 def test_lifted_linearisation_matches_the_rollout_and_its_jacobian(s: Surrogate) -> None:
     H, ocp, _, _, g, x0 = _paper_box_problem(s, 35, [1.0, 1.0, 0.0, 0.0])
     U = _uniform(g, (1, H, NU), -0.4, 0.4).numpy()

@@ -194,14 +194,17 @@ class GaussNewtonSolver:
         steps from a poor start the next ratio is small even where convergence is slow. Where fast (this
         step and the one before were full Newton steps of the model, neither cut by a bound) and the latest
         ratio is below fast_ratio, the latest alone counts: the superlinear phase of a nearly zero-residual
-        problem, where the ratio before still carries the first, large steps.
+        problem, where the ratio before still carries the first, large steps. That holds from the second step on
+        (one ratio taken): a warm-started receding-horizon solve is in that phase from its first step, and then
+        stops after two linearisations instead of confirming with a third; cold starts rarely pass the fast test
+        there (docs/design.md, NMPC).
         previous (B, 2) holds the two decreases before this one, latest first; NaN until taken (a NaN
-        ratio extrapolates to infinity).
+        ratio extrapolates to infinity, outside the fast case).
         """
         latest, before = decrease / previous[:, 0], previous[:, 0] / previous[:, 1]
         rho = np.maximum(latest, before)
         if fast is not None:
-            rho = np.where(fast & (latest <= self.fast_ratio) & (before == before), latest, rho)
+            rho = np.where(fast & (latest <= self.fast_ratio), latest, rho)
         return np.where(rho < 1.0, decrease * rho / (1.0 - rho), np.inf)
 
     def _line_search(self, ocp, x0, x_ref, u_prev, u, delta, f, lo, hi, with_jacobian):
