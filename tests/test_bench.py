@@ -261,8 +261,11 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
     cl = result["classical"]
     mismatch = ["pinn_lifted_gauss_newton_friction_0.8", "classical_friction_0.8"]
     mismatch += ["pinn_lifted_gauss_newton_friction_1.2", "classical_friction_1.2"]
-    assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod", *mismatch]
+    assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod", "classical_sqpmethod_rti", *mismatch]
     pinn, classical = cl["rows"]["pinn_lifted_gauss_newton"], cl["rows"]["classical_sqpmethod"]
+    rti = cl["rows"]["classical_sqpmethod_rti"]  # one SQP step per sample from the shifted solution
+    assert rti["solver"] == "casadi-sqpmethod-rti" and rti["status"] == "ok" and rti["steps"] == MAX_STEPS
+    assert "| classical NMPC, casadi-sqpmethod-rti |" in (bench[1] / "bench.md").read_text()
     assert pinn["mae"] == result["closed_loop"]["rows"]["pinn_lifted_gauss_newton"]["mae"]  # reused, same process
     assert classical["solver"] == "casadi-sqpmethod" and classical["model"] == "classical"
     assert classical["status"] == "ok" and classical["steps"] == MAX_STEPS
@@ -284,7 +287,7 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
 def test_classical_alone_runs_its_own_pinn_row_and_extra_solvers(tmp_path: Path) -> None:
     off = [o for o in SECTIONS_OFF if not o.startswith("classical")]
     overrides = [*TINY, *off, "classical.enabled=true", "classical.solvers=[ipopt]", "closed_loop.max_steps=3"]
-    overrides.append("classical.friction_scales=[]")
+    overrides += ["classical.friction_scales=[]", "classical.rti=false"]
     cl = run_bench(_cfg(overrides), tmp_path)["classical"]
     assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod", "classical_ipopt"]
     assert all(r["steps"] == 3 and r["status"] == "ok" for r in cl["rows"].values())

@@ -78,8 +78,11 @@ def bench_classical(
         pinn, _ = run_controller(cfg, system, surrogate, ref, solver, record=False)
         log.info("classical: PINN %s done in %.1f s", solver, pinn["wall_s"])
     rows = {f"pinn_{solver}": {**pinn, "label": f"PINN-MPC, {solver}", "model": "pinn"}}
-    for name in classical_solvers(cfg):
-        controller = build_casadi_nmpc(classical_cfg(cfg, name), system)  # compiled here, outside the timed loop
+    variants = [(name, classical_cfg(cfg, name)) for name in classical_solvers(cfg)]
+    if cfg.classical.get("rti", False) and variants[0][1].solver == "sqpmethod":
+        variants.append(("sqpmethod_rti", OmegaConf.merge(variants[0][1], {"rti": True})))
+    for name, settings in variants:
+        controller = build_casadi_nmpc(settings, system)  # compiled here, outside the timed loop
         row = loop_row(cfg, system, controller, None, system.tau, ref)
         rows[f"classical_{name}"] = {**row, "label": f"classical NMPC, {row['solver']}", "model": "classical"}
         log.info("classical: %s done in %.1f s", row["solver"], row["wall_s"])
