@@ -15,7 +15,7 @@ from torch import Tensor
 from pinnmpc.integrators import n_steps, rk4_step
 from pinnmpc.surrogate import Dimensions
 from pinnmpc.systems.base import Box, System
-from pinnmpc.systems.compiled import compile_functions
+from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
 Array = Any  # a torch Tensor or a numpy array, as the flow map's array_api says
 ARRAY_APIS = ("torch", "numpy")
@@ -144,37 +144,6 @@ class RK4Model(_TrueModel):
         return y.detach()[:, 0], A, B
 
 
-class _Buffered:
-    """A compiled CasADi function over rows of numpy arrays via CasADi's buffer API: at batch 1 the overhead of a
-    Python-level call would otherwise be most of what the step table measures."""
-
-    def __init__(self, f: ca.Function) -> None:
-        sparse = [j for j in range(f.n_out()) if not f.sparsity_out(j).is_dense()]
-        if sparse:  # the buffer holds only the nonzeros, in CasADi's order: read as dense rows they are garbage
-            raise ValueError(f"{f.name()}: outputs {sparse} are sparse; expected dense outputs (ca.densify them)")
-        self.f = f
-        self.sizes = [f.numel_out(j) for j in range(f.n_out())]
-        self._calls: dict[int, tuple[ca.Function, Any, Any]] = {}  # per batch size: function, buffer, evaluator
-
-    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
-        """Inputs (B, n_i) each; outputs (B, m_j) each. Rows are samples: a C-ordered (B, n) array is the
-        column-major (n, B) matrix the mapped function takes, so nothing is transposed."""
-        n = args[0].shape[0]
-        call = self._calls.get(n)
-        if call is None:
-            fm = self.f if n == 1 else self.f.map(n, "serial")
-            call = self._calls[n] = (fm, *fm.buffer())
-        _, buf, evaluate = call
-        args = [np.ascontiguousarray(a, dtype=np.float64) for a in args]
-        outs = [np.empty((n, m)) for m in self.sizes]
-        for i, a in enumerate(args):
-            buf.set_arg(i, memoryview(a))
-        for j, o in enumerate(outs):
-            buf.set_res(j, memoryview(o))
-        evaluate()
-        return outs
-
-
 class CompiledRK4(_TrueModel):
     """The true dynamics integrated by RK4 over the system's CasADi rhs, generated as C and compiled once: the
     classical integrator at its fastest, numpy in and out, with exact Jacobians by CasADi's AD."""
@@ -196,7 +165,7 @@ class CompiledRK4(_TrueModel):
         step = ca.Function(f"{tag}_step", [x, u], [x1])
         full = ca.Function(f"{tag}_jac", [x, u], [x1, ca.densify(ca.vec(jac.T))])  # row-major J = [A, B], flat
         lib = compile_functions(tag, [step, full])
-        self._step, self._full = _Buffered(lib[step.name()]), _Buffered(lib[full.name()])
+        self._step, self._full = BatchedFunction(lib[step.name()]), BatchedFunction(lib[full.name()])
 
     def numpy_flow(self) -> CompiledRK4:
         """Itself: it already works on numpy arrays."""

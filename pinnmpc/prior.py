@@ -91,14 +91,13 @@ class FrozenArmPrior(nn.Module):
     def _compiled_terms(self) -> Callable[[np.ndarray, np.ndarray], list[np.ndarray]]:
         """(q, u) rows -> [vec M, c0] rows, compiled once."""
         if self._terms_c is None:
-            from pinnmpc.flowmap import _Buffered
-            from pinnmpc.systems.compiled import compile_functions
+            from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
             q, u = ca.SX.sym("q", self.nq), ca.SX.sym("u", self.nq)
             m, c0 = self.arm.casadi_frozen_terms()(q, u)
             name = f"{self.arm.name}_frozen_terms_value"
             f = ca.Function(name, [q, u], [ca.densify(ca.vec(m)), c0], {"cse": True})
-            self._terms_c = _Buffered(compile_functions(name, [f], opt="-O2")[name])
+            self._terms_c = BatchedFunction(compile_functions(name, [f], opt="-O2")[name])
         return self._terms_c
 
     def _solve(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
@@ -155,8 +154,7 @@ class FrozenArmPrior(nn.Module):
         eigendecomposition (pinnmpc.prior_eigen); built once per tau and checked against the torch form."""
         if tau in self._compiled:
             return self._compiled[tau]
-        from pinnmpc.flowmap import _Buffered
-        from pinnmpc.systems.compiled import compile_functions
+        from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
         n, s, kv = self.nq, self.squarings(tau), ca.DM(self.kv.numpy())
         x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
@@ -173,15 +171,17 @@ class FrozenArmPrior(nn.Module):
             from pinnmpc.prior_eigen import EigenPriorJacobian
 
             lib = compile_functions(tag, [value], opt="-O2")
-            fast = CompiledPrior(_Buffered(lib[value.name()]), EigenPriorJacobian(self.arm, tau, self.kv.numpy()))
+            fast = CompiledPrior(BatchedFunction(lib[value.name()]), EigenPriorJacobian(self.arm, tau, self.kv.numpy()))
         else:
             # x_p is linear in (v0, v_ss) given q0: those columns are E's blocks; AD only along q0, through M and E
             by_v0 = ca.vertcat(lag, e)
             by_vss = ca.vertcat(tau * ca.SX.eye(n) - lag, ca.SX.eye(n) - e)
             jac = ca.horzcat(ca.jacobian(xp, q0), by_v0, ca.mtimes(by_vss, ca.jacobian(vss, u)))
-            full = ca.Function(tag, [x, u], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})  # dense: _Buffered's rows
+            full = ca.Function(
+                tag, [x, u], [xp, ca.densify(ca.vec(jac.T))], {"cse": True}
+            )  # dense: BatchedFunction's rows
             lib = compile_functions(tag, [value, full], opt="-O2")
-            fast = CompiledPrior(_Buffered(lib[value.name()]), _Buffered(lib[full.name()]))
+            fast = CompiledPrior(BatchedFunction(lib[value.name()]), BatchedFunction(lib[full.name()]))
         self._check_compiled(fast.with_jacobian, tau)
         self._compiled[tau] = fast
         return fast

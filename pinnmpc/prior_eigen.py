@@ -47,8 +47,7 @@ class EigenPriorJacobian:
     S by one compiled function, its eigendecomposition by numpy, the rest by a second compiled function."""
 
     def __init__(self, arm: RigidArm, tau: float, kv: np.ndarray) -> None:
-        from pinnmpc.flowmap import _Buffered
-        from pinnmpc.systems.compiled import compile_functions
+        from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
         n = self.n = arm.nq
         kh = ca.DM(np.sqrt(kv))
@@ -88,7 +87,7 @@ class EigenPriorJacobian:
         xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d))
         rest = ca.Function(tag, [x0, u, lam, vt], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})
         lib = compile_functions(tag, [spd, rest], opt="-O2")
-        self.spd, self.rest = _Buffered(lib[spd.name()]), _Buffered(lib[rest.name()])
+        self.spd, self.rest = BatchedFunction(lib[spd.name()]), BatchedFunction(lib[rest.name()])
 
     def __call__(self, x0: np.ndarray, u: np.ndarray) -> list[np.ndarray]:
         """[x_p (B, nx), J (B, nx (nx + nu)) row-major], the CompiledPrior.with_jacobian contract."""

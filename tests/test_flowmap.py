@@ -13,11 +13,12 @@ import torch
 
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.flow_numpy import NumpyFlow
-from pinnmpc.flowmap import CompiledRK4, FlowMap, RK4Model, _Buffered, check_flow_map, numpy_path
+from pinnmpc.flowmap import CompiledRK4, FlowMap, RK4Model, check_flow_map, numpy_path
 from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.systems import load_system
 from pinnmpc.systems.base import System
+from pinnmpc.systems.compiled import BatchedFunction
 
 SYSTEMS = ("powercube", "planar3")
 KINDS = ("surrogate", "numpy", "rk4_torch", "rk4_compiled")
@@ -206,4 +207,4 @@ def test_a_compiled_jacobian_with_structural_zeros_comes_out_right() -> None:
 def test_a_sparse_compiled_output_is_refused_not_misread() -> None:
     sym = ca.SX.sym("x", 2)
     with pytest.raises(ValueError, match="outputs \\[0\\] are sparse; expected dense outputs"):
-        _Buffered(ca.Function("sparse", [sym], [ca.jacobian(ca.vertcat(sym[0], 0), sym)]))
+        BatchedFunction(ca.Function("sparse", [sym], [ca.jacobian(ca.vertcat(sym[0], 0), sym)]))

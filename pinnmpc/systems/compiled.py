@@ -14,6 +14,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -66,21 +67,35 @@ def compile_functions(name: str, functions: list[ca.Function], opt: str = "-O1")
 
 
 class BatchedFunction:
-    """A CasADi function of column vectors evaluated over a batch (rows of numpy arrays), maps cached per size."""
+    """A compiled CasADi function over rows of numpy arrays via CasADi's buffer API: no DM conversions or transposes
+    (at batch 1 a Python-level call's overhead would be most of a controller step; at training size the
+    conversions a sizeable share of the rhs)."""
 
     def __init__(self, f: ca.Function) -> None:
+        sparse = [j for j in range(f.n_out()) if not f.sparsity_out(j).is_dense()]
+        if sparse:  # the buffer holds only the nonzeros, in CasADi's order: read as dense rows they are garbage
+            raise ValueError(f"{f.name()}: outputs {sparse} are sparse; expected dense outputs (ca.densify them)")
         self.f = f
-        self._maps: dict[int, ca.Function] = {}
+        self.sizes = [f.numel_out(j) for j in range(f.n_out())]
+        self._calls: dict[int, tuple[ca.Function, Any, Any]] = {}  # per batch size: function, buffer, evaluator
 
     def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
-        """Inputs (B, n_i) each; outputs (B, m_j) each."""
+        """Inputs (B, n_i) each; outputs (B, m_j) each. Rows are samples: a C-ordered (B, n) array is the
+        column-major (n, B) matrix the mapped function takes, so nothing is transposed."""
         n = args[0].shape[0]
-        fm = self._maps.get(n)
-        if fm is None:
-            fm = self._maps[n] = self.f.map(n, "serial")
-        out = fm(*[np.ascontiguousarray(a.T) for a in args])
-        out = out if isinstance(out, list | tuple) else [out]
-        return [np.asarray(o).reshape(-1, n).T for o in out]
+        call = self._calls.get(n)
+        if call is None:
+            fm = self.f if n == 1 else self.f.map(n, "serial")
+            call = self._calls[n] = (fm, *fm.buffer())
+        _, buf, evaluate = call
+        args = [np.ascontiguousarray(a, dtype=np.float64) for a in args]
+        outs = [np.empty((n, m)) for m in self.sizes]
+        for i, a in enumerate(args):
+            buf.set_arg(i, memoryview(a))
+        for j, o in enumerate(outs):
+            buf.set_res(j, memoryview(o))
+        evaluate()
+        return outs
 
 
 class CompiledRhs:
@@ -90,8 +105,8 @@ class CompiledRhs:
         x, u = ca.SX.sym("x", f.size1_in(0)), ca.SX.sym("u", f.size1_in(1))
         y, ybar = f(x, u), ca.SX.sym("ybar", f.size1_out(0))
         outputs = [ca.jtimes(y, x, ybar, True), ca.jtimes(y, u, ybar, True)]  # x-bar, u-bar = J^T ybar
-        vjp = ca.Function(f"{name}_vjp", [x, u, ybar], outputs, {"cse": True})
-        fwd = ca.Function(f"{name}_rhs", [x, u], [y], {"cse": True})
+        vjp = ca.Function(f"{name}_vjp", [x, u, ybar], [ca.densify(o) for o in outputs], {"cse": True})
+        fwd = ca.Function(f"{name}_rhs", [x, u], [ca.densify(y)], {"cse": True})
         lib = compile_functions(name, [fwd, vjp])
         self.rhs = BatchedFunction(lib[f"{name}_rhs"])
         self.vjp = BatchedFunction(lib[f"{name}_vjp"])
