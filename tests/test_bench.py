@@ -385,7 +385,8 @@ def test_planar3_bench_is_generic(planar3: tuple[dict[str, Any], Path]) -> None:
     for row in [*cl["rows"].values(), *cl["references"].values(), *result["classical"]["rows"].values()]:
         assert row["steps"] == P3_STEPS and set(row["mae"]) == set(names)
     mismatch = [f"{who}_friction_{f}" for f in ("0.8", "1.2") for who in ("pinn_lifted_gauss_newton", "classical")]
-    assert list(result["classical"]["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod", *mismatch]
+    rows = ["pinn_lifted_gauss_newton", "classical_sqpmethod", "classical_sqpmethod_rti", *mismatch]
+    assert list(result["classical"]["rows"]) == rows  # the real-time iteration: classical.rti, on by default
     targets = {t["what"]: t for t in result["targets"]}
     assert targets["one-step RMSE q_joint1"]["limit"] == 1e-3  # conf/system/planar3.yaml
     md = (run_dir / "bench.md").read_text()
