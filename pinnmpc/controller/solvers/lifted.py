@@ -51,6 +51,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     fast_ratio: float = 1e-3  # a full step whose predicted decrease fell below this x the one before: see _remaining
     lifted_max_iter: int = 5  # lifted iterations before single shooting (max_iter more) takes over
     tol_final_defect: float = 1e-8  # the cost reached is measured by a full rollout where a defect exceeds this
+    rti: bool = False  # real-time iteration: one step from the last plan's states per solve (see _rti_step)
 
     def solve(
         self, problem: Problem, U0: Array, warm: LiftedWarm | NoWarm = NO_WARM
@@ -78,6 +79,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         nodes[:, 0] = x0b
         if prior is not None:  # the last plan's states x_2..x_H are this plan's s_1..s_{H-1}
             nodes[:, 1:] = prior[:, 1:]
+            if self.rti:
+                return self._rti_step(ocp, nodes, U, refb, upb, lo, hi, shape)
         else:
             nodes[:, 1:] = ocp.rollout(x0b, U.reshape(-1, horizon, nu))[:, :-1]
         start_cost = None  # the model's cost of U0 at the first linearisation
@@ -140,6 +143,19 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             running[rows] = ~sub[3]
             X[rows] = ocp.rollout(x0b[rows], U[rows].reshape(-1, horizon, nu))
         return result(shape, project(U, lo, hi), iterations, cost, ~running, X)
+
+    def _rti_step(self, ocp, nodes, U, refb, upb, lo, hi, shape):
+        """Real-time iteration, the PINN counterpart of the classical controller's rti: one lifted Gauss-Newton step
+        from the last plan's states, no convergence test and no further network call (the states and cost reported
+        are the step's linearised prediction; the problem counts as unconverged). Without a last plan, a full solve."""
+        batch, horizon, nx = nodes.shape
+        pred, sens, _, _ = linearise(ocp, nodes, U)
+        f, jtj, grad = ocp.gauss_newton_model(pred, sens, U, refb, upb)
+        delta, _, predicted, _ = newton_step(jtj, grad, U, lo, hi, self.damping)
+        step = np.clip(U + delta, lo, hi) - U
+        states = (pred.reshape(batch, -1) + (sens @ step[..., None])[..., 0]).reshape(batch, horizon, nx)
+        ones, unconverged = np.ones(batch, dtype=np.int64), np.zeros(batch, dtype=bool)
+        return result(shape, U + step, ones, f - predicted, unconverged, states)
 
     def _uses_warm(self, ocp: HorizonOCP) -> bool:
         """Whether a warm start can help here: the states warm start needs the numpy surrogate."""
