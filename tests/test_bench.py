@@ -261,11 +261,15 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
     cl = result["classical"]
     mismatch = ["pinn_lifted_gauss_newton_friction_0.8", "classical_friction_0.8"]
     mismatch += ["pinn_lifted_gauss_newton_friction_1.2", "classical_friction_1.2"]
-    assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod", "classical_sqpmethod_rti", *mismatch]
+    rti_rows = ["pinn_lifted_gauss_newton_rti", "classical_sqpmethod", "classical_sqpmethod_rti"]
+    assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", *rti_rows, *mismatch]
     pinn, classical = cl["rows"]["pinn_lifted_gauss_newton"], cl["rows"]["classical_sqpmethod"]
     rti = cl["rows"]["classical_sqpmethod_rti"]  # one SQP step per sample from the shifted solution
     assert rti["solver"] == "casadi-sqpmethod-rti" and rti["status"] == "ok" and rti["steps"] == MAX_STEPS
-    assert "| classical NMPC, casadi-sqpmethod-rti |" in (bench[1] / "bench.md").read_text()
+    pinn_rti = cl["rows"]["pinn_lifted_gauss_newton_rti"]  # one lifted step per sample: unconverged after the first
+    assert pinn_rti["status"] == "ok" and pinn_rti["converged_fraction"] == pytest.approx(1 / MAX_STEPS)
+    md = (bench[1] / "bench.md").read_text()
+    assert "| classical NMPC, casadi-sqpmethod-rti |" in md and "| PINN-MPC, lifted_gauss_newton, real-time" in md
     assert pinn["mae"] == result["closed_loop"]["rows"]["pinn_lifted_gauss_newton"]["mae"]  # reused, same process
     assert classical["solver"] == "casadi-sqpmethod" and classical["model"] == "classical"
     assert classical["status"] == "ok" and classical["steps"] == MAX_STEPS
@@ -385,7 +389,8 @@ def test_planar3_bench_is_generic(planar3: tuple[dict[str, Any], Path]) -> None:
     for row in [*cl["rows"].values(), *cl["references"].values(), *result["classical"]["rows"].values()]:
         assert row["steps"] == P3_STEPS and set(row["mae"]) == set(names)
     mismatch = [f"{who}_friction_{f}" for f in ("0.8", "1.2") for who in ("pinn_lifted_gauss_newton", "classical")]
-    rows = ["pinn_lifted_gauss_newton", "classical_sqpmethod", "classical_sqpmethod_rti", *mismatch]
+    rows = ["pinn_lifted_gauss_newton", "pinn_lifted_gauss_newton_rti", "classical_sqpmethod"]
+    rows += ["classical_sqpmethod_rti", *mismatch]
     assert list(result["classical"]["rows"]) == rows  # the real-time iteration: classical.rti, on by default
     targets = {t["what"]: t for t in result["targets"]}
     assert targets["one-step RMSE q_joint1"]["limit"] == 1e-3  # conf/system/planar3.yaml

@@ -78,8 +78,13 @@ def bench_classical(
         pinn, _ = run_controller(cfg, system, surrogate, ref, solver, record=False)
         log.info("classical: PINN %s done in %.1f s", solver, pinn["wall_s"])
     rows = {f"pinn_{solver}": {**pinn, "label": f"PINN-MPC, {solver}", "model": "pinn"}}
+    rti = bool(cfg.classical.get("rti", False))
+    if rti and solver == "lifted_gauss_newton" and not cfg.controller.solvers[solver].get("rti", False):
+        # both controllers at their cheapest as well: the PINN's real-time iteration beside the classical one's
+        fast, _ = run_controller(cfg, system, surrogate, ref, solver, record=False, solvers={solver: {"rti": True}})
+        rows[f"pinn_{solver}_rti"] = {**fast, "label": f"PINN-MPC, {solver}, real-time iteration", "model": "pinn"}
     variants = [(name, classical_cfg(cfg, name)) for name in classical_solvers(cfg)]
-    if cfg.classical.get("rti", False) and variants[0][1].solver == "sqpmethod":
+    if rti and variants[0][1].solver == "sqpmethod":
         variants.append(("sqpmethod_rti", OmegaConf.merge(variants[0][1], {"rti": True})))
     for name, settings in variants:
         controller = build_casadi_nmpc(settings, system)  # compiled here, outside the timed loop
