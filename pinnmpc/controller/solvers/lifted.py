@@ -109,8 +109,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             step = np.where(go[:, None], np.clip(U + delta, lo, hi) - U, 0.0)
             U += step
             # the states move to the linearised prediction (within the defect tolerance for those that stop)
-            moved = pred.reshape(batch, -1) + (sens @ step[..., None])[..., 0]
-            nodes[:, 1:] = moved.reshape(batch, horizon, nx)[:, :-1]
+            nodes[:, 1:] = _moved(pred, sens, step)[:, :-1]
             stops = running & ~(go & ~last)
             promised[stops] = (f - np.where(go, predicted, 0.0))[stops]
             running &= ~stops
@@ -148,12 +147,12 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         """Real-time iteration, the PINN counterpart of the classical controller's rti: one lifted Gauss-Newton step
         from the last plan's states, no convergence test and no further network call (the states and cost reported
         are the step's linearised prediction; the problem counts as unconverged). Without a last plan, a full solve."""
-        batch, horizon, nx = nodes.shape
+        batch = nodes.shape[0]
         pred, sens, _, _ = linearise(ocp, nodes, U)
         f, jtj, grad = ocp.gauss_newton_model(pred, sens, U, refb, upb)
         delta, _, predicted, _ = newton_step(jtj, grad, U, lo, hi, self.damping)
         step = np.clip(U + delta, lo, hi) - U
-        states = (pred.reshape(batch, -1) + (sens @ step[..., None])[..., 0]).reshape(batch, horizon, nx)
+        states = _moved(pred, sens, step)
         ones, unconverged = np.ones(batch, dtype=np.int64), np.zeros(batch, dtype=bool)
         return result(shape, U + step, ones, f - predicted, unconverged, states)
 
@@ -165,3 +164,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     def _warm_shape(ocp: HorizonOCP) -> tuple[int, ...]:
         """Shape per problem of the warm array this solver takes: the last plan's states x_1..x_H."""
         return (ocp.horizon, ocp.nx)
+
+
+def _moved(pred: np.ndarray, sens: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """The linearised prediction (B, H, nx) of the states after an input step: predictions plus sensitivities x step."""
+    return pred + (sens @ step[..., None])[..., 0].reshape(pred.shape)
