@@ -61,7 +61,7 @@ def build_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box |
         cfg.checkpoint, system=system.name if cfg.checkpoint is None else None, state_names=system.state_names
     )
     check_input_bounds(cfg, surrogate.input_box)
-    return build_nmpc(cfg.controller, surrogate), surrogate.domain, surrogate.tau
+    return build_nmpc(cfg.controller, surrogate, system), surrogate.domain, surrogate.tau
 
 
 def bounds_outside(cfg: DictConfig, box: Box) -> list[str]:

@@ -79,6 +79,8 @@ def check_flow_map(model: Any) -> None:
 class _TrueModel(Dimensions):
     """Names and boxes of a system, shared by the true-model flow maps."""
 
+    prediction: ClassVar[str] = "true_model"  # what an NMPC on it predicts with, for metrics.json
+
     def __init__(self, system: System, tau: float, h: float) -> None:
         if not (tau > 0 and h > 0):
             raise ValueError(f"tau and h must be positive, got tau={tau}, h={h}")
@@ -190,3 +192,45 @@ class CompiledRK4(_TrueModel):
         x1, jac = self._full(xf, uf)
         jac = jac.reshape(*lead, self.nx, self.nx + self.nu)
         return x1.reshape(*lead, self.nx), jac[..., : self.nx], jac[..., self.nx :]
+
+
+class ExactValues(Dimensions):
+    """The true model's predictions with the surrogate's Jacobians: Gauss-Newton on this map converges to plans
+    that obey the true dynamics (an inexact-Jacobian Newton method), while the costly sensitivities, which
+    dominate a classical solve, still come from one batched network call. The true model is integrated, values only."""
+
+    array_api: ClassVar[str] = "numpy"
+    prediction: ClassVar[str] = "exact_values"  # controller.model that builds it, for metrics.json
+    approximate_jacobians: ClassVar[bool] = True  # A, B are not the derivatives of step(): solvers' models are inexact
+
+    def __init__(self, surrogate: Any, exact: FlowMap) -> None:
+        check_flow_map(surrogate)
+        jac = numpy_path(surrogate)
+        if jac is None:
+            raise TypeError(f"{type(surrogate).__name__} has no numpy fast path; exact values need one for the Jacobians")
+        if abs(exact.tau - surrogate.tau) > 1e-12:
+            raise ValueError(f"the exact model's tau={exact.tau} differs from the surrogate's tau={surrogate.tau}")
+        if tuple(exact.state_names) != tuple(surrogate.state_names):
+            raise ValueError(
+                f"the exact model's states {list(exact.state_names)} differ from the surrogate's "
+                f"{list(surrogate.state_names)} (a surrogate of another system?)"
+            )
+        self.jacobians, self.exact = jac, numpy_path(exact) or exact
+        self.tau = float(surrogate.tau)
+        self.state_names, self.input_names = tuple(surrogate.state_names), tuple(surrogate.input_names)
+        self.state_box: Box = surrogate.state_box
+        self.input_box: Box = surrogate.input_box
+        self.domain = getattr(surrogate, "domain", None)
+
+    def numpy_flow(self) -> ExactValues:
+        """Itself: it already works on numpy arrays."""
+        return self
+
+    def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """x(tau) by the true model."""
+        return self.exact.step(x0, u)
+
+    def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x(tau) by the true model; A and B by the surrogate."""
+        _, A, B = self.jacobians.step_with_jacobian(x0, u)
+        return self.exact.step(x0, u), A, B

@@ -261,8 +261,15 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
     cl = result["classical"]
     mismatch = ["pinn_lifted_gauss_newton_friction_0.8", "classical_friction_0.8"]
     mismatch += ["pinn_lifted_gauss_newton_friction_1.2", "classical_friction_1.2"]
-    rti_rows = ["pinn_lifted_gauss_newton_rti", "classical_sqpmethod", "classical_sqpmethod_rti"]
+    exact_rows = ["pinn_lifted_gauss_newton_exact_values", "pinn_lifted_gauss_newton_exact_values_rti"]
+    rti_rows = ["pinn_lifted_gauss_newton_rti", *exact_rows, "classical_sqpmethod", "classical_sqpmethod_rti"]
     assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", *rti_rows, *mismatch]
+    exact, exact_rti = (cl["rows"][r] for r in exact_rows)  # the true model's values, the PINN's Jacobians
+    assert exact["prediction"] == exact_rti["prediction"] == "exact_values" and exact["status"] == "ok"
+    assert exact_rti["converged_fraction"] == pytest.approx(1 / MAX_STEPS)
+    assert cl["rows"]["pinn_lifted_gauss_newton"]["prediction"] == "surrogate"
+    surrogate_only = cl["rows"]["pinn_lifted_gauss_newton"]["mae"]
+    assert all(exact["mae"][k] < 0.1 * surrogate_only[k] for k in ("alpha", "beta"))  # measured: 1/285 and 1/71
     pinn, classical = cl["rows"]["pinn_lifted_gauss_newton"], cl["rows"]["classical_sqpmethod"]
     rti = cl["rows"]["classical_sqpmethod_rti"]  # one SQP step per sample from the shifted solution
     assert rti["solver"] == "casadi-sqpmethod-rti" and rti["status"] == "ok" and rti["steps"] == MAX_STEPS
@@ -291,7 +298,7 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
 def test_classical_alone_runs_its_own_pinn_row_and_extra_solvers(tmp_path: Path) -> None:
     off = [o for o in SECTIONS_OFF if not o.startswith("classical")]
     overrides = [*TINY, *off, "classical.enabled=true", "classical.solvers=[ipopt]", "closed_loop.max_steps=3"]
-    overrides += ["classical.friction_scales=[]", "classical.rti=false"]
+    overrides += ["classical.friction_scales=[]", "classical.rti=false", "classical.exact_values=false"]
     cl = run_bench(_cfg(overrides), tmp_path)["classical"]
     assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", "classical_sqpmethod", "classical_ipopt"]
     assert all(r["steps"] == 3 and r["status"] == "ok" for r in cl["rows"].values())
@@ -389,8 +396,8 @@ def test_planar3_bench_is_generic(planar3: tuple[dict[str, Any], Path]) -> None:
     for row in [*cl["rows"].values(), *cl["references"].values(), *result["classical"]["rows"].values()]:
         assert row["steps"] == P3_STEPS and set(row["mae"]) == set(names)
     mismatch = [f"{who}_friction_{f}" for f in ("0.8", "1.2") for who in ("pinn_lifted_gauss_newton", "classical")]
-    rows = ["pinn_lifted_gauss_newton", "pinn_lifted_gauss_newton_rti", "classical_sqpmethod"]
-    rows += ["classical_sqpmethod_rti", *mismatch]
+    rows = ["pinn_lifted_gauss_newton", "pinn_lifted_gauss_newton_rti", "pinn_lifted_gauss_newton_exact_values"]
+    rows += ["pinn_lifted_gauss_newton_exact_values_rti", "classical_sqpmethod", "classical_sqpmethod_rti", *mismatch]
     assert list(result["classical"]["rows"]) == rows  # the real-time iteration: classical.rti, on by default
     targets = {t["what"]: t for t in result["targets"]}
     assert targets["one-step RMSE q_joint1"]["limit"] == 1e-3  # conf/system/planar3.yaml

@@ -786,7 +786,7 @@ def test_build_nmpc_from_shipped_config(s: Surrogate) -> None:
     assert isinstance(nmpc.solver, LiftedGaussNewtonSolver)
     assert (nmpc.solver.max_iter, nmpc.solver.tol_grad, nmpc.solver.damping) == (30, 1e-9, 1e-9)
     assert nmpc.solver.tol_defect == 1e-10
-    assert nmpc.warm_start is True
+    assert nmpc.warm_start is True and nmpc.ocp.model is s  # controller.model: surrogate
     torch.testing.assert_close(nmpc.low, torch.tensor(s.input_box.low, dtype=F64))
     torch.testing.assert_close(nmpc.high, torch.tensor(s.input_box.high, dtype=F64))
     assert nmpc.ocp.n_residuals == 5 * (NX + NU)  # R_rate: null switches the rate term off
@@ -822,6 +822,7 @@ def test_build_nmpc_with_overrides(s: Surrogate) -> None:
         ({"solver": "adam"}, "unknown solver 'adam'"),
         ({"horizon": 0}, "horizon must be >= 1"),
         ({"solvers.lifted_gauss_newton.max_iters": 3}, "max_iters"),
+        ({"model": "exact_values"}, "needs the system's true model \\(build_nmpc\\(..., system=...\\)\\)"),
     ],
 )
 def test_build_nmpc_rejects_bad_config(s: Surrogate, overrides: dict, fragment: str) -> None:

@@ -13,7 +13,7 @@ import torch
 
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.flow_numpy import NumpyFlow
-from pinnmpc.flowmap import CompiledRK4, FlowMap, RK4Model, check_flow_map, numpy_path
+from pinnmpc.flowmap import CompiledRK4, ExactValues, FlowMap, RK4Model, check_flow_map, numpy_path
 from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.systems import load_system
@@ -208,3 +208,28 @@ def test_a_sparse_compiled_output_is_refused_not_misread() -> None:
     sym = ca.SX.sym("x", 2)
     with pytest.raises(ValueError, match="outputs \\[0\\] are sparse; expected dense outputs"):
         BatchedFunction(ca.Function("sparse", [sym], [ca.jacobian(ca.vertcat(sym[0], 0), sym)]))
+
+
+def test_exact_values_take_the_true_models_values_and_the_surrogates_jacobians(maps: dict, systems: dict) -> None:
+    for name in SYSTEMS:
+        exact, net = maps[name, "rk4_compiled"], maps[name, "numpy"]
+        model = ExactValues(maps[name, "surrogate"], exact)
+        check_flow_map(model)
+        assert model.array_api == "numpy" and model.approximate_jacobians and numpy_path(model) is model
+        assert (model.state_box, model.input_box) == (net.state_box, net.input_box)  # valid where the network is
+        x, u = _points(systems[name], (2, 3), seed=11)
+        y, A, B = model.step_with_jacobian(x, u)
+        np.testing.assert_array_equal(y, exact.step(x, u))
+        np.testing.assert_array_equal(model.step(x, u), y)
+        _, A_net, B_net = net.step_with_jacobian(x, u)
+        np.testing.assert_array_equal(A, A_net)
+        np.testing.assert_array_equal(B, B_net)
+        assert not np.allclose(y, net.step(x, u), atol=1e-6)  # the values really are another model's
+
+
+def test_exact_values_refuse_a_model_of_another_system(maps: dict) -> None:
+    surrogate = maps["powercube", "surrogate"]
+    with pytest.raises(ValueError, match="the exact model's states .* differ from the surrogate's"):
+        ExactValues(surrogate, CompiledRK4(load_system("planar3"), surrogate.tau, 0.0025))
+    with pytest.raises(ValueError, match="tau=0.1 differs from the surrogate's tau=0.2"):
+        ExactValues(surrogate, CompiledRK4(load_system("powercube"), 0.1, 0.02))

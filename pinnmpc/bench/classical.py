@@ -57,6 +57,22 @@ def mismatch_rows(
     return {f"pinn_{solver}_friction_{scale:g}": pinn, f"classical_friction_{scale:g}": row}
 
 
+def exact_value_rows(
+    cfg: DictConfig, system: System, surrogate: Surrogate, ref: Reference, solver: str, rti: bool
+) -> dict[str, dict[str, Any]]:
+    """The PINN controller predicting with the true model's values and the PINN's Jacobians (controller.model=
+    exact_values): converged, and as a real-time iteration when rti is on."""
+    rows = {}
+    for fast in (False, True) if rti and solver == "lifted_gauss_newton" else (False,):
+        changes = {"model": "exact_values", "solvers": {solver: {"rti": fast}}}
+        row, _ = run_controller(cfg, system, surrogate, ref, solver, record=False, **changes)
+        tail = ", real-time iteration" if fast else ""
+        label = f"PINN-MPC, {solver}, exact values (true model's values, PINN's Jacobians){tail}"
+        rows[f"pinn_{solver}_exact_values{'_rti' if fast else ''}"] = {**row, "label": label, "model": "pinn"}
+        log.info("classical: PINN %s with exact values%s done in %.1f s", solver, tail, row["wall_s"])
+    return rows
+
+
 def bench_classical(
     cfg: DictConfig,
     system: System,
@@ -83,6 +99,8 @@ def bench_classical(
         # both controllers at their cheapest as well: the PINN's real-time iteration beside the classical one's
         fast, _ = run_controller(cfg, system, surrogate, ref, solver, record=False, solvers={solver: {"rti": True}})
         rows[f"pinn_{solver}_rti"] = {**fast, "label": f"PINN-MPC, {solver}, real-time iteration", "model": "pinn"}
+    if cfg.classical.get("exact_values", False):
+        rows.update(exact_value_rows(cfg, system, surrogate, ref, solver, rti))
     variants = [(name, classical_cfg(cfg, name)) for name in classical_solvers(cfg)]
     if rti and variants[0][1].solver == "sqpmethod":
         variants.append(("sqpmethod_rti", OmegaConf.merge(variants[0][1], {"rti": True})))

@@ -87,6 +87,7 @@ def loop_row(
     return {
         "solver": str(m["solver"]),
         "disturbance_gain": float(m["disturbance_gain"]),
+        "prediction": str(m["prediction"]),
         "status": m["status"],
         "steps": int(m["steps"]),
         "mae": m["mae"],
@@ -102,14 +103,14 @@ def loop_row(
 
 
 def run_controller(
-    cfg: DictConfig, system: System, model: FlowMap, ref: Reference, solver: str, record: bool, **changes: Any
+    cfg: DictConfig, system: System, flow: FlowMap, ref: Reference, solver: str, record: bool, **changes: Any
 ) -> tuple[dict[str, Any], list[OCPProblem]]:
     """The configured NMPC with `solver` on a flow map, one closed loop; the row and, when asked, its OCPs."""
-    nmpc = build_nmpc(controller_cfg(cfg, solver=solver, **changes), model)
+    nmpc = build_nmpc(controller_cfg(cfg, solver=solver, **changes), flow, system)
     recorder = RecordingSolver(nmpc.solver) if record else None
     if recorder is not None:
         nmpc.solver = recorder
-    row = loop_row(cfg, system, nmpc, getattr(model, "domain", None), model.tau, ref)
+    row = loop_row(cfg, system, nmpc, getattr(flow, "domain", None), flow.tau, ref)
     row["solver"] = solver
     return row, (recorder.problems if recorder is not None else [])
 

@@ -54,6 +54,11 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Run the enabled sections; write bench.json, bench.md and plots into run_dir; return the JSON content."""
     run_dir = Path(run_dir)
     use_threads(cfg.threads)
+    if cfg.controller.get("model", "surrogate") != "surrogate":
+        raise ValueError(
+            f"controller.model={cfg.controller.model!r}: the bench studies the surrogate's controller and adds the "
+            "exact_values rows to section 6 itself (classical.exact_values=true); leave controller.model=surrogate"
+        )
     system: System = build_system(cfg.system)
     names = tuple(system.state_names)
     pinn64 = load_pinn(cfg, system)

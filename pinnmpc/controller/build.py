@@ -9,7 +9,12 @@ from omegaconf import DictConfig, OmegaConf
 from pinnmpc.controller.nmpc import NMPC
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers import make_solver
+from pinnmpc.flowmap import CompiledRK4, ExactValues, FlowMap
 from pinnmpc.surrogate import Surrogate
+from pinnmpc.systems.base import System
+
+MODELS = ("surrogate", "exact_values")  # controller.model: what the OCP predicts with
+GAUSS_NEWTON = ("lifted_gauss_newton", "gauss_newton")  # the solvers that take a numpy model's Jacobians
 
 OPTIONAL = {  # what a Python caller may leave out (conf/controller/nmpc.yaml sets all of it for the CLIs)
     "R_rate": None,
@@ -20,17 +25,44 @@ OPTIONAL = {  # what a Python caller may leave out (conf/controller/nmpc.yaml se
     "solvers": {},
     "disturbance": {},
     "joint_limits": None,
+    "model": "surrogate",
+    "exact_rk4_steps": None,
 }
 
 
-def build_nmpc(cfg: Any, surrogate: Surrogate) -> NMPC:
+def prediction_model(cfg: dict[str, Any], surrogate: Surrogate, system: System | None) -> FlowMap:
+    """What the OCP predicts with (controller.model): the surrogate alone (the PINN replaces integration), or the
+    true model's values, integrated by compiled RK4, with the surrogate's Jacobians (plans obey the true dynamics)."""
+    kind = cfg["model"]
+    if kind not in MODELS:
+        raise ValueError(f"controller.model={kind!r}; expected one of {list(MODELS)}")
+    if kind == "surrogate":
+        return surrogate
+    if cfg["solver"] not in GAUSS_NEWTON:
+        raise ValueError(
+            f"controller.model=exact_values needs a Gauss-Newton solver {list(GAUSS_NEWTON)} (its values are numpy, "
+            f"not differentiable by torch), got controller.solver={cfg['solver']!r}"
+        )
+    if system is None:
+        raise ValueError("controller.model=exact_values needs the system's true model (build_nmpc(..., system=...))")
+    steps = cfg["exact_rk4_steps"]
+    if steps is None:
+        from pinnmpc.controller.casadi_ocp import stable_rk4_steps
+
+        steps = stable_rk4_steps(system, surrogate.tau)
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"controller.exact_rk4_steps={steps!r}; expected a whole number >= 1 or null (automatic)")
+    return ExactValues(surrogate, CompiledRK4(system, surrogate.tau, surrogate.tau / steps))
+
+
+def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> NMPC:
     """NMPC from conf/controller: horizon, weights, soft joint limits, bounds (null: the surrogate's input box),
-    solver."""
+    solver, prediction model (exact_values needs the system)."""
     if isinstance(cfg, DictConfig):
         cfg = OmegaConf.to_container(cfg, resolve=True)  # plain values: config objects are slow in hot loops
     cfg = {**OPTIONAL, **cfg}
     solver = make_solver(cfg["solver"], **((cfg["solvers"] or {}).get(cfg["solver"]) or {}))
-    ocp = HorizonOCP(surrogate, cfg["horizon"], cfg["Q"], cfg["R"], cfg["R_rate"], cfg["joint_limits"])
+    ocp = HorizonOCP(prediction_model(cfg, surrogate, system), cfg["horizon"], cfg["Q"], cfg["R"], cfg["R_rate"], cfg["joint_limits"])
     low = surrogate.input_box.low if cfg["u_low"] is None else cfg["u_low"]
     high = surrogate.input_box.high if cfg["u_high"] is None else cfg["u_high"]
     d = cfg["disturbance"] or {}

@@ -45,11 +45,12 @@ class CasadiNMPC:
         self.reset()
 
     def describe(self) -> dict[str, Any]:
-        """Solver and offset-free gain, for metrics.json and headlines."""
+        """Solver, offset-free gain and what predicts (the true model), for metrics.json and headlines."""
         return {
             "controller": "casadi",
             "solver": self.label,
             "disturbance_gain": self.disturbance_gain,
+            "prediction": "true_model",
             "rk4_steps": self.ocp.rk4_steps,
         }
 

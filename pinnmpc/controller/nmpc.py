@@ -111,8 +111,13 @@ class NMPC:
         return self.ocp.horizon
 
     def describe(self) -> dict[str, Any]:
-        """Solver and offset-free gain, for metrics.json and headlines."""
-        return {"controller": "pinn", "solver": type(self.solver).__name__, "disturbance_gain": self.disturbance_gain}
+        """Solver, offset-free gain and what predicts (surrogate or exact_values), for metrics.json and headlines."""
+        return {
+            "controller": "pinn",
+            "solver": type(self.solver).__name__,
+            "disturbance_gain": self.disturbance_gain,
+            "prediction": getattr(self.ocp.model, "prediction", "surrogate"),
+        }
 
     @property
     def surrogate(self) -> Surrogate:
