@@ -277,6 +277,8 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
     assert pinn_rti["status"] == "ok" and pinn_rti["converged_fraction"] == pytest.approx(1 / MAX_STEPS)
     md = (bench[1] / "bench.md").read_text()
     assert "| classical NMPC, casadi-sqpmethod-rti |" in md and "| PINN-MPC, lifted_gauss_newton, real-time" in md
+    assert "Rows 'exact values': the PINN controller predicting with the true model's values" in md
+    assert "| PINN-MPC, lifted_gauss_newton, exact values (true model's values, PINN's Jacobians) |" in md
     assert pinn["mae"] == result["closed_loop"]["rows"]["pinn_lifted_gauss_newton"]["mae"]  # reused, same process
     assert classical["solver"] == "casadi-sqpmethod" and classical["model"] == "classical"
     assert classical["status"] == "ok" and classical["steps"] == MAX_STEPS

@@ -307,6 +307,11 @@ MISMATCH_NOTE = (
     " both controllers, so both estimate the offset (the classical NMPC with the PINN controller's estimator)."
 )
 
+EXACT_NOTE = (
+    " Rows 'exact values': the PINN controller predicting with the true model's values (RK4 as the classical NMPC's,"
+    " compiled, no sensitivities) and the PINN's Jacobians (controller.model=exact_values)."
+)
+
 
 def md_classical(cl: dict[str, Any], system: dict[str, Any], plant: str) -> str:
     """Section 6 table: the PINN controller against the classical NMPC, per joint angle and per solve."""
@@ -344,8 +349,8 @@ def md_classical(cl: dict[str, Any], system: dict[str, Any], plant: str) -> str:
             f"Reference: {cl['reference']}; horizon {cl['horizon']}; plant {plant}; one process, the same protocol. "
             "The classical NMPC solves the same OCP on the true model (RK4 multiple shooting, CasADi, compiled); "
             f"taken from the PINN controller: {', '.join(cl['shared']) or 'nothing'}."
-            + MISMATCH_NOTE
-            * any("plant_friction_scale" in r for r in cl["rows"].values()),
+            + MISMATCH_NOTE * any("plant_friction_scale" in r for r in cl["rows"].values())
+            + EXACT_NOTE * any(r.get("prediction") == "exact_values" for r in cl["rows"].values()),
             "",
             md_table(headers, rows),
             "",

@@ -248,9 +248,10 @@ class NMPC:
         self.ocp.disturbance = filtered_disturbance(self.ocp.disturbance, error, self.disturbance_gain, self._d_max)
 
     def _planned_next(self, info: SolveInfo) -> np.ndarray | None:
-        """The undisturbed prediction of the next state from the plan's own states (saves a network call)."""
+        """The undisturbed prediction of the next state from the plan's own states (saves a network call); None
+        where those states are linearised with Jacobians of another model (exact_values), so not its prediction."""
         states = info.states
-        if states is None:
+        if states is None or getattr(self.ocp.model, "approximate_jacobians", False):
             return None
         d = self.ocp.disturbance
         nxt = np.asarray(states, dtype=np.float64).reshape(-1, self.horizon, self.ocp.nx)[0, 0]
