@@ -207,7 +207,7 @@ class ExactValues(Dimensions):
         check_flow_map(surrogate)
         jac = numpy_path(surrogate)
         if jac is None:
-            raise TypeError(f"{type(surrogate).__name__} has no numpy fast path; exact values need one for the Jacobians")
+            raise TypeError(f"{type(surrogate).__name__} has no numpy fast path (exact values take its Jacobians)")
         if abs(exact.tau - surrogate.tau) > 1e-12:
             raise ValueError(f"the exact model's tau={exact.tau} differs from the surrogate's tau={surrogate.tau}")
         if tuple(exact.state_names) != tuple(surrogate.state_names):

@@ -62,7 +62,9 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
         cfg = OmegaConf.to_container(cfg, resolve=True)  # plain values: config objects are slow in hot loops
     cfg = {**OPTIONAL, **cfg}
     solver = make_solver(cfg["solver"], **((cfg["solvers"] or {}).get(cfg["solver"]) or {}))
-    ocp = HorizonOCP(prediction_model(cfg, surrogate, system), cfg["horizon"], cfg["Q"], cfg["R"], cfg["R_rate"], cfg["joint_limits"])
+    ocp = HorizonOCP(
+        prediction_model(cfg, surrogate, system), cfg["horizon"], cfg["Q"], cfg["R"], cfg["R_rate"], cfg["joint_limits"]
+    )
     low = surrogate.input_box.low if cfg["u_low"] is None else cfg["u_low"]
     high = surrogate.input_box.high if cfg["u_high"] is None else cfg["u_high"]
     d = cfg["disturbance"] or {}
