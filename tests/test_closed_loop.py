@@ -160,9 +160,13 @@ def test_exact_values_track_like_the_classical_controller(make_cfg, tmp_path):
     exact = run_closed_loop(make_cfg("closed_loop", [*common, "controller.model=exact_values"]), tmp_path / "exact")
     classical = run_closed_loop(make_cfg("closed_loop", [*common, "controller=casadi"]), tmp_path / "classical")
     rti = run_closed_loop(make_cfg("closed_loop", [*common, "controller=exact"]), tmp_path / "rti")  # + rti
+    two = [*common, "controller=exact", "controller.solvers.lifted_gauss_newton.rti_steps=2"]
+    rti2 = run_closed_loop(make_cfg("closed_loop", two), tmp_path / "rti2")  # two lifted steps per sample
     assert exact["status"] == "ok" and exact["fallbacks"] == 0 and exact["converged_fraction"] == 1.0
     assert (exact["prediction"], pinn["prediction"], rti["prediction"]) == ("exact_values", "surrogate", "exact_values")
     assert rti["status"] == "ok" and rti["fallbacks"] == 0 and rti["not_converged"] == rti["steps"] - 1
+    assert rti2["iterations"]["mean"] == pytest.approx(rti["iterations"]["mean"] + 1 - 1 / 40)  # the first is full
+    assert rti2["mae"]["beta"] < 0.5 * rti["mae"]["beta"]  # measured: 0.26x; alpha the same
     for k in ("alpha", "beta"):
         assert exact["mae"][k] < 2 * classical["mae"][k]
         assert exact["mae"][k] < 0.2 * pinn["mae"][k] and rti["mae"][k] < 0.2 * pinn["mae"][k]
@@ -174,6 +178,7 @@ def test_exact_values_track_like_the_classical_controller(make_cfg, tmp_path):
         (["controller.model=exact"], "controller.model='exact'; expected one of \\['surrogate', 'exact_values'\\]"),
         (["controller.model=exact_values", "controller.solver=rmsprop"], "needs a Gauss-Newton solver"),
         (["controller.model=exact_values", "controller.exact_rk4_steps=0"], "controller.exact_rk4_steps=0; expected"),
+        (["controller.solvers.lifted_gauss_newton.rti_steps=0"], "rti_steps must be a whole number >= 1, got 0"),
     ],
 )
 def test_bad_prediction_model_settings_are_one_clear_error(make_cfg, tmp_path, overrides, message):

@@ -52,8 +52,14 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     lifted_max_iter: int = 5  # lifted iterations before single shooting (max_iter more) takes over
     tol_final_defect: float = 1e-8  # the cost reached is measured by a full rollout where a defect exceeds this
     rti: bool = False  # real-time iteration: one step from the last plan's states per solve (see _rti_step)
+    rti_steps: int = 1  # lifted steps per sample in the real-time iteration (more: closer to converged, slower)
     tol_promise_inexact: float = 1e-3  # relative slack of the promise check when the model's Jacobians are not the
     #   derivatives of its values (flow.approximate_jacobians, controller.model=exact_values)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if isinstance(self.rti_steps, bool) or not isinstance(self.rti_steps, int) or self.rti_steps < 1:
+            raise ValueError(f"rti_steps must be a whole number >= 1, got {self.rti_steps!r}")
 
     def solve(
         self, problem: Problem, U0: Array, warm: LiftedWarm | NoWarm = NO_WARM
@@ -147,17 +153,21 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         return result(shape, project(U, lo, hi), iterations, cost, ~running, X)
 
     def _rti_step(self, ocp, nodes, U, refb, upb, lo, hi, shape):
-        """Real-time iteration, the PINN counterpart of the classical controller's rti: one lifted Gauss-Newton step
-        from the last plan's states, no convergence test and no further network call (the states and cost reported
-        are the step's linearised prediction; the problem counts as unconverged). Without a last plan, a full solve."""
+        """Real-time iteration, the PINN counterpart of the classical controller's rti: rti_steps lifted Gauss-Newton
+        steps (one by default) from the last plan's states, no convergence test and no further network call (the
+        states and cost reported are the last step's linearised prediction; the problem counts as unconverged).
+        Without a last plan, a full solve."""
         batch = nodes.shape[0]
-        pred, sens, _, _ = linearise(ocp, nodes, U)
-        f, jtj, grad = ocp.gauss_newton_model(pred, sens, U, refb, upb)
-        delta, _, predicted, _ = newton_step(jtj, grad, U, lo, hi, self.damping)
-        step = np.clip(U + delta, lo, hi) - U
-        states = _moved(pred, sens, step)
-        ones, unconverged = np.ones(batch, dtype=np.int64), np.zeros(batch, dtype=bool)
-        return result(shape, U + step, ones, f - predicted, unconverged, states)
+        for _ in range(self.rti_steps):
+            pred, sens, _, _ = linearise(ocp, nodes, U)
+            f, jtj, grad = ocp.gauss_newton_model(pred, sens, U, refb, upb)
+            delta, _, predicted, _ = newton_step(jtj, grad, U, lo, hi, self.damping)
+            step = np.clip(U + delta, lo, hi) - U
+            U = U + step
+            states = _moved(pred, sens, step)
+            nodes[:, 1:] = states[:, :-1]
+        steps, unconverged = np.full(batch, self.rti_steps, dtype=np.int64), np.zeros(batch, dtype=bool)
+        return result(shape, U, steps, f - predicted, unconverged, states)
 
     def _uses_warm(self, ocp: HorizonOCP) -> bool:
         """Whether a warm start can help here: the states warm start needs the numpy surrogate."""
