@@ -207,7 +207,7 @@ def system_reference(cfg: DictConfig, system: System, tau: float) -> Reference:
     leaves the system's joint limits."""
     box, limits = system.state_box, getattr(system, "joint_limits", None)
     return load_reference(
-        resolve_reference_path(cfg.reference.path),
+        resolve_reference_path(cfg.reference.path, bool(cfg.system.get("paper_reference", False))),
         tau,
         cfg.reference.name,
         system.state_names,

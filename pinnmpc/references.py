@@ -426,8 +426,9 @@ def check_joint_limits(
     )
 
 
-def resolve_reference_path(path: str | Path | None) -> str | None:
-    """'auto': the paper's reference in ../shared when it exists, else None (a built-in); other values as given."""
+def resolve_reference_path(path: str | Path | None, paper: bool = True) -> str | None:
+    """'auto': the paper's reference in ../shared for a system it was made for (paper) when it exists, else None
+    (the system's built-in); other values as given."""
     if str(path) == "auto":
-        return str(PAPER_REFERENCE) if PAPER_REFERENCE.is_dir() else None
+        return str(PAPER_REFERENCE) if paper and PAPER_REFERENCE.is_dir() else None
     return None if path is None else str(path)

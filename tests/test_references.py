@@ -17,6 +17,7 @@ from pinnmpc.references import (
     check_states,
     out_of_box,
     resample,
+    resolve_reference_path,
 )
 from pinnmpc.references import builtin_reference as _builtin
 from pinnmpc.references import load_reference as _load
@@ -417,3 +418,12 @@ def test_driven_reference_is_a_motion_of_the_true_arm_under_in_box_inputs() -> N
     bad = {"driven": {**specs["driven"], "bandwidth": -1.0}}
     with pytest.raises(ReferenceError, match=r"'driven': bandwidth=-1.0; expected a finite number > 0"):
         _builtin("driven", bad, positions, arm)
+
+
+def test_auto_is_the_papers_reference_only_for_the_arm_it_was_made_for() -> None:
+    # reference.path=auto once handed the PowerCube's 4-state file to planar3 (`make robustness system=planar3`)
+    assert resolve_reference_path("auto", paper=False) is None  # the system's built-in
+    assert resolve_reference_path("auto", paper=True) == (str(PAPER_REFERENCE) if PAPER_REFERENCE.is_dir() else None)
+    assert resolve_reference_path("my.csv", paper=False) == "my.csv" and resolve_reference_path(None) is None
+    flags = {name: system_config(name)["paper_reference"] for name in ("powercube", "planar3", "panda")}
+    assert flags == {"powercube": True, "planar3": False, "panda": False}

@@ -23,15 +23,16 @@ def make_plant(cfg: DictConfig, system: System, tau: float) -> ScipyPlant:
 
 
 def bench_reference(cfg: DictConfig, system: System, tau: float, name: str | None = None) -> Reference:
-    """reference.path (auto: the paper's reference only for a system with the paper's numbers, i.e. a `paper`
-    block; else its built-in), or the built-in `name`, on the grid of tau, as pinnmpc.closed_loop loads it."""
+    """reference.path (auto: the paper's reference for a system with system.paper_reference, else its built-in),
+    or the built-in `name`, on the grid of tau, as pinnmpc.closed_loop loads it."""
     path = None if name is not None else cfg.reference.path
-    if str(path) == "auto" and cfg.get("paper") is None:
-        path = None
     node = OmegaConf.create(
         {
             "reference": {"path": path, "name": cfg.reference.name if name is None else name},
-            "system": {"references": OmegaConf.to_container(cfg.system.references, resolve=True)},
+            "system": {
+                "references": OmegaConf.to_container(cfg.system.references, resolve=True),
+                "paper_reference": bool(cfg.system.get("paper_reference", False)),
+            },
         }
     )
     return system_reference(node, system, tau)
