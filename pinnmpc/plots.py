@@ -278,6 +278,25 @@ def basis_figure(
     return fig
 
 
+def frontier_figure(points: dict[str, tuple[float, float]], xlabel: str, ylabel: str, title: str = "") -> Figure:
+    """Controllers as points (cost, error) on log-log axes: what each buys and pays, the frontier down and left."""
+    fig = Figure(figsize=(7.5, 6.5), layout="constrained")
+    ax = fig.subplots()
+    markers = "osD^v<>pPX*hH"
+    for i, (name, (x, y)) in enumerate(points.items()):
+        ax.plot([x], [y], marker=markers[i % len(markers)], ls="none", ms=8, label=name)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(True, which="both", alpha=0.3)
+    if points:  # below the axes: the labels are long
+        ax.legend(fontsize="x-small", loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=1)
+    if title:
+        ax.set_title(title, fontsize="medium")
+    return fig
+
+
 def save_figure(fig: Figure, path: str | Path, dpi: int = DPI) -> Path:
     """PNG written atomically, so a watcher or a crash never sees a truncated image."""
     return atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=dpi))

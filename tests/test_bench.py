@@ -278,6 +278,7 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
     md = (bench[1] / "bench.md").read_text()
     assert "| classical NMPC, casadi-sqpmethod-rti |" in md and "| PINN-MPC, lifted_gauss_newton, real-time" in md
     assert "Rows 'exact values': the PINN controller predicting with the true model's values" in md
+    assert (bench[1] / "classical.png").read_bytes()[:8] == PNG_MAGIC  # every row: worst MAE against OCP time
     assert "| PINN-MPC, lifted_gauss_newton, exact values (true model's values, PINN's Jacobians), offset-free" in md
     assert pinn["mae"] == result["closed_loop"]["rows"]["pinn_lifted_gauss_newton"]["mae"]  # reused, same process
     assert classical["solver"] == "casadi-sqpmethod" and classical["model"] == "classical"

@@ -4,6 +4,7 @@ process, on the same reference, plant and protocol: one table per system."""
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -71,6 +72,21 @@ def exact_value_rows(
         rows[f"pinn_{solver}_exact_values{'_rti' if fast else ''}"] = {**row, "label": label, "model": "pinn"}
         log.info("classical: PINN %s with exact values%s done in %.1f s", solver, tail, row["wall_s"])
     return rows
+
+
+def classical_plot(cl: dict[str, Any], system: System, path: Path) -> Path:
+    """classical.png: every row of section 6 as (OCP median, worst joint-angle MAE), log-log."""
+    from pinnmpc import plots
+
+    angles = list(system.state_names[: system.nq])
+    points = {
+        r["label"]: (r["ocp_time_s"]["median"], max(r["mae"][n] for n in angles))
+        for r in cl["rows"].values()
+        if "plant_friction_scale" not in r  # the exact plant only: mismatch rows answer another question
+    }
+    title = f"{system.name}, {cl['reference']}: tracking against OCP time (exact plant)"
+    fig = plots.frontier_figure(points, "OCP median [s]", "worst joint-angle MAE [rad]", title)
+    return plots.save_figure(fig, path)
 
 
 def bench_classical(

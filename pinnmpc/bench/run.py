@@ -11,7 +11,7 @@ from typing import Any, TypeVar
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.bench.classical import CASADI_CONFIG, available, bench_classical
+from pinnmpc.bench.classical import CASADI_CONFIG, available, bench_classical, classical_plot
 from pinnmpc.bench.common import bench_reference, optimality_solvers
 from pinnmpc.bench.loops import OCPProblem, bench_closed_loop, run_controller
 from pinnmpc.bench.optimality import bench_optimality
@@ -96,6 +96,8 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     elif cfg.classical.enabled:
         rows = result.get("closed_loop", {}).get("rows")
         result["classical"] = timed("classical", lambda: bench_classical(cfg, system, pinn64, ref, rows))
+        if cfg.plots:
+            classical_plot(result["classical"], system, run_dir / "classical.png")
     result["targets"] = check_targets(cfg, result, names)
     result["elapsed_s"] = {k: float(v) for k, v in elapsed.items()}
     save_json(run_dir / "bench.json", result)
