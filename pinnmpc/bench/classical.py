@@ -58,20 +58,24 @@ def mismatch_rows(
     return {f"pinn_{solver}_friction_{scale:g}": pinn, f"classical_friction_{scale:g}": row}
 
 
-def exact_value_rows(
-    cfg: DictConfig, system: System, surrogate: Surrogate, ref: Reference, solver: str, rti: bool
-) -> dict[str, dict[str, Any]]:
-    """The PINN controller predicting with the true model's values and the PINN's Jacobians (controller.model=
-    exact_values): converged, and as a real-time iteration when rti is on."""
-    rows = {}
-    for fast in (False, True) if rti and solver == "lifted_gauss_newton" else (False,):
-        changes = {"model": "exact_values", "solvers": {solver: {"rti": fast}}}
-        row, _ = run_controller(cfg, system, surrogate, ref, solver, record=False, **changes)
-        tail = ", real-time iteration" if fast else ""
-        label = f"PINN-MPC, {solver}, exact values (true model's values, PINN's Jacobians){tail}"
-        rows[f"pinn_{solver}_exact_values{'_rti' if fast else ''}"] = {**row, "label": label, "model": "pinn"}
-        log.info("classical: PINN %s with exact values%s done in %.1f s", solver, tail, row["wall_s"])
-    return rows
+EXACT = "exact values (true model's values, PINN's Jacobians)"  # label of controller.model=exact_values rows
+
+
+def pinn_variants(cfg: DictConfig, solver: str, rti: bool) -> list[tuple[str, str, dict[str, Any]]]:
+    """The PINN rows beside the configured controller, as (key suffix, label tail, controller changes): its
+    real-time iteration (classical.rti) and the true model's values, converged and as a real-time iteration
+    (classical.exact_values)."""
+    lifted = solver == "lifted_gauss_newton"
+    out = []
+    if rti and lifted and not cfg.controller.solvers[solver].get("rti", False):
+        out.append(("_rti", ", real-time iteration", {"solvers": {solver: {"rti": True}}}))
+    if cfg.classical.get("exact_values", False):
+        for fast in (False, True) if rti and lifted else (False,):
+            suffix, tail = (
+                ("_exact_values_rti", f", {EXACT}, real-time iteration") if fast else ("_exact_values", f", {EXACT}")
+            )
+            out.append((suffix, tail, {"model": "exact_values", "solvers": {solver: {"rti": fast}}}))
+    return out
 
 
 def classical_plot(cl: dict[str, Any], system: System, path: Path) -> Path:
@@ -111,12 +115,10 @@ def bench_classical(
         log.info("classical: PINN %s done in %.1f s", solver, pinn["wall_s"])
     rows = {f"pinn_{solver}": {**pinn, "label": f"PINN-MPC, {solver}", "model": "pinn"}}
     rti = bool(cfg.classical.get("rti", False))
-    if rti and solver == "lifted_gauss_newton" and not cfg.controller.solvers[solver].get("rti", False):
-        # both controllers at their cheapest as well: the PINN's real-time iteration beside the classical one's
-        fast, _ = run_controller(cfg, system, surrogate, ref, solver, record=False, solvers={solver: {"rti": True}})
-        rows[f"pinn_{solver}_rti"] = {**fast, "label": f"PINN-MPC, {solver}, real-time iteration", "model": "pinn"}
-    if cfg.classical.get("exact_values", False):
-        rows.update(exact_value_rows(cfg, system, surrogate, ref, solver, rti))
+    for suffix, tail, changes in pinn_variants(cfg, solver, rti):  # e.g. both controllers at their cheapest too
+        row, _ = run_controller(cfg, system, surrogate, ref, solver, record=False, **changes)
+        rows[f"pinn_{solver}{suffix}"] = {**row, "label": f"PINN-MPC, {solver}{tail}", "model": "pinn"}
+        log.info("classical: PINN %s%s done in %.1f s", solver, tail, row["wall_s"])
     variants = [(name, classical_cfg(cfg, name)) for name in classical_solvers(cfg)]
     if rti and variants[0][1].solver == "sqpmethod":
         variants.append(("sqpmethod_rti", OmegaConf.merge(variants[0][1], {"rti": True})))
