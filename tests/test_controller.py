@@ -27,7 +27,7 @@ from pinnmpc.controller import (
     RMSpropSolver,
     make_solver,
 )
-from pinnmpc.controller.build import build_nmpc
+from pinnmpc.controller.build import build_nmpc, prediction_model
 from pinnmpc.controller.ocp import psd_sqrt
 from pinnmpc.controller.shooting import chain_solve, linearise
 from pinnmpc.pinn import PINN
@@ -427,6 +427,26 @@ def test_lifted_solver_falls_back_to_single_shooting(s: Surrogate) -> None:
     assert bool(info1.converged[0]) and int(info1.iterations[0]) > 1  # single shooting finished the job
     assert float(info1.cost[0]) == pytest.approx(float(ocp.cost(x0, U1[0], x_ref, u_prev)), rel=1e-12)
     assert float(info1.cost[0]) <= float(info_gn.cost[0]) * (1 + 1e-6) + 1e-12
+
+
+def test_lifted_solver_gives_inexact_jacobians_more_lifted_steps(s: Surrogate) -> None:
+    # exact values with the PINN's Jacobians converge linearly: from a cold start this problem needs 11 lifted
+    # steps, more than lifted_max_iter (5); with no single-shooting iterations to fall back on (max_iter=0) it
+    # converges only because lifted_max_iter_inexact (20) applies to such a model
+    from pinnmpc import load_system
+
+    cfg = {"model": "exact_values", "solver": "lifted_gauss_newton", "exact_rk4_steps": None}
+    model = prediction_model(cfg, s, load_system("powercube"))
+    H, ocp = 5, HorizonOCP(model, 5, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
+    x0, U_true = np.array([0.3, -0.2, 0.1, 0.0]), np.random.default_rng(31).uniform(-0.4, 0.4, (H, NU))
+    x_ref = ocp.rollout(x0[None], U_true[None])  # the true model's states: reachable
+    low, high = np.full((H, NU), -0.5), np.full((H, NU), 0.5)
+    problem = Problem(ocp, x0[None], x_ref, np.zeros((1, NU)), low, high)
+    U, info, _ = LiftedGaussNewtonSolver(max_iter=0, lifted_max_iter=1).solve(problem, np.zeros((1, H, NU)))
+    assert bool(info.converged[0]) and 5 < int(info.iterations[0]) <= 20
+    assert np.abs(U[0] - U_true).max() < 1e-4  # the inputs that made the reference (R keeps it off by ~1e-5)
+    _, short, _ = LiftedGaussNewtonSolver(max_iter=0, lifted_max_iter_inexact=3).solve(problem, np.zeros((1, H, NU)))
+    assert not bool(short.converged[0]) and int(short.iterations[0]) == 3
 
 
 @pytest.mark.parametrize(

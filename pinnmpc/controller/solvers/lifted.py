@@ -55,11 +55,14 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     rti_steps: int = 1  # lifted steps per sample in the real-time iteration (more: closer to converged, slower)
     tol_promise_inexact: float = 1e-3  # relative slack of the promise check when the model's Jacobians are not the
     #   derivatives of its values (flow.approximate_jacobians, controller.model=exact_values)
+    lifted_max_iter_inexact: int = 20  # lifted_max_iter for such a model: inexact Jacobians converge linearly
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if isinstance(self.rti_steps, bool) or not isinstance(self.rti_steps, int) or self.rti_steps < 1:
-            raise ValueError(f"rti_steps must be a whole number >= 1, got {self.rti_steps!r}")
+        for name in ("rti_steps", "lifted_max_iter", "lifted_max_iter_inexact"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a whole number >= 1, got {value!r}")
 
     def solve(
         self, problem: Problem, U0: Array, warm: LiftedWarm | NoWarm = NO_WARM
@@ -97,7 +100,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         predictions = np.full((batch, 2), np.nan)  # the two previous predicted decreases, latest first
         was_cut = np.ones(batch, dtype=bool)  # whether a bound cut the previous step short (none taken yet)
         promised = np.full(batch, np.inf)  # the model's cost of the point each problem stops at (after its step)
-        for _ in range(self.lifted_max_iter):
+        inexact = getattr(ocp.flow, "approximate_jacobians", False)
+        for _ in range(self.lifted_max_iter_inexact if inexact else self.lifted_max_iter):
             # the whole batch every time (no row gathering: batch-1 solves are dominated by per-op overhead);
             # problems that stopped take no further steps, their states only settle onto the prediction
             pred, sens, defect, steps = linearise(ocp, nodes, U)
@@ -129,7 +133,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         # a stop is confirmed only where the cost reached keeps the model's promise: above it, the model (states
         # with defects, or a Gauss-Newton model poor under large residuals) was optimistic, and so were the
         # predicted decreases the stopping tests extrapolated from
-        slack = self.tol_promise_inexact if getattr(ocp.flow, "approximate_jacobians", False) else self.tol_gap
+        slack = self.tol_promise_inexact if inexact else self.tol_gap
         broken = cost > promised + slack * np.abs(promised)
         failed = running | broken | ~np.isfinite(cost) | (cost > start_cost)
         if failed.any():  # rare: redo those problems by single shooting from the better of start and end
