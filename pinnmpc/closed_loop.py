@@ -283,7 +283,15 @@ def write_plots(
         error = np.abs(run["x"][:, :nq] - ref.x[:n, :nq]).max(axis=1)
         points_ref, points = system.kinematics(ref.x[:n, :nq]), system.kinematics(run["x"][:, :nq])
         gif_title = f"{system.name} on {ref.name}"
-        plots.animate_arm(ref.t[:n], points_ref, points, run_dir / "closed_loop.gif", title=gif_title, error=error)
+        plots.animate_arm(
+            ref.t[:n],
+            points_ref,
+            points,
+            run_dir / "closed_loop.gif",
+            title=gif_title,
+            error=error,
+            progress=cfg.progress,
+        )
 
 
 def headline(m: dict[str, Any], run_dir: Path) -> str:

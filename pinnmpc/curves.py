@@ -1,8 +1,9 @@
 """`python -m pinnmpc.curves RUN_DIR[=LABEL] ... --out FILE.png`: validation accuracy against training wall time.
 
 Reads the TensorBoard scalars every training run writes (`<run dir>/tensorboard/`), so runs of different
-optimisers, sizes or schedules compare on the one axis a user pays for. Time counts from the run's logger start;
-pauses between a killed run and its resume are left out.
+optimisers, sizes or schedules compare on the one axis a user pays for. Time is the training time each
+validation logged (`time/train_s`: set-up and pauses before a resume left out); runs older than that scalar count
+from the logger's start, leaving out pauses between a killed run and its resume.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ import numpy as np
 from pinnmpc.io import atomic_write
 
 POSITION, VELOCITY = "val/rmse_position", "val/rmse_velocity"
+CLOCK = "time/train_s"  # training time at each validation, logged by pinnmpc.training.progress.TrainingClock
 MAX_GAP_S = 600.0  # a pause longer than this between two logged epochs is a resume, not training
 
 
@@ -44,9 +46,13 @@ def read_curve(run_dir: Path, label: str | None = None) -> Curve:
     if POSITION not in tags:
         raise ValueError(f"{run_dir} has logged no validation yet ({POSITION}); let it run a few epochs")
     pos, vel = acc.Scalars(POSITION), acc.Scalars(VELOCITY)
-    stamps = np.array([acc.FirstEventTimestamp(), *(e.wall_time for e in pos)])  # the logger starts with training
-    gaps = np.diff(stamps)
-    elapsed = np.cumsum(np.where(gaps > MAX_GAP_S, 0.0, gaps))
+    clock = {e.step: e.value for e in acc.Scalars(CLOCK)} if CLOCK in tags else {}
+    if all(e.step in clock for e in pos):
+        elapsed = np.array([clock[e.step] for e in pos])
+    else:  # a run from before the clock: wall time since the logger began, long pauses (resumes) left out
+        stamps = np.array([acc.FirstEventTimestamp(), *(e.wall_time for e in pos)])
+        gaps = np.diff(stamps)
+        elapsed = np.cumsum(np.where(gaps > MAX_GAP_S, 0.0, gaps))
     return Curve(
         label or run_dir.name,
         elapsed / 60.0,

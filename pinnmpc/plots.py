@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -12,6 +14,7 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import NullFormatter
+from tqdm.auto import tqdm
 
 from pinnmpc.io import atomic_write
 
@@ -26,6 +29,8 @@ MAX_MARKERS = 25  # markers per curve: dense markers would hide the line they an
 TRACKING_FIGSIZE = (10.0, 9.0)
 SCALING_FIGSIZE = (6.5, 4.5)
 ARM_FIGSIZE = (5.0, 5.0)
+
+logging.getLogger("matplotlib.animation").setLevel(logging.WARNING)  # its INFO lines name the writer, nothing more
 
 
 MAX_JOINT_PANELS = 3  # up to this many joints get a panel per state; more share one position and one velocity panel
@@ -316,12 +321,14 @@ def animate_arm(
     error: np.ndarray | None = None,
     fps: int = FPS,
     max_frames: int = MAX_FRAMES,
+    progress: bool = False,
 ) -> Path:
     """A GIF shows tracking behaviour (overshoot, lag) that time plots of angles make hard to picture.
 
     p_ref and p are the arm's drawn points (N, k, 3) from System.kinematics, base first and tip last; error is
     the largest joint-angle error per sample, shown as a readout. Frames are subsampled to at most max_frames
-    and played at fps, so the title states the playback speed against real time."""
+    and played at fps, so the title states the playback speed against real time; progress shows a bar over the
+    frames (rendering takes tens of seconds)."""
     t = _time(t)
     n = t.size
     p_ref, p = np.asarray(p_ref, dtype=float), np.asarray(p, dtype=float)
@@ -377,4 +384,8 @@ def animate_arm(
         return ref_line, arm_line, trace, label
 
     anim = FuncAnimation(fig, draw, frames=frames.tolist(), blit=False, repeat=False)
-    return atomic_write(path, lambda tmp: anim.save(tmp, writer=PillowWriter(fps=fps)), suffix=".gif")
+    with tqdm(total=len(frames), desc=Path(path).name, unit="frame", disable=not progress, file=sys.stderr) as bar:
+        tick = lambda *_: bar.update(1)  # noqa: E731
+        return atomic_write(
+            path, lambda tmp: anim.save(tmp, writer=PillowWriter(fps=fps), progress_callback=tick), suffix=".gif"
+        )

@@ -32,7 +32,7 @@ from pinnmpc.training.callbacks import AtomicCheckpoint, GracefulStop, SelfLoopF
 from pinnmpc.training.data import CollocationDataModule, flow_scale
 from pinnmpc.training.grow import grown_model
 from pinnmpc.training.pipeline import base_training_time, train_in_stages
-from pinnmpc.training.progress import BudgetBar, EpochLog, quiet_lightning, timer_of
+from pinnmpc.training.progress import BudgetBar, EpochLog, TrainingClock, quiet_lightning, timer_of
 from pinnmpc.training.stage import staged_model
 
 
@@ -282,7 +282,7 @@ def train(
         cfg.self_loop_figure.every_n_epochs, cfg.self_loop_figure.steps, cfg.self_loop_figure.amplitude
     )
     callbacks: list[L.Callback] = [best, last, SurrogateFacts(cfg.tau), figure, BudgetBar(cfg.progress)]
-    callbacks.append(EpochLog(run_dir / "train.log", system.state_names))
+    callbacks += [EpochLog(run_dir / "train.log", system.state_names), TrainingClock()]
     if cfg.trainer.get("max_time") is None:  # with max_time Lightning adds this Timer itself
         callbacks.append(Timer())  # counts training time across resumes (its state is in every checkpoint)
     if stop is not None:

@@ -11,12 +11,14 @@ from tests.conftest import TINY_TRAIN
 
 def test_a_training_run_logs_each_epoch_and_gives_a_curve_plot_and_csv(make_cfg, tmp_path):
     run = tmp_path / "run"
-    train(make_cfg("train", [*TINY_TRAIN, "trainer.max_epochs=3"]), run)
+    summary = train(make_cfg("train", [*TINY_TRAIN, "trainer.max_epochs=3"]), run)
     log = (run / "train.log").read_text().splitlines()  # the run's history, in its run dir
     assert "optimizer ssbfgs" in log[0] and any("epoch 2 " in line and "val rmse alpha=" in line for line in log)
+    assert any(line.endswith("training ended after epoch 2") for line in log)  # the last epoch logged
     curve = read_curve(run, "tiny")
     assert len(curve.minutes) == 3 and np.all(np.diff(curve.minutes) >= 0) and curve.minutes[0] > 0
     assert np.all(curve.position > 0) and np.all(curve.velocity > 0)
+    assert curve.minutes[-1] * 60 <= summary["training_time_s"]  # training time: the set-up before it left out
     out = tmp_path / "curves.png"
     assert main([f"{run}=tiny", "--out", str(out)]) == 0
     assert out.read_bytes().startswith(b"\x89PNG")

@@ -18,6 +18,7 @@ from lightning.pytorch.callbacks import Timer
 from tqdm.auto import tqdm
 
 from pinnmpc.cli import append_log
+from pinnmpc.curves import CLOCK
 from pinnmpc.training.pipeline import duration
 
 NOISE = ("💡 Tip", "GPU available", "TPU available", "HPU available")  # Lightning start-up lines with no news
@@ -120,11 +121,23 @@ class EpochLog(L.Callback):
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Say where training ended."""
-        self._write(trainer, f"training ended after epoch {trainer.current_epoch}")
+        done = trainer.current_epoch  # Lightning counts an epoch once it ends: the last one run is done - 1
+        self._write(trainer, f"training ended after epoch {done - 1}" if done else "training ended before epoch 0 did")
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
         """Say how the run ended."""
         self._write(trainer, f"stopped by {type(exception).__name__}: {exception}")
+
+
+class TrainingClock(L.Callback):
+    """Logs the training time so far (Lightning's Timer, resumes included, set-up excluded) beside each validation,
+    so `pinnmpc.curves` plots accuracy against what training cost, not against wall time since the logger began."""
+
+    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """Log time/train_s at the validation's step."""
+        timer = timer_of(trainer)
+        if timer is not None and not trainer.sanity_checking:
+            pl_module.log(CLOCK, float(timer.time_elapsed("train")), batch_size=1, sync_dist=False, rank_zero_only=True)
 
 
 def timer_of(trainer: L.Trainer) -> Timer | None:
