@@ -299,6 +299,7 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
     names = list(m["mae"])
     units = m.get("state_units", {})
     mae = ", ".join(f"{n} {m['mae'][n]:.2e} {units.get(n, '')}".rstrip() for n in names[: len(names) // 2])
+    real_time = bool(m.get("real_time"))  # a real-time iteration stops after its step(s) by design: not news
     trouble = [
         f"{m[k]} {label}"
         for k, label in (
@@ -306,10 +307,11 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
             ("not_converged", "not converged"),
             ("out_of_box_steps", "out of box"),
         )
-        if m[k]
+        if m[k] and not (real_time and k == "not_converged")
     ] + (["input bounds beyond the training box"] if m.get("input_bounds_outside_box") else [])
     return (
         f"{m['status']}: {m['steps']} steps on {m['reference']} with {m['solver']}"
+        + (" as a real-time iteration" if real_time else "")
         + (f" (offset-free, gain {m['disturbance_gain']:g})" if m["disturbance_gain"] > 0 else "")
         + f"; MAE {mae}; OCP median {1e3 * m['ocp_time_s']['median']:.2f} ms "
         f"(plant step {1e3 * m['plant_step_time_s']['median']:.2f} ms)"

@@ -289,6 +289,13 @@ def train(
         callbacks.append(GracefulStop(stop))
     logger = L.pytorch.loggers.TensorBoardLogger(save_dir=str(run_dir), name="tensorboard", version="")
     trainer = build_trainer(cfg, callbacks, logger, run_dir)
+    if cfg.progress and trainer.is_global_zero:  # the set-up before the bar opens takes a while on large arms
+        d = cfg.data
+        print(
+            f"pinnmpc.train: drawing {d.n_collocation} collocation points, integrating {d.n_anchor} anchors and "
+            f"{d.n_val} validation steps by fine RK4; the bar opens when training starts",
+            file=sys.stderr,
+        )
     start, finished = time.perf_counter(), False
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path)

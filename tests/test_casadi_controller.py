@@ -138,7 +138,7 @@ def test_failed_solves_fall_back_to_the_shifted_plan(base_cfg: Callable[..., dic
 def test_rti_takes_one_step_per_sample(base_cfg: Callable[..., dict], systems: dict) -> None:
     s = systems["powercube"]
     c = build_casadi_nmpc(base_cfg("powercube", solver="sqpmethod", rti=True), s)
-    assert c.describe()["solver"] == "casadi-sqpmethod-rti"
+    assert c.describe()["solver"] == "casadi-sqpmethod-rti" and c.describe()["real_time"] is True
     plant = ScipyPlant(s, s.tau)
     ref = hold_and_sine(s, 8, c.horizon)
     x = ref[0].copy()

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from pinnmpc.closed_loop import run_closed_loop
+from pinnmpc.closed_loop import headline, run_closed_loop
 from tests.conftest import ROOT
 
 KEYS = {
@@ -167,6 +167,12 @@ def test_exact_values_track_like_the_classical_controller(make_cfg, tmp_path):
     assert exact["status"] == "ok" and exact["fallbacks"] == 0 and exact["converged_fraction"] == 1.0
     assert (exact["prediction"], pinn["prediction"], rti["prediction"]) == ("exact_values", "surrogate", "exact_values")
     assert rti["status"] == "ok" and rti["fallbacks"] == 0 and rti["not_converged"] == rti["steps"] - 1
+    assert (rti["real_time"], exact["real_time"], classical["real_time"]) == (True, False, False)
+    line = headline(rti, tmp_path)  # unconverged by design: named as what it is, not listed as trouble
+    assert "as a real-time iteration" in line and "not converged" not in line
+    assert (rti["real_time"], exact["real_time"], classical["real_time"]) == (True, False, False)
+    line = headline(rti, tmp_path)  # unconverged by design: named as what it is, not listed as trouble
+    assert "as a real-time iteration" in line and "not converged" not in line
     assert rti2["iterations"]["mean"] == pytest.approx(rti["iterations"]["mean"] + 1 - 1 / 40)  # the first is full
     assert rti2["mae"]["beta"] < 0.5 * rti["mae"]["beta"]  # measured: 0.26x; alpha the same
     for k in ("alpha", "beta"):

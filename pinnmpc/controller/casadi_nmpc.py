@@ -51,6 +51,7 @@ class CasadiNMPC:
             "solver": self.label,
             "disturbance_gain": self.disturbance_gain,
             "prediction": "true_model",
+            "real_time": self.rti,  # one SQP step per sample: unconverged by design
             "rk4_steps": self.ocp.rk4_steps,
         }
 

@@ -117,6 +117,7 @@ class NMPC:
             "solver": type(self.solver).__name__,
             "disturbance_gain": self.disturbance_gain,
             "prediction": getattr(self.ocp.model, "prediction", "surrogate"),
+            "real_time": bool(getattr(self.solver, "rti", False)),  # one step per sample: unconverged by design
         }
 
     @property
