@@ -24,6 +24,7 @@ from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import Box, System
 
 log = logging.getLogger(__name__)
+SATURATED_NOTE = 0.25  # the headline notes inputs at their bounds from this share of the steps on (display only)
 
 
 def _stats(values: np.ndarray) -> dict[str, float]:
@@ -189,6 +190,25 @@ def metrics(
     }
 
 
+def limits_and_saturation(run: dict[str, Any], controller: Controller, system: System) -> dict[str, Any]:
+    """What a tracking error alone does not say: samples past the arm's joint limits (and how far), and the share of
+    steps with an input at its bound (a reference asking more than the arm can give)."""
+    q, u = run["x"][:, : system.nq], run["u"]
+    excess = np.zeros(len(q))
+    if system.joint_limits is not None:
+        low, high = np.asarray(system.joint_limits.low), np.asarray(system.joint_limits.high)
+        excess = np.maximum(q - high, low - q).max(axis=1).clip(min=0.0)
+    low_u, high_u = np.asarray(controller.low, dtype=float), np.asarray(controller.high, dtype=float)
+    span = high_u - low_u
+    tol = 1e-9 * np.where(np.isfinite(span), span, 0.0)
+    at_bound = (u <= low_u + tol) | (u >= high_u - tol)
+    return {
+        "joint_limit_samples": int((excess > 0).sum()),  # samples with a joint past its limit (system.joint_limits)
+        "joint_limit_excess_max": float(excess.max(initial=0.0)),  # rad
+        "saturated_fraction": float(at_bound.any(axis=1).mean()) if len(u) else 0.0,  # steps with an input at a bound
+    }
+
+
 def verdict(m: dict[str, Any], max_fallback_fraction: float) -> str:
     """The run's status: a run that mostly applied fallback inputs did not control anything, whatever it tracked."""
     if m["status"] != "ok" or not m["steps"]:
@@ -239,6 +259,7 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
     run = simulate(controller, plant, ref, domain, cfg.noise_sigma, cfg.seed, cfg.max_steps, cfg.progress, requested)
     result = metrics(ref, run, controller, plant, system.state_names, system.state_units)
     failure = cfg.get("failure") or {}
+    result.update(limits_and_saturation(run, controller, system))
     result["status"] = verdict(result, float(failure.get("max_fallback_fraction", 1.0)))
     result["input_bounds_outside_box"] = bool(domain is not None and bounds_outside(cfg, controller_box(controller)))
     st = controller.stats
@@ -309,6 +330,11 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
         )
         if m[k] and not (real_time and k == "not_converged")
     ] + (["input bounds beyond the training box"] if m.get("input_bounds_outside_box") else [])
+    if m.get("joint_limit_samples"):
+        past = f"{m['joint_limit_samples']} samples past a joint limit"
+        trouble.append(f"{past} (by up to {m['joint_limit_excess_max']:.1e} rad)")
+    if m.get("saturated_fraction", 0.0) >= SATURATED_NOTE:
+        trouble.append(f"inputs at a bound in {m['saturated_fraction']:.0%} of steps (the reference may ask too much)")
     return (
         f"{m['status']}: {m['steps']} steps on {m['reference']} with {m['solver']}"
         + (" as a real-time iteration" if real_time else "")

@@ -9,7 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from pinnmpc.closed_loop import headline, run_closed_loop
+from pinnmpc.closed_loop import build_controller, headline, limits_and_saturation, run_closed_loop
+from pinnmpc.systems import load_system
 from tests.conftest import ROOT
 
 KEYS = {
@@ -200,3 +201,27 @@ def test_controller_exact_is_a_real_time_iteration_where_the_arm_allows(make_cfg
     cfg = make_cfg("closed_loop", [f"system={system}", "controller=exact"])
     assert cfg.controller.model == "exact_values" and cfg.controller.solver == "lifted_gauss_newton"
     assert cfg.controller.solvers.lifted_gauss_newton.rti is real_time  # system.control.real_time (default true)
+
+
+def test_metrics_say_when_the_arm_saturates_or_passes_a_joint_limit(make_cfg, tmp_path):
+    # a 5 rad move of both PowerCube joints in 4 s asks more than the input box gives: the loop runs (status ok), and
+    # metrics.json and the headline say that the inputs sat at their bounds; a joint past a limit is counted too
+    t = np.arange(0.0, 8.0 + 1e-9, 0.05)
+    s = np.clip(t / 4.0, 0.0, 1.0)
+    q = 5.0 * s**3 * (10 - 15 * s + 6 * s**2)
+    dq = 5.0 * 30 * s**2 * (1 - s) ** 2 / 4.0
+    path = tmp_path / "too_fast.npz"
+    np.savez(path, t=t, x=np.stack([q, q, dq, dq], axis=1))
+    cfg = make_cfg("closed_loop", [f"reference.path={path}", "progress=false", "plots=false"])
+    m = run_closed_loop(cfg, tmp_path / "run")
+    assert m["status"] == "ok" and m["saturated_fraction"] > 0.5 and m["joint_limit_samples"] == 0
+    assert f"inputs at a bound in {m['saturated_fraction']:.0%} of steps" in headline(m, tmp_path)
+    system = load_system("panda")
+    controller, _, _ = build_controller(make_cfg("closed_loop", ["system=panda"]), system)
+    x = np.zeros((3, 14))
+    x[:, 3] = -1.0  # joint 4's range is [-3.07, -0.07]
+    x[1, 3] = system.joint_limits.high[3] + 0.002  # joint 4 2 mrad past its upper limit at one sample
+    run = {"x": x, "u": np.zeros((2, 7))}
+    assert limits_and_saturation(run, controller, system) == {
+        "joint_limit_samples": 1, "joint_limit_excess_max": pytest.approx(0.002), "saturated_fraction": 0.0,
+    }  # fmt: skip

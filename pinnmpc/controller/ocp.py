@@ -104,6 +104,14 @@ class JointLimits:
         j = self.joints
         return np.asarray(self.low)[j] + self.margin, np.asarray(self.high)[j] - self.margin
 
+    def reached(self, states: np.ndarray) -> np.ndarray:
+        """Per problem, whether any state (B, ..., nx; positions first) lies where the penalty acts (none without a
+        limited joint)."""
+        j = self.joints
+        low, high = self.inner
+        q = np.asarray(states)[..., j]
+        return ((q < low) | (q > high)).reshape(q.shape[0], -1).any(-1)
+
 
 class HorizonOCP:
     """min_U sum_i ||W_q (x_i - x_ref_i)||^2 + ||W_r u_i||^2 + ||W_d (u_i - u_{i-1})||^2 (+ the joint-limit

@@ -88,15 +88,25 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         batch = U.shape[0]
         nodes = np.empty((batch, horizon, nx))  # s_0 = x0 (fixed), s_1..s_{H-1} lifted
         nodes[:, 0] = x0b
+        done = np.zeros(batch, dtype=np.int64)  # steps already taken (a real-time iteration's)
         if prior is not None:  # the last plan's states x_2..x_H are this plan's s_1..s_{H-1}
             nodes[:, 1:] = prior[:, 1:]
             if self.rti:
-                return self._rti_step(ocp, nodes, U, refb, upb, lo, hi, shape)
+                U, states, cost = self._rti_steps(ocp, nodes, U, refb, upb, lo, hi)
+                limits = ocp.joint_limits
+                if limits is None or not (limits.reached(prior) | limits.reached(states)).any():
+                    unconverged = np.zeros(batch, dtype=bool)
+                    return result(shape, U, np.full(batch, self.rti_steps, dtype=np.int64), cost, unconverged, states)
+                # a plan at the soft joint limits: their penalty switches on and off there, which steps from the
+                # last plan's linearisation do not follow (plans crossed the limits); this sample is solved fully
+                # from where the steps got to
+                nodes[:, 1:] = states[:, :-1]
+                done += self.rti_steps
         else:
             nodes[:, 1:] = ocp.rollout(x0b, U.reshape(-1, horizon, nu))[:, :-1]
         start_cost = None  # the model's cost of U0 at the first linearisation
         running = np.ones(batch, dtype=bool)
-        iterations = np.zeros(batch, dtype=np.int64)
+        iterations = done.copy()
         predictions = np.full((batch, 2), np.nan)  # the two previous predicted decreases, latest first
         was_cut = np.ones(batch, dtype=bool)  # whether a bound cut the previous step short (none taken yet)
         promised = np.full(batch, np.inf)  # the model's cost of the point each problem stops at (after its step)
@@ -156,12 +166,11 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             X[rows] = ocp.rollout(x0b[rows], U[rows].reshape(-1, horizon, nu))
         return result(shape, project(U, lo, hi), iterations, cost, ~running, X)
 
-    def _rti_step(self, ocp, nodes, U, refb, upb, lo, hi, shape):
+    def _rti_steps(self, ocp, nodes, U, refb, upb, lo, hi):
         """Real-time iteration, the PINN counterpart of the classical controller's rti: rti_steps lifted Gauss-Newton
-        steps (one by default) from the last plan's states, no convergence test and no further network call (the
-        states and cost reported are the last step's linearised prediction; the problem counts as unconverged).
-        Without a last plan, a full solve."""
-        batch = nodes.shape[0]
+        steps (one by default) from the last plan's states, no convergence test and no further network call. Returns
+        the inputs, the last step's linearised prediction of the states and its model cost (the problem counts as
+        unconverged). Without a last plan, or with one at the joint limits, _solve solves fully."""
         for _ in range(self.rti_steps):
             pred, sens, _, _ = linearise(ocp, nodes, U)
             f, jtj, grad = ocp.gauss_newton_model(pred, sens, U, refb, upb)
@@ -170,8 +179,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             U = U + step
             states = _moved(pred, sens, step)
             nodes[:, 1:] = states[:, :-1]
-        steps, unconverged = np.full(batch, self.rti_steps, dtype=np.int64), np.zeros(batch, dtype=bool)
-        return result(shape, U, steps, f - predicted, unconverged, states)
+        return U, states, f - predicted
 
     def _uses_warm(self, ocp: HorizonOCP) -> bool:
         """Whether a warm start can help here: the states warm start needs the numpy surrogate."""
