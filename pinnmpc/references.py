@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import math
 import warnings
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +41,7 @@ class Reference:
             raise ReferenceError(f"{self.name}: t has shape {t.shape}; expected (N,)")
         if x.ndim != 2 or x.shape[0] != len(t) or x.shape[1] < 2 or x.shape[1] % 2:
             hint = " (transposed?)" if x.ndim == 2 and x.shape[1] == len(t) else ""
+            hint = hint or (", an odd number of columns" if x.ndim == 2 and x.shape[1] % 2 else "")
             raise ReferenceError(
                 f"{self.name}: x has shape {x.shape}{hint}; expected ({len(t)}, nx): positions, then velocities"
             )
@@ -73,6 +75,8 @@ class Reference:
 
 def _as_float(value: object, what: str, name: str) -> np.ndarray:
     """Copy to float64 so a caller's buffer is never aliased and non-numeric input fails with a clear message."""
+    if np.iscomplexobj(value):  # a cast would drop the imaginary parts with only a warning
+        raise ReferenceError(f"{name}: {what} is complex; expected real float arrays")
     try:
         return np.array(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -284,6 +288,8 @@ def _read_mat_folder(folder: Path) -> Reference:
 
 def _read_npz(path: Path) -> Reference:
     """Arrays t (N,) and x (N, nx); no pickles, so a reference file can never run code."""
+    if path.is_file() and not zipfile.is_zipfile(path):  # else numpy blames pickles, whatever the file holds
+        raise ReferenceError(f"{path}: not a .npz archive; expected arrays t (N,), x (N, nx) as np.savez writes them")
     try:
         with np.load(path, allow_pickle=False) as data:
             missing = [k for k in ("t", "x") if k not in data.files]
@@ -315,6 +321,9 @@ def _read_csv(path: Path, state_names: Sequence[str]) -> Reference:
     header = [h.strip().lower() for h in next(csv.reader([lines[start]]))]
     if header:
         header[0] = header[0].lstrip("#").strip()  # np.savetxt writes its header as a "# " comment
+    twice = [c for c in columns if header.count(c) > 1]
+    if twice:
+        raise ReferenceError(f"{path}: column(s) {', '.join(twice)} named twice in the header; expected each once")
     missing = [c for c in columns if c not in header]
     if missing:
         raise ReferenceError(
@@ -331,7 +340,24 @@ def _read_csv(path: Path, state_names: Sequence[str]) -> Reference:
             f"{path}: cannot parse rows ({_one_line(exc)}); expected numbers in every column"
         ) from None
     data = data.reshape(-1, len(columns))
+    _refuse_text_cells(path, lines[start + 1 :], data, usecols, columns)
     return Reference(t=data[:, 0], x=data[:, 1:], name=str(path))
+
+
+def _refuse_text_cells(path: Path, body: list[str], data: np.ndarray, usecols: list[int], columns: tuple) -> None:
+    """genfromtxt reads a cell that is no number (text, a decimal comma) as NaN: name the cell and its text instead."""
+    if np.isfinite(data).all():
+        return
+    rows = [line for line in body if line.strip() and not line.lstrip().startswith("#")]  # the rows genfromtxt read
+    i, j = (int(v) for v in np.argwhere(~np.isfinite(data))[0])
+    cells = next(csv.reader([rows[i]])) if i < len(rows) else []
+    text = cells[usecols[j]].strip() if usecols[j] < len(cells) else ""
+    if text.lower() in ("nan", "inf", "+inf", "-inf", "infinity", "-infinity"):
+        return  # a genuine non-finite number: the Reference check reports it
+    raise ReferenceError(
+        f"{path}: row {i + 1}, column {columns[j]}: {repr(text) + ' is not a number' if text else 'empty cell'}; "
+        "expected numbers with a decimal point"
+    )
 
 
 def _one_line(exc: Exception) -> str:

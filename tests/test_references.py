@@ -349,21 +349,45 @@ def _bad_garbage_csv(p: Path) -> Path:
     return p / "bad.csv"
 
 
+def _bad_csv_twice(p: Path) -> Path:
+    (p / "bad.csv").write_text("t,alpha,beta,dalpha,dbeta,alpha\n0,0,0,0,0,1\n1,0,0,0,0,1\n")
+    return p / "bad.csv"
+
+
+def _bad_csv_text(p: Path) -> Path:
+    (p / "bad.csv").write_text("t,alpha,beta,dalpha,dbeta\n0,0,0,0,0\n\n1,0,abc,0,0\n")  # a blank line is skipped
+    return p / "bad.csv"
+
+
+def _bad_csv_empty(p: Path) -> Path:
+    (p / "bad.csv").write_text("t,alpha,beta,dalpha,dbeta\n0,0,0,,0\n1,0,0,0,0\n")
+    return p / "bad.csv"
+
+
+def _bad_complex(p: Path) -> Path:
+    np.savez(p / "bad.npz", t=np.arange(5.0), x=np.zeros((5, 4)) + 1j)
+    return p / "bad.npz"
+
+
 @pytest.mark.parametrize(
     ("make", "fragment"),
     [
         (lambda p: p / "nowhere.npz", "no such file or folder"),
         (lambda p: (p / "ref.txt").write_text("1 2 3") and p / "ref.txt", "unknown reference kind '.txt'.*.npz.*.csv"),
-        (_bad_npz_x, r"x has shape \(5, 3\); expected \(5, nx\)"),
+        (_bad_npz_x, r"x has shape \(5, 3\), an odd number of columns; expected \(5, nx\)"),
         (_bad_csv_column, "missing column.*dbeta"),
         (_bad_nan, "non-finite state 2 = nan at sample 4"),
         (_bad_time, "not strictly increasing at sample 3"),
-        (_bad_truncated_npz, "cannot read as .npz"),
-        (_bad_garbage_npz, "cannot read as .npz"),
+        (_bad_truncated_npz, "not a .npz archive"),
+        (_bad_garbage_npz, "not a .npz archive"),
         (_bad_empty_folder, "missing y_soll.mat"),
         (_bad_mat_variable, "Dy_soll.mat: no variable 'Dy_soll'"),
         (_bad_one_sample, "1 sample.*expected at least 2"),
         (_bad_garbage_csv, r"Line #3 \(got 3 columns"),
+        (_bad_csv_twice, "column\\(s\\) alpha named twice in the header"),
+        (_bad_csv_text, "row 2, column beta: 'abc' is not a number"),
+        (_bad_csv_empty, "row 1, column dalpha: empty cell"),
+        (_bad_complex, "x is complex; expected real"),
     ],
     ids=[
         "missing",
@@ -378,6 +402,10 @@ def _bad_garbage_csv(p: Path) -> Path:
         "mat-variable",
         "one-sample",
         "short-csv-row",
+        "csv-column-twice",
+        "csv-text-cell",
+        "csv-empty-cell",
+        "complex",
     ],
 )
 def test_bad_input_raises_reference_error(tmp_path: Path, make, fragment: str) -> None:
