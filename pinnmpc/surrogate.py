@@ -88,20 +88,30 @@ class Surrogate(Dimensions):
         )
 
     def _check(self, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
-        """Readable shape errors and the surrogate's dtype."""
-        if x0.shape[-1] != self.nx or u.shape[-1] != self.nu:
+        """Tensors (numpy arrays and lists taken too) in the surrogate's dtype, batch shapes broadcast against each
+        other (one input for many states, or the reverse); readable errors otherwise."""
+        x0, u = torch.as_tensor(x0, dtype=self.dtype), torch.as_tensor(u, dtype=self.dtype)
+        if x0.ndim == 0 or u.ndim == 0 or x0.shape[-1] != self.nx or u.shape[-1] != self.nu:
             raise ValueError(
                 f"surrogate expects x0 (..., {self.nx}) {self.state_names} and u (..., {self.nu}) {self.input_names}, "
                 f"got x0 {tuple(x0.shape)} and u {tuple(u.shape)}"
             )
-        return x0.to(self.dtype), u.to(self.dtype)
+        try:
+            batch = torch.broadcast_shapes(x0.shape[:-1], u.shape[:-1])
+        except RuntimeError:
+            raise ValueError(
+                f"surrogate expects x0 and u with the same (or broadcastable) batch shapes, got x0 {tuple(x0.shape)} "
+                f"and u {tuple(u.shape)}"
+            ) from None
+        return x0.expand(*batch, self.nx), u.expand(*batch, self.nu)
 
     def __call__(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
         """x(t) for t (..., 1), x0 (..., nx), u (..., nu); differentiable w.r.t. x0 and u."""
         x0, u = self._check(x0, u)
-        if t.shape[-1] != 1:
+        t = torch.as_tensor(t, dtype=self.dtype)
+        if t.ndim == 0 or t.shape[-1] != 1:
             raise ValueError(f"surrogate expects t with last dimension 1, got t {tuple(t.shape)}")
-        return self.model(t.to(self.dtype), x0, u)
+        return self.model(t.expand(*x0.shape[:-1], 1), x0, u)
 
     def step(self, x0: Tensor, u: Tensor) -> Tensor:
         """x(tau): one zero-hold sampling period."""

@@ -136,6 +136,29 @@ def test_leading_batch_dimensions(s: Surrogate) -> None:
     assert (x1.shape, A.shape, B.shape) == ((2, 3, NX), (2, 3, NX, NX), (2, 3, NX, NU))
 
 
+def test_numpy_lists_and_broadcast_batches(s: Surrogate) -> None:
+    # numpy arrays and lists are taken as they are (torch out); one input for many states broadcasts
+    x0, u = _points(4, seed=5)
+    want = s.step(x0, u[:1].expand(4, NU))
+    torch.testing.assert_close(s.step(x0.numpy(), u[0].numpy()), want, rtol=0, atol=0)
+    torch.testing.assert_close(s.step(x0[0].tolist(), u[0].tolist()), want[0], rtol=0, atol=1e-12)  # batch 1
+    t = np.full((4, 1), s.tau)
+    torch.testing.assert_close(s(t, x0, u[0]), want, rtol=0, atol=0)
+    x1, A, B = s.step_with_jacobian(x0[:1], u)  # one state, four inputs
+    assert (x1.shape, A.shape, B.shape) == ((4, NX), (4, NX, NX), (4, NX, NU))
+    with pytest.raises(ValueError, match=r"same \(or broadcastable\) batch shapes, got x0 \(2, 4\) and u \(3, 2\)"):
+        s.step(x0[:2], u[:3])
+
+
+@pytest.mark.parametrize("system", ["powercube", "planar3", "panda"])
+def test_an_empty_batch_gives_an_empty_batch(system: str) -> None:
+    # planar3 and the Panda step through a compiled prior, whose CasADi map refused zero rows
+    net = load_surrogate(system=system)
+    x1, A, B = net.step_with_jacobian(np.zeros((0, net.nx)), np.zeros((0, net.nu)))
+    assert net.step(np.zeros((0, net.nx)), np.zeros((0, net.nu))).shape == x1.shape == (0, net.nx)
+    assert (A.shape, B.shape) == ((0, net.nx, net.nx), (0, net.nx, net.nu))
+
+
 def test_step_is_call_at_tau(s: Surrogate) -> None:
     x0, u = _points(5, seed=2)
     t = torch.full((5, 1), s.tau, dtype=torch.float64)

@@ -83,6 +83,8 @@ class BatchedFunction:
         """Inputs (B, n_i) each; outputs (B, m_j) each. Rows are samples: a C-ordered (B, n) array is the
         column-major (n, B) matrix the mapped function takes, so nothing is transposed."""
         n = args[0].shape[0]
+        if n == 0:  # CasADi cannot map over no rows
+            return [np.zeros((0, self.f.size1_out(j) * self.f.size2_out(j))) for j in range(self.f.n_out())]
         call = self._calls.get(n)
         if call is None:
             fm = self.f if n == 1 else self.f.map(n, "serial")
