@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -100,9 +100,10 @@ def simulate(
     max_steps: int | None = None,
     progress: bool = True,
     stop: Callable[[], bool] | None = None,
+    x0: Sequence[float] | None = None,
 ) -> dict[str, Any]:
-    """Receding-horizon loop; stops cleanly on a plant failure or when stop() turns true (a signal), and returns
-    what was reached."""
+    """Receding-horizon loop from x0 (None: the reference's first sample); stops cleanly on a plant failure or when
+    stop() turns true (a signal), and returns what was reached."""
     horizon, nx = controller.horizon, ref.x.shape[1]
     steps = len(ref) - horizon - 1
     if steps < 1:
@@ -115,7 +116,7 @@ def simulate(
     lo = np.full(nx, -np.inf) if domain is None else np.array(domain.low)
     hi = np.full(nx, np.inf) if domain is None else np.array(domain.high)
     controller.reset()
-    x = np.array(ref.x[0], dtype=np.float64)
+    x = np.array(ref.x[0] if x0 is None else x0, dtype=np.float64)
     xs, us, status, out_of_box_steps, warned = [x], [], "ok", 0, False
     for k in tqdm(range(steps), desc="closed loop", unit="step", disable=not progress, file=sys.stderr):
         if stop is not None and stop():
@@ -256,7 +257,10 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
             )
     plant = ScipyPlant(plant_system(system, cfg.plant), tau, cfg.plant.method, cfg.plant.rtol, cfg.plant.atol)
     requested = None if stop is None else (lambda: stop.requested)
-    run = simulate(controller, plant, ref, domain, cfg.noise_sigma, cfg.seed, cfg.max_steps, cfg.progress, requested)
+    start = None if cfg.get("x0") is None else [float(v) for v in cfg.x0]
+    run = simulate(
+        controller, plant, ref, domain, cfg.noise_sigma, cfg.seed, cfg.max_steps, cfg.progress, requested, start
+    )
     result = metrics(ref, run, controller, plant, system.state_names, system.state_units)
     failure = cfg.get("failure") or {}
     result.update(limits_and_saturation(run, controller, system))

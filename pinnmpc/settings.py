@@ -156,6 +156,7 @@ CLOSED_LOOP: dict[str, Check] = {
     "seed": SEED,
     "noise_sigma": real(0.0),
     "max_steps": optional(integer(1)),
+    "x0": optional(vector("nx")),
     "progress": boolean(),
     "plots": boolean(),
     "animate": boolean(),

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from pinnmpc.closed_loop import build_controller, headline, limits_and_saturation, run_closed_loop
+from pinnmpc.settings import SettingError
 from pinnmpc.systems import load_system
 from tests.conftest import ROOT
 
@@ -225,3 +226,18 @@ def test_metrics_say_when_the_arm_saturates_or_passes_a_joint_limit(make_cfg, tm
     assert limits_and_saturation(run, controller, system) == {
         "joint_limit_samples": 1, "joint_limit_excess_max": pytest.approx(0.002), "saturated_fraction": 0.0,
     }  # fmt: skip
+
+
+def test_the_arm_can_start_off_the_reference(make_cfg, tmp_path):
+    # x0: the plant starts where the user says; the controller pulls it onto the reference
+    ref = run_closed_loop(make_cfg("closed_loop", ["progress=false", "plots=false", "max_steps=30"]), tmp_path / "a")
+    x = np.load(tmp_path / "a" / "trajectory.npz")["x_ref"][0]
+    start = [float(x[0]) + 0.1, float(x[1]) - 0.1, float(x[2]), float(x[3])]
+    cfg = make_cfg("closed_loop", ["progress=false", "plots=false", "max_steps=30", f"x0={start}"])
+    off = run_closed_loop(cfg, tmp_path / "b")
+    run = np.load(tmp_path / "b" / "trajectory.npz")
+    assert off["status"] == "ok" and np.array_equal(run["x"][0], start)
+    assert np.abs(run["x"][-1, :2] - run["x_ref"][-1, :2]).max() < 1e-3  # on the reference by the end
+    assert off["mae"]["alpha"] > ref["mae"]["alpha"]  # the start's error counts
+    with pytest.raises(SettingError, match=r"x0=\[0.1, 0.2\]: expected a list of 4 entries"):
+        run_closed_loop(make_cfg("closed_loop", ["progress=false", "x0=[0.1,0.2]"]), tmp_path / "c")
