@@ -101,9 +101,11 @@ def simulate(
     progress: bool = True,
     stop: Callable[[], bool] | None = None,
     x0: Sequence[float] | None = None,
+    state_box: Box | None = None,
 ) -> dict[str, Any]:
-    """Receding-horizon loop from x0 (None: the reference's first sample); stops cleanly on a plant failure or when
-    stop() turns true (a signal), and returns what was reached."""
+    """Receding-horizon loop from x0 (None: the reference's first sample); stops cleanly on a plant failure, when the
+    state leaves state_box by more than its width (a diverged simulation or controller) or when stop() turns true
+    (a signal), and returns what was reached."""
     horizon, nx = controller.horizon, ref.x.shape[1]
     steps = len(ref) - horizon - 1
     if steps < 1:
@@ -143,6 +145,11 @@ def simulate(
             break
         xs.append(x)
         us.append(u)
+        far = diverged(x, state_box)
+        if far:
+            status = f"failed: {far} after step {k}: the simulation or the controller diverged"
+            log.error("%s; stopping", status)
+            break
     return {
         "x": np.array(xs),
         "u": np.array(us, dtype=np.float64).reshape(-1, len(controller.low)),
@@ -189,6 +196,28 @@ def metrics(
         "state_units": dict(zip(names, units)),  # for readers of the file (and the headline)
         "fallback_fraction": sum(s.fallback for s in st) / len(st) if st else 0.0,
     }
+
+
+def divergence_box(system: System) -> Box:
+    """The state box, with unbounded positions on arms whose joints turn all the way round (no joint limits)."""
+    low, high = np.array(system.state_box.low, dtype=float), np.array(system.state_box.high, dtype=float)
+    if system.joint_limits is None:
+        low[: system.nq], high[: system.nq] = -np.inf, np.inf
+    return Box(low.tolist(), high.tolist())
+
+
+def diverged(x: np.ndarray, box: Box | None) -> str:
+    """What is wrong with a state that is not finite or lies beyond box by more than the box's width ('' if none)."""
+    if not np.all(np.isfinite(x)):
+        return f"the state became non-finite ({x.tolist()})"
+    if box is None:
+        return ""
+    low, high = np.asarray(box.low, dtype=float), np.asarray(box.high, dtype=float)
+    beyond = np.flatnonzero((x < low - (high - low)) | (x > high + (high - low)))
+    if not beyond.size:
+        return ""
+    j = int(beyond[0])
+    return f"state {j} = {x[j]:.3g}, beyond the state box [{low[j]:.3g}, {high[j]:.3g}] by more than its width"
 
 
 def limits_and_saturation(run: dict[str, Any], controller: Controller, system: System) -> dict[str, Any]:
@@ -259,7 +288,17 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
     requested = None if stop is None else (lambda: stop.requested)
     start = None if cfg.get("x0") is None else [float(v) for v in cfg.x0]
     run = simulate(
-        controller, plant, ref, domain, cfg.noise_sigma, cfg.seed, cfg.max_steps, cfg.progress, requested, start
+        controller,
+        plant,
+        ref,
+        domain,
+        cfg.noise_sigma,
+        cfg.seed,
+        cfg.max_steps,
+        cfg.progress,
+        requested,
+        start,
+        divergence_box(system),
     )
     result = metrics(ref, run, controller, plant, system.state_names, system.state_units)
     failure = cfg.get("failure") or {}

@@ -9,7 +9,14 @@ import sys
 import numpy as np
 import pytest
 
-from pinnmpc.closed_loop import build_controller, headline, limits_and_saturation, run_closed_loop
+from pinnmpc.closed_loop import (
+    build_controller,
+    diverged,
+    divergence_box,
+    headline,
+    limits_and_saturation,
+    run_closed_loop,
+)
 from pinnmpc.settings import SettingError
 from pinnmpc.systems import load_system
 from tests.conftest import ROOT
@@ -241,3 +248,19 @@ def test_the_arm_can_start_off_the_reference(make_cfg, tmp_path):
     assert off["mae"]["alpha"] > ref["mae"]["alpha"]  # the start's error counts
     with pytest.raises(SettingError, match=r"x0=\[0.1, 0.2\]: expected a list of 4 entries"):
         run_closed_loop(make_cfg("closed_loop", ["progress=false", "x0=[0.1,0.2]"]), tmp_path / "c")
+
+
+def test_a_diverged_state_is_named_and_arms_that_turn_round_have_no_position_bound():
+    # the loop stops with "failed: ..." once the state is not finite or beyond the state box by more than its width
+    # (seen: Radau on the PowerCube's Coulomb friction at rest reached 672 rad and the run said ok)
+    panda, planar3 = load_system("panda"), load_system("planar3")
+    box = divergence_box(panda)
+    x = np.zeros(14)
+    x[3] = -1.0
+    assert diverged(x, box) == ""
+    x[9] = 100.0  # joint 4's velocity, far beyond its box
+    assert diverged(x, box).startswith("state 9 = 100, beyond the state box")
+    assert "non-finite" in diverged(np.full(14, np.nan), box)
+    turning = np.zeros(6)
+    turning[0] = 40.0  # six turns of joint 1: planar3's joints have no limits
+    assert diverged(turning, divergence_box(planar3)) == ""
