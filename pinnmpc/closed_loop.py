@@ -268,6 +268,19 @@ def system_reference(cfg: DictConfig, system: System, tau: float) -> Reference:
     )
 
 
+def warn_jumps(ref: Reference, system: System) -> None:
+    """A joint angle that jumps by more than pi in one period is no motion an arm makes: most likely an angle
+    wrapped into (-pi, pi], which the arm would be driven through the long way round."""
+    jump = np.abs(np.diff(ref.x[:, : system.nq], axis=0))
+    if np.any(jump > np.pi):
+        i, j = (int(v) for v in np.argwhere(jump > np.pi)[0])
+        log.warning(
+            "reference %s: %s jumps by %.3g rad between t=%.4g and %.4g s (a wrapped angle?); it is tracked as given: "
+            "pass angles unwrapped (numpy.unwrap)",
+            ref.name, system.state_names[j], jump[i, j], ref.t[i], ref.t[i + 1],
+        )  # fmt: skip
+
+
 def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = None) -> dict[str, Any]:
     """Check the settings, load controller and reference, run the loop (until the end, a plant failure or a signal
     to stop), write metrics.json, trajectory.npz and plots."""
@@ -278,6 +291,7 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
             f"tau={cfg.tau} differs from the controller model's tau={tau} (a PINN predicts one period of its tau)"
         )
     ref = system_reference(cfg, system, tau)
+    warn_jumps(ref, system)
     if domain is not None:
         dist = out_of_box(ref, domain.low, domain.high)
         if dist > 0:

@@ -264,3 +264,15 @@ def test_a_diverged_state_is_named_and_arms_that_turn_round_have_no_position_bou
     turning = np.zeros(6)
     turning[0] = 40.0  # six turns of joint 1: planar3's joints have no limits
     assert diverged(turning, divergence_box(planar3)) == ""
+
+
+def test_a_wrapped_angle_in_the_reference_is_named(make_cfg, tmp_path, caplog):
+    # angles wrapped into (-pi, pi] jump by ~2 pi: the arm would be driven the long way round, so the run says so
+    t = np.arange(0.0, 4.0 + 1e-9, 0.05)
+    q = np.angle(np.exp(1j * (2.5 + 0.5 * t)))  # passes pi at t = 1.28 s and wraps to -pi
+    path = tmp_path / "wrapped.npz"
+    np.savez(path, t=t, x=np.stack([q, np.zeros_like(t), np.full_like(t, 0.5), np.zeros_like(t)], axis=1))
+    cfg = make_cfg("closed_loop", [f"reference.path={path}", "progress=false", "plots=false", "max_steps=2"])
+    with caplog.at_level("WARNING"):
+        run_closed_loop(cfg, tmp_path / "run")
+    assert any("alpha jumps by" in r.getMessage() and "a wrapped angle?" in r.getMessage() for r in caplog.records)
