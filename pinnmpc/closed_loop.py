@@ -46,6 +46,13 @@ def plant_system(system: System, cfg: DictConfig) -> System:
     return system.with_mismatch(friction_scale=cfg.friction_scale, mass_scale=cfg.mass_scale)
 
 
+def make_plant(system: System, cfg: DictConfig, tau: float) -> ScipyPlant:
+    """The simulated robot of every closed loop (and of the bench's RK45 row) from the plant settings."""
+    return ScipyPlant(
+        plant_system(system, cfg), tau, cfg.method, cfg.rtol, cfg.atol, cfg.chatter_flips, cfg.stick_slip_tighten
+    )
+
+
 def build_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box | None, float]:
     """The controller named by controller.kind, the state box its model is valid in (None: everywhere) and tau.
 
@@ -182,8 +189,9 @@ def metrics(
         "max_abs_error": {n: float(v) for n, v in zip(names, err.max(0))},
         "ocp_time_s": _stats(np.array([s.time_s for s in st])),
         "plant_step_time_s": {
-            k: v for k, v in _stats(np.array(plant.step_times)).items() if k in ("mean", "median", "p95")
+            k: v for k, v in _stats(np.array(plant.step_times)).items() if k in ("mean", "median", "p95", "max")
         },
+        "plant_stick_slip_steps": plant.stick_slip_steps,
         "iterations": {
             "mean": float(np.mean([s.iterations for s in st])) if st else 0.0,
             "max": max((s.iterations for s in st), default=0),
@@ -298,7 +306,7 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
             log.warning(
                 "reference leaves the surrogate's training box by up to %.3g; tracking there is extrapolation", dist
             )
-    plant = ScipyPlant(plant_system(system, cfg.plant), tau, cfg.plant.method, cfg.plant.rtol, cfg.plant.atol)
+    plant = make_plant(system, cfg.plant, tau)
     requested = None if stop is None else (lambda: stop.requested)
     start = None if cfg.get("x0") is None else [float(v) for v in cfg.x0]
     run = simulate(

@@ -1,4 +1,6 @@
-"""The simulated robot: scipy RK45 over one zero-hold period, as in the paper."""
+"""The simulated robot: scipy RK45 over one zero-hold period, as in the paper.
+
+A step whose sign(v) friction chatters (a joint at rest) is redone with the switches located (pinnmpc.stick_slip)."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from pinnmpc.stick_slip import ChatterError, coulomb_joints, flip_counter, stick_slip_step
 from pinnmpc.systems.base import System
 
 
@@ -24,15 +27,45 @@ class ScipyPlant:
     method: str = "RK45"
     rtol: float = 1e-3  # scipy's default, as the paper
     atol: float = 1e-6  # scipy's default, as the paper
+    chatter_flips: int | None = 20  # sign flips of a sign(v) joint's velocity in one plain step before it is redone
+    #   with the switches located (None: never; only systems that name coulomb_joints have such a term)
+    stick_slip_tighten: float = 100.0  # the redone step runs at rtol and atol divided by this: between its switches the
+    #   rhs is smooth, so tighter tolerances cost little, and it comes out closer to the exact solution than the
+    #   chattering step it replaces
+    max_switches: int = 1000  # stick-slip switches allowed in one period before the step fails
     step_times: list[float] = field(default_factory=list)
+    stick_slip_steps: int = 0  # steps redone with the switches located
 
     def __post_init__(self) -> None:
         if not self.tau > 0:
             raise ValueError(f"plant tau must be > 0, got {self.tau}")
+        if self.chatter_flips is not None and self.chatter_flips < 1:
+            raise ValueError(f"plant chatter_flips must be >= 1 or null, got {self.chatter_flips}")
+        if not self.stick_slip_tighten >= 1:
+            raise ValueError(f"plant stick_slip_tighten must be >= 1, got {self.stick_slip_tighten}")
+        joints = coulomb_joints(self.system)
+        self._velocities = [self.system.nq + j for j in joints]
 
     def _fun(self, _t: float, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The system rhs on numpy arrays: no torch dispatch per scipy call."""
         return self.system.rhs(x, u)
+
+    def _integrate(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """solve_ivp over one period; a step whose sign(v) friction chatters is redone by stick-slip modes."""
+        fun = self._fun
+        if self._velocities and self.chatter_flips is not None:
+            fun = flip_counter(fun, self._velocities, self.chatter_flips)
+        try:
+            sol = solve_ivp(fun, (0.0, self.tau), x0, method=self.method, args=(u,), rtol=self.rtol, atol=self.atol)
+        except ChatterError:
+            tight = self.stick_slip_tighten
+            self.stick_slip_steps += 1
+            return stick_slip_step(
+                self.system, x0, u, self.tau, self.method, self.rtol / tight, self.atol / tight, self.max_switches
+            )
+        if not sol.success:
+            raise RuntimeError(sol.message)
+        return sol.y[:, -1]
 
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """One zero-hold period; raises PlantError on failure or non-finite state."""
@@ -42,15 +75,10 @@ class ScipyPlant:
             raise PlantError(f"plant got a non-finite state or input: x0={x0.tolist()}, u={u_t.tolist()}")
         start = time.perf_counter()
         try:
-            sol = solve_ivp(
-                self._fun, (0.0, self.tau), x0, method=self.method, args=(u_t,), rtol=self.rtol, atol=self.atol
-            )
-        except (ValueError, FloatingPointError) as e:
+            x1 = self._integrate(x0, u_t)
+        except (ValueError, FloatingPointError, RuntimeError) as e:
             raise PlantError(f"plant integration failed from x0={x0.tolist()}, u={u_t.tolist()}: {e}") from e
         self.step_times.append(time.perf_counter() - start)
-        if not sol.success:
-            raise PlantError(f"plant integration failed from x0={x0.tolist()}, u={u_t.tolist()}: {sol.message}")
-        x1 = sol.y[:, -1]
         if not np.all(np.isfinite(x1)):
             raise PlantError(f"plant state became non-finite from x0={x0.tolist()}, u={u_t.tolist()}")
         return x1

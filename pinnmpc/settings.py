@@ -165,6 +165,8 @@ CLOSED_LOOP: dict[str, Check] = {
     "plant.method": one_of(*SCIPY_METHODS),
     "plant.rtol": positive(),
     "plant.atol": positive(),
+    "plant.chatter_flips": optional(integer(1)),
+    "plant.stick_slip_tighten": real(1.0),
     "plant.friction_scale": real(0.0),
     "plant.mass_scale": positive(),
     "reference.path": optional(text()),

@@ -20,10 +20,16 @@ def test_rhs_matches_golden(golden):
 
 
 def test_plant_matches_golden_step(golden):
-    plant = ScipyPlant(PowerCube(), float(golden["step_tau"]))
-    x1 = np.stack([plant.step(x0, u) for x0, u in zip(golden["step_x0"], golden["step_u"])])
-    assert np.abs(x1 - golden["step_x1"]).max() <= 1e-6
-    assert len(plant.step_times) == len(x1)
+    """Plain RK45 is the paper's plant to round-off; by default the steps where joint B's sign(v) friction chatters
+    (two of the sixteen) are redone by stick-slip modes (tests/test_stick_slip.py) and land within RK45's tolerance."""
+    tau, cases = float(golden["step_tau"]), list(zip(golden["step_x0"], golden["step_u"]))
+    plain, plant = ScipyPlant(PowerCube(), tau, chatter_flips=None), ScipyPlant(PowerCube(), tau)
+    x1_plain = np.stack([plain.step(x0, u) for x0, u in cases])
+    x1 = np.stack([plant.step(x0, u) for x0, u in cases])
+    assert np.abs(x1_plain - golden["step_x1"]).max() <= 1e-6
+    assert len(plant.step_times) == len(x1) and plant.stick_slip_steps == 2
+    redone = np.abs(x1 - x1_plain).max(axis=1) > 0
+    assert redone.sum() == 2 and np.abs(x1 - golden["step_x1"]).max() <= 1e-4
 
 
 def test_numpy_and_torch_share_formulas():

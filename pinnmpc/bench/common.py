@@ -7,7 +7,8 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.closed_loop import plant_system, system_reference
+from pinnmpc.closed_loop import make_plant as closed_loop_plant
+from pinnmpc.closed_loop import system_reference
 from pinnmpc.plant import ScipyPlant
 from pinnmpc.references import Reference
 from pinnmpc.systems.base import System
@@ -19,7 +20,7 @@ NO_DISTURBANCE = {"gain": 0.0}  # controller.disturbance override: the paper's c
 
 def make_plant(cfg: DictConfig, system: System, tau: float) -> ScipyPlant:
     """The simulated robot of every closed loop and of the RK45 row, as pinnmpc.closed_loop builds it."""
-    return ScipyPlant(plant_system(system, cfg.plant), tau, cfg.plant.method, cfg.plant.rtol, cfg.plant.atol)
+    return closed_loop_plant(system, cfg.plant, tau)
 
 
 def bench_reference(cfg: DictConfig, system: System, tau: float, name: str | None = None) -> Reference:

@@ -95,8 +95,10 @@ def mass_matrix(x: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> tuple[Array, A
     return s * (p.m11 + 2 * p.c * cb), s * (p.m12 + p.c * cb), s * p.m22 + 0 * cb
 
 
-def generalized_forces(x: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> tuple[Array, Array]:
-    """Right side h - k + B u of M qdd = h - k + B u."""
+def generalized_forces(
+    x: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS, coulomb_sign: Array | None = None
+) -> tuple[Array, Array]:
+    """Right side h - k + B u of M qdd = h - k + B u; coulomb_sign replaces sign(dbeta) (the plant's stick-slip)."""
     xp = _xp(x)
     alpha, beta, da, db = _at(x, 0), _at(x, 1), _at(x, 2), _at(x, 3)
     sb = xp.sin(beta)
@@ -106,14 +108,15 @@ def generalized_forces(x: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS) 
     g_ab = p.grav_ab * GRAVITY * xp.sin(alpha + beta)
     f = p.friction_scale
     h1 = p.grav_a * GRAVITY * xp.sin(alpha) + g_ab - f * _friction(da, p.visc_a, p.tanh_a)
-    h2 = g_ab - f * (_friction(db, p.visc_b, p.tanh_b) + p.coulomb_b * xp.sign(db))
+    sign_b = xp.sign(db) if coulomb_sign is None else coulomb_sign
+    h2 = g_ab - f * (_friction(db, p.visc_b, p.tanh_b) + p.coulomb_b * sign_b)
     return h1 - k1 + p.gain * _at(u, 0), h2 - k2 + p.gain * _at(u, 1)
 
 
-def rhs(x: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS) -> Array:
+def rhs(x: Array, u: Array, p: PowerCubeParams = DEFAULT_PARAMS, coulomb_sign: Array | None = None) -> Array:
     """dx/dt = [dalpha, dbeta, M^-1 (h - k + B u)], with the 2x2 solve in closed form."""
     m11, m12, m22 = mass_matrix(x, p)
-    r1, r2 = generalized_forces(x, u, p)
+    r1, r2 = generalized_forces(x, u, p, coulomb_sign)
     det = m11 * m22 - m12 * m12
     dda = (m22 * r1 - m12 * r2) / det
     ddb = (m11 * r2 - m12 * r1) / det
@@ -152,6 +155,7 @@ class PowerCube:
     state_units: tuple[str, ...] = ("rad", "rad", "rad/s", "rad/s")
     input_units: tuple[str, ...] = ("A", "A")
     nq: int = 2  # joints; positions come first in the state
+    coulomb_joints: tuple[int, ...] = (1,)  # joints whose friction has a sign(v) term (the plant locates its switches)
 
     def with_mismatch(self, friction_scale: float = 1.0, mass_scale: float = 1.0) -> PowerCube:
         """The same arm with scaled friction and mass matrix: a plant the controller does not know."""
@@ -176,6 +180,10 @@ class PowerCube:
         """Batched dx/dt: differentiable for torch tensors, fast for numpy arrays (the plant)."""
         check_shapes(self, x, u)
         return rhs(x, u, self.params)
+
+    def rhs_coulomb(self, x: np.ndarray, u: np.ndarray, signs: np.ndarray) -> np.ndarray:
+        """dx/dt with sign(v) of each coulomb_joints entry replaced by signs (in [-1, 1]): the stick-slip plant."""
+        return rhs(x, u, self.params, coulomb_sign=signs[..., 0])
 
     def fast_rhs(self, x: Tensor, u: Tensor) -> Tensor:
         """The batched training/reference path: the closed form is already the fastest."""
