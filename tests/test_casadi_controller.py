@@ -189,3 +189,26 @@ def test_dictconfig_and_disturbance_estimator(base_cfg: Callable[..., dict], sys
     d = c.disturbance
     assert d is not None and np.all(np.abs(d) <= np.array(cfg.disturbance.max_abs))
     assert np.abs(d).max() > 0
+
+
+def test_a_solve_at_rest_is_repeated_on_smoothed_friction(base_cfg: Callable[..., dict], systems: dict) -> None:
+    """Held at rest, joint B's sign(v) friction leaves the exact model's NLP without a smooth solution: the SQP
+    runs into its cap and the controller would fall back; coulomb_width repeats the solve on tanh(v / width)."""
+    s = systems["powercube"]
+    x, ref = np.array([0.0, 0.5, 0.0, 0.0]), np.tile([0.0, 0.5, 0.0, 0.0], (5, 1))
+    exact = build_casadi_nmpc(base_cfg("powercube", coulomb_width=None), s)
+    exact.make_step(x, ref)
+    assert exact.stats[-1].fallback and exact.describe()["smoothed_solves"] == 0
+    smoothed = build_casadi_nmpc(base_cfg("powercube"), s)
+    assert base_cfg("powercube")["coulomb_width"] == 1e-3  # the PowerCube's default (conf/system/powercube.yaml)
+    plant = ScipyPlant(s, s.tau)
+    for _ in range(3):
+        x = plant.step(x, smoothed.make_step(x, ref))
+    assert not any(st.fallback for st in smoothed.stats) and smoothed.describe()["smoothed_solves"] >= 1
+    assert np.abs(x[:2] - ref[0, :2]).max() < 1e-4
+    planar = build_casadi_nmpc(base_cfg("planar3", coulomb_width=1e-3), systems["planar3"])
+    assert planar.smooth_solver is None  # no sign(v) term: nothing to smooth
+    moving = np.array([0.3, -0.2, 0.4, 0.1])  # |dbeta| = 100 widths: the smoothed model is the exact one
+    np.testing.assert_allclose(s.casadi_rhs(1e-3)(moving, [0.1, 0.2]), s.casadi_rhs()(moving, [0.1, 0.2]), atol=1e-12)
+    with pytest.raises(ValueError, match="coulomb_width must be > 0"):
+        s.casadi_rhs(0.0)

@@ -16,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.controller.casadi_ocp import CasadiOCP, NlpSolver, Solution
 from pinnmpc.controller.nmpc import StepStats, disturbance_bound, filtered_disturbance
+from pinnmpc.stick_slip import coulomb_joints
 
 RTI_STATUSES = {"Solve_Succeeded", "Maximum_Iterations_Exceeded"}  # what one SQP step may end with and be used
 
@@ -33,12 +34,14 @@ class CasadiNMPC:
         cold_solver: NlpSolver | None = None,
         disturbance_gain: float = 0.0,
         disturbance_max: Sequence[float] | None = None,
+        smooth_solver: NlpSolver | None = None,
     ) -> None:
         self.ocp, self.solver, self.label = ocp, solver, label
         self.horizon, self.nx, self.nu = ocp.horizon, ocp.nx, ocp.nu
         self.low, self.high = ocp.low.copy(), ocp.high.copy()
         self.warm_start, self.rti = bool(warm_start), bool(rti)
         self.cold_solver = cold_solver or solver  # RTI: a full solve while there is no solution to iterate from
+        self.smooth_solver = smooth_solver  # the same OCP with sign(v) friction smoothed: tried when a solve fails
         self.disturbance_gain = float(disturbance_gain)
         self._d_max = disturbance_bound(disturbance_max, self.nx, self.disturbance_gain)
         self.stats: list[StepStats] = []
@@ -53,6 +56,7 @@ class CasadiNMPC:
             "prediction": "true_model",
             "real_time": self.rti,  # one SQP step per sample: unconverged by design
             "rk4_steps": self.ocp.rk4_steps,
+            "smoothed_solves": self.smoothed_solves,  # failed solves repeated on the smoothed-friction model
         }
 
     def reset(self) -> None:
@@ -64,6 +68,7 @@ class CasadiNMPC:
         self._last: tuple[np.ndarray, np.ndarray] | None = None  # the last measured state and the input applied
         self.disturbance: np.ndarray | None = None
         self.stats = []
+        self.smoothed_solves = 0
 
     def _cold_inputs(self) -> np.ndarray:
         """Zero inputs projected onto the box, (H, nu)."""
@@ -91,6 +96,13 @@ class CasadiNMPC:
             self._load(solver, x0, ref)
             sol = solver()
             ok = self._usable(sol, rti=solver is self.solver and self.rti)
+            if not ok and self.smooth_solver is not None:  # e.g. sign(v) friction at rest: no smooth NLP solution
+                iterations = sol.iterations
+                self._load(self.smooth_solver, x0, ref)
+                sol = self.smooth_solver()
+                sol.iterations += iterations
+                ok = self._usable(sol, rti=False)
+                self.smoothed_solves += 1
         except (RuntimeError, FloatingPointError, np.linalg.LinAlgError):  # e.g. an evaluation error on NaN
             ok = False
         if ok:
@@ -182,21 +194,30 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
         raise ValueError(f"rti=true takes one SQP step per sample: it needs solver=sqpmethod, got {plugin!r}")
     low = system.input_box.low if cfg.get("u_low") is None else cfg["u_low"]
     high = system.input_box.high if cfg.get("u_high") is None else cfg["u_high"]
-    ocp = CasadiOCP(
-        system,
-        cfg["horizon"],
-        cfg["Q"],
-        cfg["R"],
-        cfg.get("R_rate"),
-        low,
-        high,
-        rk4_steps=cfg.get("rk4_steps"),
-        joint_limits=cfg.get("joint_limits"),
-    )
+
+    def make_ocp(coulomb_width: float | None = None) -> CasadiOCP:
+        """The OCP of these settings, on the exact model or with its sign(v) friction smoothed."""
+        return CasadiOCP(
+            system,
+            cfg["horizon"],
+            cfg["Q"],
+            cfg["R"],
+            cfg.get("R_rate"),
+            low,
+            high,
+            rk4_steps=cfg.get("rk4_steps") if coulomb_width is None else None,
+            joint_limits=cfg.get("joint_limits"),
+            coulomb_width=coulomb_width,
+        )
+
+    ocp = make_ocp()
     options = dict((cfg.get("solvers") or {}).get(plugin) or {})
     hessian, codegen = str(cfg.get("hessian", "gauss_newton")), bool(cfg.get("codegen", True))
     level = str(cfg.get("codegen_opt", "-O2"))
     solver = ocp.solver(plugin, options, hessian, codegen, level)
+    smooth_solver, width = None, cfg.get("coulomb_width")
+    if width is not None and coulomb_joints(system):  # its own RK4 sub-steps: the smoothed model is stiffer
+        smooth_solver = make_ocp(float(width)).solver(plugin, options, hessian, codegen, level)
     cold_solver = None
     if rti:  # one full SQP step from the shifted solution; the first step (and any after a fallback) solves fully
         one_step = {**options, "max_iter": 1, "max_iter_ls": 0}
@@ -211,4 +232,5 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
         cold_solver=cold_solver,
         disturbance_gain=float(d.get("gain", 0.0)),
         disturbance_max=d.get("max_abs"),
+        smooth_solver=smooth_solver,
     )

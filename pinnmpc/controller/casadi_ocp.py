@@ -47,11 +47,12 @@ QUIET = {  # options that silence each plugin
 }
 
 
-def stable_rk4_steps(system: Any, tau: float, seed: int = 0) -> int:
-    """Fewest RK4 sub-steps per tau that keep h * max|eig(df/dx)| below RK4_STABLE on the state box.
+def stable_rk4_steps(system: Any, tau: float, seed: int = 0, rhs: ca.Function | None = None) -> int:
+    """Fewest RK4 sub-steps per tau that keep h * max|eig(df/dx)| below RK4_STABLE on the state box (of rhs, by
+    default the system's).
 
     Friction with a steep tanh makes the arms stiff near zero velocity, so half the samples there."""
-    rhs = system.casadi_rhs()
+    rhs = system.casadi_rhs() if rhs is None else rhs
     nx, nu = rhs.size1_in(0), rhs.size1_in(1)
     x, u = ca.SX.sym("x", nx), ca.SX.sym("u", nu)
     jac = ca.Function("rhs_jacobian", [x, u], [ca.jacobian(rhs(x, u), x)]).map(STIFFNESS_SAMPLES)
@@ -131,14 +132,15 @@ class CasadiOCP:
         u_high: Sequence[float],
         rk4_steps: int | None = None,
         joint_limits: JointLimits | Mapping | None = None,
+        coulomb_width: float | None = None,
     ) -> None:
         if int(horizon) < 1:
             raise ValueError(f"horizon must be >= 1, got {horizon}")
-        rhs = system.casadi_rhs()
+        rhs = system.casadi_rhs() if coulomb_width is None else system.casadi_rhs(coulomb_width)
         self.name = system.name
         self.horizon, self.nx, self.nu = int(horizon), rhs.size1_in(0), rhs.size1_in(1)
         self.tau = float(system.tau)
-        self.rk4_steps = stable_rk4_steps(system, self.tau) if rk4_steps is None else int(rk4_steps)
+        self.rk4_steps = stable_rk4_steps(system, self.tau, rhs=rhs) if rk4_steps is None else int(rk4_steps)
         if self.rk4_steps < 1:
             raise ValueError(f"rk4_steps must be >= 1 (or null: automatic), got {rk4_steps}")
         self.low = np.array(u_low, dtype=np.float64)

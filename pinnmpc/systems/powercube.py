@@ -162,10 +162,14 @@ class PowerCube:
         params = dataclasses.replace(self.params, friction_scale=friction_scale, mass_scale=mass_scale)
         return dataclasses.replace(self, params=params)
 
-    def casadi_rhs(self) -> ca.Function:
-        """dx/dt = f(x, u) as a CasADi SX function: the same closed form, evaluated on symbols."""
+    def casadi_rhs(self, coulomb_width: float | None = None) -> ca.Function:
+        """dx/dt = f(x, u) as a CasADi SX function: the same closed form, evaluated on symbols; with coulomb_width
+        sign(dbeta) becomes tanh(dbeta / width), a smooth model for an OCP the exact one leaves without a solution."""
         x, u = ca.SX.sym("x", 4), ca.SX.sym("u", 2)
-        return ca.Function("powercube_rhs", [x, u], [rhs(x, u, self.params)], {"cse": True})
+        if coulomb_width is not None and not coulomb_width > 0:
+            raise ValueError(f"coulomb_width must be > 0 (rad/s) or null, got {coulomb_width}")
+        sign_b = None if coulomb_width is None else ca.tanh(x[3] / coulomb_width)
+        return ca.Function("powercube_rhs", [x, u], [rhs(x, u, self.params, coulomb_sign=sign_b)], {"cse": True})
 
     def kinematics(self, q: np.ndarray) -> np.ndarray:
         """Base, elbow and tip (N, 3, 3) in the vertical plane, alpha from hanging down, beta relative to link 1."""
