@@ -24,7 +24,7 @@ from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import Box, System
 
 log = logging.getLogger(__name__)
-SATURATED_NOTE = 0.25  # the headline notes inputs at their bounds from this share of the steps on (display only)
+SATURATED_NOTE = 0.05  # the headline notes inputs at their bounds from this share of the steps on (display only)
 
 
 def _stats(values: np.ndarray) -> dict[str, float]:

@@ -19,6 +19,7 @@ KINDS = "a folder with y_soll.mat, Dy_soll.mat and t_soll.mat, a .npz (t, x) or 
 BUILTIN_DT = 0.01  # s, sampling of the built-in references; fine enough to resample to any controller step
 PAPER_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "powercube" / "reference"  # never copied here
 RESAMPLE_SLACK = 1e-9  # s, a grid point this close past the last sample still counts as inside
+MILLISECONDS = (300.0, 3000.0)  # velocities this many times the positions' rate of change: t was given in ms
 
 
 class ReferenceError(ValueError):
@@ -410,9 +411,32 @@ def load_reference(
         ref = check_states(builtin_reference(name, builtins, position_box, system), state_names)
     else:
         ref = read_reference(path, state_names)
+        check_time_unit(ref)
     if joint_limits is not None:
         check_joint_limits(ref, *joint_limits, state_names)
     return resample(ref, tau)
+
+
+def velocity_scale(ref: Reference) -> float | None:
+    """How many times the stored velocities exceed the positions' rate of change over t (least squares; None when
+    the positions do not move): ~1 for a consistent reference, ~1000 when t is in milliseconds."""
+    nq = ref.x.shape[1] // 2
+    if len(ref) < 3:
+        return None
+    rate = np.gradient(ref.x[:, :nq], ref.t, axis=0)
+    den = float((rate * rate).sum())
+    return None if den == 0.0 else float((ref.x[:, nq:] * rate).sum() / den)
+
+
+def check_time_unit(ref: Reference) -> None:
+    """A file whose velocities are ~1000x its positions' rate of change has its times in ms: refused, since it
+    would be run 1000x too slowly (hours for a reference of seconds)."""
+    scale = velocity_scale(ref)
+    if scale is not None and MILLISECONDS[0] <= scale <= MILLISECONDS[1]:
+        raise ReferenceError(
+            f"{ref.name}: its velocities are {scale:.0f}x the rate of change of its positions over t: are the times "
+            f"in milliseconds (t ends at {ref.t[-1]:g})? expected t in seconds"
+        )
 
 
 def excursions(ref: Reference, low: Sequence[float], high: Sequence[float], columns: int | None = None) -> np.ndarray:

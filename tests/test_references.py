@@ -18,6 +18,7 @@ from pinnmpc.references import (
     out_of_box,
     resample,
     resolve_reference_path,
+    velocity_scale,
 )
 from pinnmpc.references import builtin_reference as _builtin
 from pinnmpc.references import load_reference as _load
@@ -277,6 +278,17 @@ def test_load_reference_builtin_and_file(tmp_path: Path) -> None:
     np.savez(path, t=ref.t, x=ref.x)
     from_file = load_reference(path, 0.4)
     np.testing.assert_allclose(from_file.x, ref.x[::2], atol=1e-12)
+
+
+def test_times_in_milliseconds_are_refused(tmp_path: Path) -> None:
+    ref = builtin_reference("default")
+    assert velocity_scale(ref) == pytest.approx(1.0, abs=0.01)
+    path = tmp_path / "ms.npz"
+    np.savez(path, t=1e3 * ref.t, x=ref.x)  # the same motion, its times in ms
+    with pytest.raises(ReferenceError, match=r"ms.npz: its velocities are 1000x .* in milliseconds .* seconds"):
+        load_reference(path, 0.2)
+    np.savez(path, t=ref.t, x=np.hstack([ref.x[:, :2], 0.0 * ref.x[:, 2:]]))  # zero velocities: no unit to judge
+    assert velocity_scale(read_reference(path)) == 0.0 and len(load_reference(path, 0.2)) > 1
 
 
 def test_out_of_box() -> None:
