@@ -64,7 +64,7 @@ EXACT = "exact values (true model's values, PINN's Jacobians)"  # label of contr
 def pinn_variants(cfg: DictConfig, solver: str, rti: bool) -> list[tuple[str, str, dict[str, Any]]]:
     """The PINN rows beside the configured controller, as (key suffix, label tail, controller changes): its
     real-time iteration (classical.rti) and the true model's values, converged and as a real-time iteration
-    (classical.exact_values)."""
+    (classical.exact_values) with the system's steps per sample, as controller=exact runs it."""
     lifted = solver == "lifted_gauss_newton"
     out = []
     if rti and lifted and not cfg.controller.solvers[solver].get("rti", False):
@@ -74,7 +74,8 @@ def pinn_variants(cfg: DictConfig, solver: str, rti: bool) -> list[tuple[str, st
             suffix, tail = (
                 ("_exact_values_rti", f", {EXACT}, real-time iteration") if fast else ("_exact_values", f", {EXACT}")
             )
-            out.append((suffix, tail, {"model": "exact_values", "solvers": {solver: {"rti": fast}}}))
+            steps = {"rti_steps": int(cfg.system.control.get("rti_steps", 1))} if fast else {}
+            out.append((suffix, tail, {"model": "exact_values", "solvers": {solver: {"rti": fast, **steps}}}))
     return out
 
 
