@@ -45,6 +45,9 @@ class ScipyPlant:
             raise ValueError(f"plant stick_slip_tighten must be >= 1, got {self.stick_slip_tighten}")
         joints = coulomb_joints(self.system)
         self._velocities = [self.system.nq + j for j in joints]
+        box, inputs = self.system.state_box, self.system.input_box
+        mid = (np.add(box.low, box.high) / 2, np.add(inputs.low, inputs.high) / 2)
+        self.system.rhs(*mid)  # once, untimed: the first call loads lazy imports (Pinocchio), not a plant step's cost
 
     def _fun(self, _t: float, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The system rhs on numpy arrays: no torch dispatch per scipy call."""
