@@ -307,9 +307,11 @@ def save_figure(fig: Figure, path: str | Path, dpi: int = DPI) -> Path:
     return atomic_write(path, lambda p: fig.savefig(p, format="png", dpi=dpi))
 
 
-def _planar(points: np.ndarray) -> bool:
-    """Whether every drawn point lies in one z plane: then a 2-D drawing says everything."""
-    return bool(np.ptp(points[..., 2]) < 1e-9)
+def _plane(points: np.ndarray) -> tuple[int, int] | None:
+    """The two axes an arm moves in when every drawn point keeps one coordinate (x-y, x-z or y-z plane): then a
+    2-D drawing says everything; None for an arm that moves in 3-D."""
+    flat = [axis for axis in (2, 1, 0) if np.ptp(points[..., axis]) < 1e-9]
+    return None if not flat else tuple(a for a in (0, 1, 2) if a != flat[0])  # type: ignore[return-value]
 
 
 def animate_arm(
@@ -339,17 +341,21 @@ def animate_arm(
         raise ValueError(f"max_frames must be >= 1, got {max_frames}")
     frames = np.unique(np.linspace(0, n - 1, min(n, max_frames)).round().astype(int))
     speed = (t[-1] - t[0]) / max(len(frames) / fps, 1e-9)
-    planar = _planar(np.concatenate([p_ref, p]))
+    plane = _plane(np.concatenate([p_ref, p]))
+    planar = plane is not None
     fig = Figure(figsize=ARM_FIGSIZE, layout="constrained")
     FigureCanvasAgg(fig)  # the writer grabs RGBA buffers, which the bare base canvas cannot render
     reach = 1.1 * float(np.max(np.linalg.norm(np.concatenate([p_ref, p]), axis=-1)))
-    if planar:
+    if plane is not None:
         ax = fig.subplots()
-        ax.set(xlim=(-reach, reach), ylim=(-reach, reach), aspect="equal", xlabel="x [m]", ylabel="y [m]")
-        dims = (0, 1)
+        names = [f"{'xyz'[d]} [m]" for d in plane]
+        ax.set(xlim=(-reach, reach), ylim=(-reach, reach), aspect="equal", xlabel=names[0], ylabel=names[1])
+        dims: tuple[int, ...] = plane
     else:
         ax = fig.add_subplot(projection="3d")
-        ax.set(xlim=(-reach, reach), ylim=(-reach, reach), zlim=(0, 2 * reach), xlabel="x", ylabel="y", zlabel="z")
+        z_low = min(0.0, float(np.concatenate([p_ref, p])[..., 2].min()))  # a base at the bottom, unless it hangs
+        ax.set(xlim=(-reach, reach), ylim=(-reach, reach), zlim=(z_low, z_low + 2 * reach), xlabel="x", ylabel="y")
+        ax.set_zlabel("z")
         dims = (0, 1, 2)
     ax.grid(True, alpha=0.3)
     tip_ref = [p_ref[:, -1, d] for d in dims]

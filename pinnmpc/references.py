@@ -134,6 +134,10 @@ def sine_reference(
     name: str, amplitude: Sequence[float], frequency: Sequence[float], offset: Sequence[float], duration: float
 ) -> Reference:
     """Sinusoids with analytic velocities: a reference that never rests, unlike the waypoint ones."""
+    sizes = {key: np.size(v) for key, v in (("amplitude", amplitude), ("frequency", frequency), ("offset", offset))}
+    if len(set(sizes.values())) > 1:
+        found = ", ".join(f"{key} {n}" for key, n in sizes.items())
+        raise ReferenceError(f"built-in reference {name!r}: {found} entries; expected one per joint in each")
     t = _grid(duration)
     a, f, c = (np.asarray(v, dtype=np.float64)[None, :] for v in (amplitude, frequency, offset))
     w = 2.0 * math.pi * f

@@ -132,7 +132,19 @@ def test_animate_arm_draws_in_3d_when_not_planar(tmp_path: Path) -> None:
     t = np.linspace(0.0, 1.0, 4)
     pts = np.zeros((4, 3, 3))
     pts[:, 1] = [0.0, 0.0, 0.3]
-    pts[:, 2] = np.stack([0.2 * t, 0 * t, 0.5 + 0 * t], axis=1)
+    pts[:, 2] = np.stack([0.2 * t, 0.1 * t, 0.5 + 0 * t], axis=1)
+    assert plots._plane(pts) is None
     out = plots.animate_arm(t, pts, pts, tmp_path / "arm3d.gif")
     with Image.open(out) as img:
         assert img.n_frames == 4
+
+
+def test_an_arm_in_a_vertical_plane_is_drawn_in_that_plane() -> None:
+    q = np.array([[0.0, 0.0], [np.pi / 2, 0.0], [np.pi / 2, -np.pi / 2]])
+    in_xy = CUBE.kinematics(q)  # the PowerCube's drawing lies in the x-y plane
+    in_xz = in_xy[..., [0, 2, 1]]  # the same arm turned into the x-z plane (a URDF arm whose joints turn about y)
+    assert (
+        plots._plane(in_xy) == (0, 1)
+        and plots._plane(in_xz) == (0, 2)
+        and plots._plane(in_xy[..., [2, 0, 1]]) == (1, 2)
+    )

@@ -128,6 +128,13 @@ def test_sine_matches_the_formula() -> None:
     np.testing.assert_allclose(ref.x[:, 1], 0.6 * np.sin(2 * np.pi * 0.15 * t) + 0.3, atol=1e-12)
 
 
+def test_sine_lists_of_different_lengths_are_named() -> None:
+    specs = {"sine": {"kind": "sine", "amplitude": [0.1, 0.2, 0.3], "frequency": [0.1, 0.2], "offset": [0, 0],
+                      "duration": 2.0}}  # fmt: skip
+    with pytest.raises(ReferenceError, match=r"'sine': amplitude 3, frequency 2, offset 2 entries; expected one per"):
+        _builtin("sine", specs, POSITIONS)
+
+
 def test_unknown_builtin_lists_valid_names() -> None:
     with pytest.raises(ReferenceError, match=r"unknown built-in reference 'square'.*default, reversals, rest, sine"):
         builtin_reference("square")
