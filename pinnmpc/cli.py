@@ -392,10 +392,12 @@ def hydra_run_dir() -> Path:
 
 def job_system(cfg: DictConfig, validate: Callable[[DictConfig, Any], None]) -> Any:
     """The job's System from cfg.system, its settings checked against it and the CPU threads set: how jobs start."""
+    from pinnmpc.settings import validate_system
     from pinnmpc.systems.registry import build_system  # torch and the arms load only when a job runs
     from pinnmpc.threads import use_threads
 
     system = build_system(cfg.system)
+    validate_system(cfg, system)
     validate(cfg, system)
     use_threads(cfg.threads)
     return system

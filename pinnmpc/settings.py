@@ -92,6 +92,9 @@ def optional(check: Check) -> Check:
     return _check
 
 
+_NOTHING = object()  # a value no check allows: asked with it, a check describes what it allows
+
+
 def _length(n: int | str, dims: Dims) -> int:
     """A fixed length or the system's nx/nu."""
     return dims[n] if isinstance(n, str) else n
@@ -103,7 +106,7 @@ def vector(n: int | str, element: Check | None = None) -> Check:
 
     def _check(v: Any, dims: Dims) -> str | None:
         size = _length(n, dims)
-        desc = element(None, dims) or ""
+        desc = element(_NOTHING, dims) or ""
         ok = isinstance(v, list) and len(v) == size and all(element(e, dims) is None for e in v)
         return None if ok else f"a list of {size} entries ({n}), each {desc}"
 
@@ -115,7 +118,7 @@ def listof(element: Check, empty: bool = False) -> Check:
 
     def _check(v: Any, dims: Dims) -> str | None:
         ok = isinstance(v, list) and (empty or len(v) > 0) and all(element(e, dims) is None for e in v)
-        return None if ok else f"a {'' if empty else 'non-empty '}list, each entry {element(None, dims)}"
+        return None if ok else f"a {'' if empty else 'non-empty '}list, each entry {element(_NOTHING, dims)}"
 
     return _check
 
@@ -140,6 +143,16 @@ def weight(n: str) -> Check:
     return _check
 
 
+def joint_index() -> Check:
+    """A joint number 0..nq-1 (nq = nx / 2)."""
+
+    def _check(v: Any, dims: Dims) -> str | None:
+        nq = dims["nx"] // 2
+        return None if _is_int(v) and 0 <= v < nq else f"a joint number 0..{nq - 1}"
+
+    return _check
+
+
 def duration() -> Check:
     """Lightning's wall-time budget DD:HH:MM:SS."""
     pattern = re.compile(r"\d+:\d\d:\d\d:\d\d")
@@ -148,6 +161,15 @@ def duration() -> Check:
 
 SCIPY_METHODS = ("RK45", "RK23", "DOP853", "Radau", "BDF", "LSODA")
 SEED = integer(0, 2**32 - 1)  # what numpy and Lightning accept
+
+SYSTEM: dict[str, Check] = {  # the per-joint lists of conf/system/<name>.yaml that only some jobs read
+    "system.network.periodic": listof(joint_index(), empty=True),
+    "system.network.angle_sums": listof(listof(joint_index()), empty=True),
+    "system.targets.one_step_rmse": vector("nx", optional(real(0.0))),
+    "system.targets.closed_loop_mae": vector("nx", optional(real(0.0))),
+    "system.self_loop.x0": vector("nx"),
+    "system.self_loop.amplitude": vector("nu"),
+}
 
 CLOSED_LOOP: dict[str, Check] = {
     "checkpoint": optional(text()),
@@ -288,6 +310,11 @@ def _pair(cfg: DictConfig, low_key: str, high_key: str) -> None:
     low, high = (_plain(OmegaConf.select(cfg, k, default=None)) for k in (low_key, high_key))
     if low is not None and high is not None and any(lo > hi for lo, hi in zip(low, high)):
         raise SettingError(f"{low_key}={low} exceeds {high_key}={high}: expected low <= high in every entry")
+
+
+def validate_system(cfg: DictConfig, system: Any) -> None:
+    """The system config's per-joint lists against the arm its URDF builds, for every job (a new arm's config)."""
+    validate(cfg, SYSTEM, system_dims(system))
 
 
 def system_dims(system: Any) -> dict[str, int]:

@@ -279,3 +279,20 @@ def test_a_wrapped_angle_in_the_reference_is_named(make_cfg, tmp_path, caplog):
     with caplog.at_level("WARNING"):
         run_closed_loop(cfg, tmp_path / "run")
     assert any("alpha jumps by" in r.getMessage() and "a wrapped angle?" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("system.targets.one_step_rmse=[0.1,0.1]", r"one_step_rmse=\[0.1, 0.1\]: expected a list of 6 entries \(nx\)"),
+        ("system.network.periodic=[5]", r"periodic=\[5\]: expected a list, each entry a joint number 0..2"),
+        ("system.network.angle_sums=[[0,7]]", r"angle_sums=\[\[0, 7\]\]: expected .* a joint number 0..2"),
+        ("system.self_loop.amplitude=[1.0]", r"amplitude=\[1.0\]: expected a list of 3 entries \(nu\)"),
+    ],
+)
+def test_a_system_configs_per_joint_lists_are_checked_by_every_job(make_cfg, tmp_path, override, message):
+    """A new arm's config: lists read only by training or the bench are checked when any job starts."""
+    cfg = make_cfg("closed_loop", ["system=planar3", "max_steps=1", "progress=false", "plots=false", override])
+    with pytest.raises(SettingError, match=message):
+        run_closed_loop(cfg, tmp_path)
+    assert not any(tmp_path.iterdir())
