@@ -240,6 +240,7 @@ TIME_BASIS: dict[str, Check] = {
     "seed": SEED,
     "threads": integer(1),
     "plots": boolean(),
+    "near_target": positive(),
 }
 
 CAPACITY: dict[str, Check] = {

@@ -126,7 +126,23 @@ def _summary(m: dict[str, Any], run_dir: Path) -> str:
     text = f"RMS gate misfit over [0, t_max] with time_basis={m['basis']['time_basis']}: {line(m['basis'])}"
     if m["greedy"]:
         text += f"\n  with time_basis={m['greedy'][-1]['time_basis']}: {line(m['greedy'][-1])}"
-    return f"{text}\noutputs in {run_dir}"
+    return f"{text}\n{_verdict(m)}outputs in {run_dir}"
+
+
+def _verdict(m: dict[str, Any]) -> str:
+    """Against the one-step targets: the states whose misfit comes near them, where more gates would help."""
+    targets, near = m.get("targets"), m.get("near_target")
+    if not targets or near is None:
+        return ""
+    close = [
+        f"{name} {v:.1e} (target {t:.0e})"
+        for name, v, t in zip(m["state_names"], m["basis"]["rms"], targets)
+        if t is not None and v > near * t
+    ]
+    if not close:
+        return f"  every state's misfit is below {near:g}x its one-step target (system.targets.one_step_rmse)\n"
+    hint = " (the line above tries some)" if m["greedy"] else ""
+    return f"  above {near:g}x the one-step target: {', '.join(close)}; add gates there{hint}\n"
 
 
 def run_time_basis(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
@@ -145,9 +161,11 @@ def run_time_basis(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         float(cfg.h),
         int(cfg.seed),
     )
+    targets = cfg.system.get("targets", {}).get("one_step_rmse")
+    result["targets"] = None if targets is None else list(targets)
+    result["near_target"] = float(cfg.near_target)
     save_json(run_dir / "time_basis.json", result)
     if cfg.plots:
-        targets = cfg.system.get("targets", {}).get("one_step_rmse")
         _draw(result, f"{system.name}: gate misfit over [0, t_max] ({cfg.points} random steps)", targets, run_dir)
     return result
 

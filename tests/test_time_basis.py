@@ -9,7 +9,7 @@ import pytest
 
 from pinnmpc.settings import SettingError
 from pinnmpc.systems.registry import build_system
-from pinnmpc.time_basis import basis_report, run_time_basis
+from pinnmpc.time_basis import _summary, basis_report, run_time_basis
 
 
 def test_the_servo_fast_mode_is_what_the_panda_gates_miss(make_cfg) -> None:
@@ -31,6 +31,17 @@ def test_entry_point_writes_json_and_figure_and_refuses_bad_input(make_cfg, tmp_
     assert saved["basis"]["rms"] == m["basis"]["rms"] and len(m["basis"]["rms"]) == 4
     assert len(m["single"]) == 7 and len(m["greedy"]) == 1  # the default candidates but 0.02, a gate already
     assert (tmp_path / "time_basis.png").stat().st_size > 10_000
+    # the closing lines weigh the misfit against the system's one-step targets
+    assert m["targets"] == [1e-3, 1e-3, 1e-2, 1e-2] and m["near_target"] == 0.5
+    near = [n for n, v, t in zip(m["state_names"], m["basis"]["rms"], m["targets"]) if v > 0.5 * t]
+    assert all(f"{n} " in _summary(m, tmp_path).split("target: ")[-1] for n in near)  # named, with their numbers
+    assert "every state's misfit is below 100x its one-step" in _summary({**m, "near_target": 100.0}, tmp_path)
+    slow = run_time_basis(
+        make_cfg("time_basis", ["points=40", "dt=1e-3", "greedy=0", "time_basis=[0.5]"]), tmp_path / "s"
+    )
+    assert "above 0.5x the one-step target: alpha" in _summary(slow, tmp_path) and "line above" not in _summary(
+        slow, tmp_path
+    )
     with pytest.raises(SettingError, match=r"time_basis=\[-0.01\]"):
         run_time_basis(make_cfg("time_basis", ["time_basis=[-0.01]"]), tmp_path / "bad")
     with pytest.raises(SettingError, match="t_max=0.1 is below tau=0.2"):
