@@ -16,6 +16,8 @@ from typing import Any
 import numpy as np
 from scipy.integrate import solve_ivp
 
+START_SPEED = 1e-12  # rad/s a joint that starts to slide from rest starts with: far below any solver tolerance
+
 
 class ChatterError(Exception):
     """A plain step saw a sign(v) joint's velocity flip too often: integrate it by modes instead."""
@@ -87,6 +89,8 @@ def stick_slip_step(
     for _ in range(max_events):
         stuck = modes == 0
         x[vel[stuck]] = 0.0
+        starting = ~stuck & (x[vel] * modes <= 0.0)  # sliding from rest: off zero, or its rest event fires at once
+        x[vel[starting]] = modes[starting] * START_SPEED
 
         def fun(_t: float, y: np.ndarray, stuck: np.ndarray = stuck, modes: np.ndarray = modes) -> np.ndarray:
             """The rhs inside the current modes: stuck joints keep their position and zero velocity."""

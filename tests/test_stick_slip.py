@@ -101,3 +101,24 @@ def test_plant_settings_reach_the_plant():
         ScipyPlant(ARM, TAU, chatter_flips=0)
     with pytest.raises(ValueError, match="stick_slip_tighten must be >= 1, got 0.5"):
         ScipyPlant(ARM, TAU, stick_slip_tighten=0.5)
+
+
+@pytest.mark.parametrize("method", ["DOP853", "RK45"])
+def test_a_joint_that_starts_sliding_from_rest_does_not_switch_forever(method):
+    """Starting to slide at exactly v = 0 put the rest event at the segment's start, where some methods (DOP853)
+    found it again and again; a probe's case (plant mismatch, joint B at rest, alpha moving fast)."""
+    arm = ARM.with_mismatch(friction_scale=0.5, mass_scale=2.0)
+    x0 = np.array([-2.19132229167729, 1.6464414531315814, -2.163175207560772, 0.0])
+    u = np.array([-0.43338568801450156, 0.0740600803307574])
+    plant = ScipyPlant(arm, TAU, method=method)
+    x1 = plant.step(x0, u)
+    assert plant.stick_slip_steps == 1
+    ref = solve_ivp(
+        lambda _t, x: arm.rhs_coulomb(x, u, np.array([np.tanh(x[3] / 1e-7)])),
+        (0.0, TAU),
+        x0,
+        method="Radau",
+        rtol=1e-10,
+        atol=1e-12,
+    ).y[:, -1]
+    assert np.abs(x1 - ref).max() < 1e-6
