@@ -153,6 +153,17 @@ def joint_index() -> Check:
     return _check
 
 
+def per_state_targets() -> Check:
+    """null (no targets), or one target per state, each a number >= 0 or null (none for that state)."""
+    inner = vector("nx", optional(real(0.0)))
+
+    def _check(v: Any, dims: Dims) -> str | None:
+        bad = None if v is None else inner(v, dims)
+        return None if bad is None else f"null or {bad}"
+
+    return _check
+
+
 def duration() -> Check:
     """Lightning's wall-time budget DD:HH:MM:SS."""
     pattern = re.compile(r"\d+:\d\d:\d\d:\d\d")
@@ -165,8 +176,8 @@ SEED = integer(0, 2**32 - 1)  # what numpy and Lightning accept
 SYSTEM: dict[str, Check] = {  # the per-joint lists of conf/system/<name>.yaml that only some jobs read
     "system.network.periodic": listof(joint_index(), empty=True),
     "system.network.angle_sums": listof(listof(joint_index()), empty=True),
-    "system.targets.one_step_rmse": vector("nx", optional(real(0.0))),
-    "system.targets.closed_loop_mae": vector("nx", optional(real(0.0))),
+    "system.targets.one_step_rmse": per_state_targets(),
+    "system.targets.closed_loop_mae": per_state_targets(),
     "system.self_loop.x0": vector("nx"),
     "system.self_loop.amplitude": vector("nu"),
 }

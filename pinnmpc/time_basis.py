@@ -161,7 +161,7 @@ def run_time_basis(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         float(cfg.h),
         int(cfg.seed),
     )
-    targets = cfg.system.get("targets", {}).get("one_step_rmse")
+    targets = (cfg.system.get("targets") or {}).get("one_step_rmse")
     result["targets"] = None if targets is None else list(targets)
     result["near_target"] = float(cfg.near_target)
     save_json(run_dir / "time_basis.json", result)

@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.controller.casadi_nmpc import CasadiNMPC, build_casadi_nmpc
-from pinnmpc.controller.casadi_ocp import CasadiOCP
+from pinnmpc.controller.casadi_ocp import CasadiOCP, stable_rk4_steps
 from pinnmpc.plant import ScipyPlant
 from pinnmpc.systems import load_system
 
@@ -212,3 +212,13 @@ def test_a_solve_at_rest_is_repeated_on_smoothed_friction(base_cfg: Callable[...
     np.testing.assert_allclose(s.casadi_rhs(1e-3)(moving, [0.1, 0.2]), s.casadi_rhs()(moving, [0.1, 0.2]), atol=1e-12)
     with pytest.raises(ValueError, match="coulomb_width must be > 0"):
         s.casadi_rhs(0.0)
+
+
+def test_a_smoothed_models_rk4_steps_see_its_slope_at_rest(systems: dict) -> None:
+    """tanh(v / width) is steepest at v = 0; samples only near zero missed it for small widths (a probe's 1e-6 ran
+    55 sub-steps where ~29000 were needed, and every smoothed solve failed)."""
+    s = systems["powercube"]
+    narrow = s.casadi_rhs(1e-5)
+    assert stable_rk4_steps(s, s.tau, rhs=narrow, at_rest=True) > 4 * stable_rk4_steps(s, s.tau, rhs=narrow)
+    assert CasadiOCP(s, 5, [1, 1, 0, 0], [1e-6] * 2, None, [-0.5] * 2, [0.5] * 2, coulomb_width=1e-5).rk4_steps > 2000
+    assert stable_rk4_steps(s, s.tau) == stable_rk4_steps(s, s.tau, at_rest=True)  # the exact model: no such slope

@@ -284,7 +284,7 @@ def test_a_wrapped_angle_in_the_reference_is_named(make_cfg, tmp_path, caplog):
 @pytest.mark.parametrize(
     ("override", "message"),
     [
-        ("system.targets.one_step_rmse=[0.1,0.1]", r"one_step_rmse=\[0.1, 0.1\]: expected a list of 6 entries \(nx\)"),
+        ("system.targets.one_step_rmse=[0.1,0.1]", r"one_step_rmse=\[0.1, 0.1\]: expected null or a list of 6 entries"),
         ("system.network.periodic=[5]", r"periodic=\[5\]: expected a list, each entry a joint number 0..2"),
         ("system.network.angle_sums=[[0,7]]", r"angle_sums=\[\[0, 7\]\]: expected .* a joint number 0..2"),
         ("system.self_loop.amplitude=[1.0]", r"amplitude=\[1.0\]: expected a list of 3 entries \(nu\)"),

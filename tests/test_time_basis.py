@@ -42,6 +42,10 @@ def test_entry_point_writes_json_and_figure_and_refuses_bad_input(make_cfg, tmp_
     assert "above 0.5x the one-step target: alpha" in _summary(slow, tmp_path) and "line above" not in _summary(
         slow, tmp_path
     )
+    no_targets = run_time_basis(
+        make_cfg("time_basis", ["points=40", "dt=1e-3", "greedy=0", "system.targets=null"]), tmp_path / "n"
+    )
+    assert no_targets["targets"] is None and "one-step target" not in _summary(no_targets, tmp_path)
     with pytest.raises(SettingError, match=r"time_basis=\[-0.01\]"):
         run_time_basis(make_cfg("time_basis", ["time_basis=[-0.01]"]), tmp_path / "bad")
     with pytest.raises(SettingError, match="t_max=0.1 is below tau=0.2"):

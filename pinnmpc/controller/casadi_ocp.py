@@ -47,11 +47,14 @@ QUIET = {  # options that silence each plugin
 }
 
 
-def stable_rk4_steps(system: Any, tau: float, seed: int = 0, rhs: ca.Function | None = None) -> int:
+def stable_rk4_steps(
+    system: Any, tau: float, seed: int = 0, rhs: ca.Function | None = None, at_rest: bool = False
+) -> int:
     """Fewest RK4 sub-steps per tau that keep h * max|eig(df/dx)| below RK4_STABLE on the state box (of rhs, by
     default the system's).
 
-    Friction with a steep tanh makes the arms stiff near zero velocity, so half the samples there."""
+    Friction with a steep tanh makes the arms stiff near zero velocity, so half the samples there; with at_rest a
+    quarter at exactly zero, where a smoothed sign(v) (tanh(v / width), any width) is steepest."""
     rhs = system.casadi_rhs() if rhs is None else rhs
     nx, nu = rhs.size1_in(0), rhs.size1_in(1)
     x, u = ca.SX.sym("x", nx), ca.SX.sym("u", nu)
@@ -60,6 +63,8 @@ def stable_rk4_steps(system: Any, tau: float, seed: int = 0, rhs: ca.Function | 
     lo, hi = np.array(system.state_box.low), np.array(system.state_box.high)
     xs = rng.uniform(lo, hi, (STIFFNESS_SAMPLES, nx))
     xs[::2, nx // 2 :] *= 1e-3  # velocities near zero: the steepest friction slope
+    if at_rest:
+        xs[::4, nx // 2 :] = 0.0
     us = rng.uniform(system.input_box.low, system.input_box.high, (STIFFNESS_SAMPLES, nu))
     jacs = np.asarray(jac(xs.T, us.T)).reshape(nx, STIFFNESS_SAMPLES, nx).transpose(1, 0, 2)
     worst = float(np.abs(np.linalg.eigvals(jacs)).max())
@@ -140,7 +145,9 @@ class CasadiOCP:
         self.name = system.name
         self.horizon, self.nx, self.nu = int(horizon), rhs.size1_in(0), rhs.size1_in(1)
         self.tau = float(system.tau)
-        self.rk4_steps = stable_rk4_steps(system, self.tau, rhs=rhs) if rk4_steps is None else int(rk4_steps)
+        if rk4_steps is None:
+            rk4_steps = stable_rk4_steps(system, self.tau, rhs=rhs, at_rest=coulomb_width is not None)
+        self.rk4_steps = int(rk4_steps)
         if self.rk4_steps < 1:
             raise ValueError(f"rk4_steps must be >= 1 (or null: automatic), got {rk4_steps}")
         self.low = np.array(u_low, dtype=np.float64)
