@@ -53,7 +53,7 @@ def _holding_signs(system: Any, x: np.ndarray, u: np.ndarray, signs: np.ndarray,
     idx = np.flatnonzero(stuck)
     if idx.size == 0:
         return signs
-    acc = np.asarray(system.nq + np.asarray(coulomb_joints(system)))[idx]
+    acc = (system.nq + np.asarray(coulomb_joints(system)))[idx]
     base = signs.copy()
     base[idx] = 0.0
     a0 = system.rhs_coulomb(x, u, base)[acc]
