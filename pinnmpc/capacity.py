@@ -21,7 +21,7 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from pinnmpc.cli import job_system, run_job, say
+from pinnmpc.cli import check_choices, job_system, run_job, say
 from pinnmpc.io import save_json
 from pinnmpc.pinn import PINN
 from pinnmpc.settings import validate_capacity
@@ -215,4 +215,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_choices("pinnmpc.capacity")
     main()

@@ -7,6 +7,7 @@ import atexit
 import errno
 import fcntl
 import os
+import re
 import shutil
 import signal
 import sys
@@ -360,6 +361,25 @@ def append_log(path: Path, message: str) -> None:
     """One timestamped line at the end of a run's log file."""
     with path.open("a", encoding="utf-8") as f:
         f.write(f"[{time.strftime('%Y-%m-%d %H:%M:%S')}] {message}\n")
+
+
+CONF = Path(__file__).resolve().parents[1] / "conf"  # the Hydra config tree the entry points compose from
+CHOICE = re.compile(r"^\+{0,2}([a-z_]+)=([A-Za-z0-9_.-]+)$")  # a plain `group=option` override (no sweeps)
+
+
+def check_choices(prog: str, argv: list[str] | None = None) -> None:
+    """Before Hydra composes: a `group=option` override whose conf/group/option.yaml does not exist ends the process
+    with one line naming it and the options there (Hydra's own message is a multi-line search-path dump)."""
+    for arg in sys.argv[1:] if argv is None else argv:
+        match = CHOICE.match(arg)
+        if match is None or not (CONF / match[1]).is_dir():
+            continue
+        group, option = match[1], match[2]
+        if not (CONF / group / f"{option}.yaml").is_file():
+            have = sorted(f.stem for f in (CONF / group).glob("*.yaml"))
+            print(f"{prog}: error: {group}={option!r}: no conf/{group}/{option}.yaml; expected one of {have}",
+                  file=sys.stderr)  # fmt: skip
+            sys.exit(EXIT_BAD_INPUT)
 
 
 def run_cli(body: Callable[[], T], prog: str, run_dir: Path | None = None) -> T:

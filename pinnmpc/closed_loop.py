@@ -13,7 +13,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
-from pinnmpc.cli import StopSignal, job_system, run_cli, say
+from pinnmpc.cli import StopSignal, check_choices, job_system, run_cli, say
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
 from pinnmpc.io import save_json, save_npz
@@ -309,6 +309,16 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
     plant = make_plant(system, cfg.plant, tau)
     requested = None if stop is None else (lambda: stop.requested)
     start = None if cfg.get("x0") is None else [float(v) for v in cfg.x0]
+    if start is not None and system.joint_limits is not None:  # as a reference there would be: no arm starts there
+        low, high = np.asarray(system.joint_limits.low), np.asarray(system.joint_limits.high)
+        q = np.asarray(start[: len(low)])
+        past = np.flatnonzero((q < low) | (q > high))
+        if past.size:
+            j = int(past[0])
+            raise ValueError(
+                f"x0={start}: {system.state_names[j]} = {q[j]:g} is outside its joint limits "
+                f"[{low[j]:g}, {high[j]:g}]; expected a start within the joint limits"
+            )
     run = simulate(
         controller,
         plant,
@@ -327,6 +337,10 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
     result.update(limits_and_saturation(run, controller, system))
     result["status"] = verdict(result, float(failure.get("max_fallback_fraction", 1.0)))
     result["input_bounds_outside_box"] = bool(domain is not None and bounds_outside(cfg, controller_box(controller)))
+    result["plant_mismatch"] = {
+        "friction_scale": float(cfg.plant.friction_scale),
+        "mass_scale": float(cfg.plant.mass_scale),
+    }
     st = controller.stats
     n = len(run["x"])
     save_npz(
@@ -399,7 +413,10 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
         past = f"{m['joint_limit_samples']} samples past a joint limit"
         trouble.append(f"{past} (by up to {m['joint_limit_excess_max']:.1e} rad)")
     if m.get("saturated_fraction", 0.0) >= SATURATED_NOTE:
-        trouble.append(f"inputs at a bound in {m['saturated_fraction']:.0%} of steps (the reference may ask too much)")
+        off = {k: v for k, v in (m.get("plant_mismatch") or {}).items() if v != 1.0}
+        why = f"the plant differs from the model: {', '.join(f'{k} {v:g}' for k, v in off.items())}" if off else ""
+        why = why or "the reference may ask too much"
+        trouble.append(f"inputs at a bound in {m['saturated_fraction']:.0%} of steps ({why})")
     return (
         f"{m['status']}: {m['steps']} steps on {m['reference']} with {m['solver']}"
         + (" as a real-time iteration" if real_time else "")
@@ -426,4 +443,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_choices("pinnmpc.closed_loop")
     main()

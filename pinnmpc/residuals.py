@@ -17,7 +17,7 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from pinnmpc.cli import job_system, run_job
+from pinnmpc.cli import check_choices, job_system, run_job
 from pinnmpc.io import save_json
 from pinnmpc.pinn import PINN
 from pinnmpc.settings import validate_residuals
@@ -88,4 +88,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_choices("pinnmpc.residuals")
     main()

@@ -10,7 +10,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from pinnmpc.cli import run_job
+from pinnmpc.cli import check_choices, run_job
 from pinnmpc.closed_loop import run_closed_loop
 from pinnmpc.io import atomic_write, save_json
 from pinnmpc.report import md_table
@@ -81,4 +81,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_choices("pinnmpc.robustness")
     main()

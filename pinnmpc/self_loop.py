@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from pinnmpc.cli import job_system, run_job
+from pinnmpc.cli import check_choices, job_system, run_job
 from pinnmpc.io import save_json, save_npz
 from pinnmpc.plant import ScipyPlant
 from pinnmpc.settings import validate_self_loop
@@ -94,4 +94,5 @@ def _summary(m: dict[str, Any], run_dir: Path) -> str:
 
 
 if __name__ == "__main__":
+    check_choices("pinnmpc.self_loop")
     main()

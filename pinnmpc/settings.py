@@ -87,7 +87,11 @@ def optional(check: Check) -> Check:
 
     def _check(v: Any, dims: Dims) -> str | None:
         bad = None if v is None else check(v, dims)
-        return None if bad is None else f"{bad} or null"
+        if bad is None:
+            return None
+        return (
+            f"null or {bad}" if bad.startswith("a list") else f"{bad} or null"
+        )  # "or null" after a list reads as per entry
 
     return _check
 

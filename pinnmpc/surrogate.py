@@ -111,7 +111,19 @@ class Surrogate(Dimensions):
         t = torch.as_tensor(t, dtype=self.dtype)
         if t.ndim == 0 or t.shape[-1] != 1:
             raise ValueError(f"surrogate expects t with last dimension 1, got t {tuple(t.shape)}")
-        return self.model(t.expand(*x0.shape[:-1], 1), x0, u)
+        if t.numel() and (float(t.min()) < 0.0 or float(t.max()) > self.t_max * (1 + 1e-9)):
+            raise ValueError(
+                f"surrogate expects t in [0, t_max={self.t_max:g}] s (the interval it was trained on), got t from "
+                f"{float(t.min()):g} to {float(t.max()):g}"
+            )
+        try:
+            batch = torch.broadcast_shapes(t.shape[:-1], x0.shape[:-1])
+        except RuntimeError:
+            raise ValueError(
+                f"surrogate expects t, x0 and u with broadcastable batch shapes, got t {tuple(t.shape)}, x0 "
+                f"{tuple(x0.shape)} and u {tuple(u.shape)}"
+            ) from None
+        return self.model(t.expand(*batch, 1), x0.expand(*batch, self.nx), u.expand(*batch, self.nu))
 
     def step(self, x0: Tensor, u: Tensor) -> Tensor:
         """x(tau): one zero-hold sampling period."""
@@ -195,9 +207,18 @@ def load_surrogate(
 ) -> Surrogate:
     """Load a trained surrogate: a file, or (path=None) the one shipped for `system` (None: the PowerCube).
 
-    nx/nu, or the system's state_names, guard against a network trained for another robot."""
+    nx/nu, the system's state_names, or `system` with a path, guard against a network trained for another robot."""
     if system is not None and not isinstance(system, str):
         raise TypeError(f"system must be a system name like 'planar3', got {type(system).__name__}")
+    asked = dtype
+    if isinstance(dtype, str):  # "float64" as well as torch.float64
+        dtype = getattr(torch, dtype, None)
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise TypeError(f"dtype must be a torch floating dtype (e.g. torch.float64 or 'float64'), got {asked!r}")
+    if path is not None and system is not None and state_names is None:
+        from pinnmpc.systems.registry import load_system
+
+        state_names = tuple(load_system(system).state_names)
     path = shipped(system) if path is None else Path(path)
     obj = _read(path)
     config, state, facts = _unpack(obj, path)

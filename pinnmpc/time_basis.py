@@ -22,7 +22,7 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from pinnmpc.cli import job_system, run_job
+from pinnmpc.cli import check_choices, job_system, run_job
 from pinnmpc.integrators import n_steps, rk4_fixed
 from pinnmpc.io import save_json
 from pinnmpc.pinn import time_gates
@@ -189,4 +189,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_choices("pinnmpc.time_basis")
     main()

@@ -19,7 +19,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import Timer
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.cli import StopSignal, run_cli, say
+from pinnmpc.cli import StopSignal, check_choices, run_cli, say
 from pinnmpc.io import save_json
 from pinnmpc.pinn import PINN
 from pinnmpc.prior import FrozenArmPrior
@@ -395,4 +395,5 @@ def exit_interrupted(summary: dict[str, Any], run_dir: Path, stop: StopSignal) -
 
 
 if __name__ == "__main__":
+    check_choices("pinnmpc.train")
     main()

@@ -128,11 +128,29 @@ def test_failed_solves_fall_back_to_the_shifted_plan(base_cfg: Callable[..., dic
     assert np.all(np.isfinite(u)) and np.all(u >= c.low) and np.all(u <= c.high)
     assert c.stats[-1].fallback and not c.stats[-1].converged
     np.testing.assert_allclose(u, planned[0])  # the previous plan, shifted
-    # an impossible iteration budget: also a fallback, still within bounds
-    cfg = base_cfg("powercube", **{"solvers.sqpmethod.max_iter": 0, "solver": "sqpmethod"})
+    # an impossible iteration budget, no capped solve accepted: also a fallback, still within bounds
+    cfg = base_cfg("powercube", **{"solvers.sqpmethod.max_iter": 0, "solver": "sqpmethod", "accept_defect": None})
     c0 = build_casadi_nmpc(cfg, s)
     u = c0.make_step(x, ref)
     assert c0.stats[-1].fallback and np.all(np.isfinite(u)) and np.all(u >= c0.low) and np.all(u <= c0.high)
+
+
+def test_a_capped_solve_on_a_plan_that_obeys_the_model_is_used(base_cfg: Callable[..., dict], systems: dict) -> None:
+    """Far off the reference (0.5 rad in every joint) Gauss-Newton SQP converges linearly: a solve stopped by its
+    iteration cap with defects below accept_defect is applied (unconverged), not replaced by the shifted plan."""
+    s = systems["planar3"]
+    x, ref = np.array([0.5, -0.5, 0.5, 0.0, 0.0, 0.0]), np.zeros((5, 6))
+    steps = []
+    for accept in (1e-4, None):
+        c = build_casadi_nmpc(base_cfg("planar3", accept_defect=accept), s)
+        steps.append((c.make_step(x, ref), c.stats[-1]))
+    (u, used), (u_off, fell_back) = steps
+    assert used.iterations == fell_back.iterations == base_cfg("planar3")["solvers"]["sqpmethod"]["max_iter"]
+    assert not used.fallback and not used.converged and np.isfinite(used.cost)
+    assert fell_back.fallback and np.all(u_off == 0.0)  # the cold plan: zero inputs
+    assert np.abs(u).max() > 1.0  # a real move towards the reference
+    with pytest.raises(ValueError, match="controller.accept_defect=-1"):
+        build_casadi_nmpc(base_cfg("planar3", accept_defect=-1.0), s)
 
 
 def test_rti_takes_one_step_per_sample(base_cfg: Callable[..., dict], systems: dict) -> None:

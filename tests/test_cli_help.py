@@ -61,3 +61,25 @@ def test_every_key_a_help_names_exists(module: str, make_cfg: Callable[..., Dict
     for key in keys - {"hydra.run.dir"}:
         group = (CONF / key).is_dir()  # e.g. system=, experiment= (a group whose default is null)
         assert group or OmegaConf.select(cfg, key, default=ABSENT) is not ABSENT, f"{module} --help names {key}="
+
+
+@pytest.mark.parametrize("module", sorted(COMMANDS))
+def test_an_unknown_config_option_is_named_in_one_line_before_hydra_starts(module: str) -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", f"pinnmpc.{module}", "system=nope", "hydra.run.dir=/nonexistent/never"],
+        capture_output=True, text=True, cwd=ROOT, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip().splitlines() == [
+        f"pinnmpc.{module}: error: system='nope': no conf/system/nope.yaml; expected one of "
+        "['panda', 'planar3', 'powercube']"
+    ]
+
+
+def test_only_plain_group_choices_are_checked() -> None:
+    from pinnmpc.cli import check_choices
+
+    check_choices("x", ["system=planar3", "controller.horizon=7", "system.tau=0.1", "seed=3", "system=a,b"])
+    with pytest.raises(SystemExit) as stop:
+        check_choices("x", ["controller=fast"])
+    assert stop.value.code == 2

@@ -249,8 +249,16 @@ def test_the_arm_can_start_off_the_reference(make_cfg, tmp_path):
     assert off["status"] == "ok" and np.array_equal(run["x"][0], start)
     assert np.abs(run["x"][-1, :2] - run["x_ref"][-1, :2]).max() < 1e-3  # on the reference by the end
     assert off["mae"]["alpha"] > ref["mae"]["alpha"]  # the start's error counts
-    with pytest.raises(SettingError, match=r"x0=\[0.1, 0.2\]: expected a list of 4 entries"):
+    with pytest.raises(SettingError, match=r"x0=\[0.1, 0.2\]: expected null or a list of 4 entries"):
         run_closed_loop(make_cfg("closed_loop", ["progress=false", "x0=[0.1,0.2]"]), tmp_path / "c")
+
+
+def test_a_start_past_the_joint_limits_is_refused_like_a_reference(make_cfg, tmp_path):
+    start = [0.0, 0.0, 0.0, 0.2, 0.0, 1.0, 0.0] + [0.0] * 7  # joint 4 of the Panda ends at -0.07 rad
+    cfg = make_cfg("closed_loop", ["system=panda", "progress=false", "plots=false", "max_steps=2", f"x0={start}"])
+    with pytest.raises(ValueError, match=r"q_joint4 = 0.2 is outside its joint limits \[-3.07.*, -0.069.*\]"):
+        run_closed_loop(cfg, tmp_path)
+    assert not (tmp_path / "metrics.json").exists()
 
 
 def test_a_diverged_state_is_named_and_arms_that_turn_round_have_no_position_bound():

@@ -234,7 +234,7 @@ def test_ocp_cost_is_the_quadratic_form(s: Surrogate, R_rate: list | None) -> No
 
 @pytest.mark.parametrize("horizon", [0, -1])
 def test_ocp_horizon_below_one_raises(s: Surrogate, horizon: int) -> None:
-    with pytest.raises(ValueError, match="horizon must be >= 1"):
+    with pytest.raises(ValueError, match=f"horizon={horizon}; expected a whole number >= 1"):
         HorizonOCP(s, horizon, [1.0] * NX, [1.0] * NU)
 
 
@@ -840,7 +840,13 @@ def test_build_nmpc_with_overrides(s: Surrogate) -> None:
         ({"u_low": [0.3, -0.5], "u_high": [0.2, 0.5]}, "exceeds upper bound"),
         ({"u_low": [-0.5], "u_high": [0.5]}, "2 entries"),
         ({"solver": "adam"}, "unknown solver 'adam'"),
-        ({"horizon": 0}, "horizon must be >= 1"),
+        ({"horizon": 0}, "horizon=0; expected a whole number >= 1"),
+        ({"horizon": 2.5}, "horizon=2.5; expected a whole number >= 1"),
+        ({"horizon": True}, "horizon=True; expected a whole number >= 1"),
+        ({"Q": None}, "Q=None; expected 4 diagonal entries"),
+        ({"u_low": [float("nan")] * 2}, "u_low=\\[nan, nan\\].*expected finite numbers"),
+        ({"u_high": [float("inf")] * 2}, "u_high=\\[inf, inf\\]; expected finite numbers"),
+        ({"horizn": 5}, "unknown keys \\['horizn'\\]"),
         ({"solvers.lifted_gauss_newton.max_iters": 3}, "max_iters"),
         ({"model": "exact_values"}, "needs the system's true model \\(build_nmpc\\(..., system=...\\)\\)"),
     ],
@@ -848,3 +854,21 @@ def test_build_nmpc_with_overrides(s: Surrogate) -> None:
 def test_build_nmpc_rejects_bad_config(s: Surrogate, overrides: dict, fragment: str) -> None:
     with pytest.raises(ValueError, match=fragment):
         build_nmpc(_config(**overrides), s)
+
+
+def test_build_nmpc_names_a_missing_key(s: Surrogate) -> None:
+    cfg = _config()
+    del cfg["Q"]
+    with pytest.raises(ValueError, match="the controller config lacks \\['Q'\\]"):
+        build_nmpc(cfg, s)
+
+
+def test_make_step_checks_shapes_before_the_estimator_and_takes_tensors_that_require_grad(s: Surrogate) -> None:
+    nmpc = build_nmpc(_config(**{"disturbance.gain": 0.7}), s)
+    ref = np.zeros((5, NX))
+    nmpc.make_step(np.zeros(NX), ref)  # the estimator has a last step to compare with from here on
+    for bad in (np.zeros((1, NX)), np.zeros(NX + 1)):
+        with pytest.raises(ValueError, match=f"the state must have {NX} entries"):
+            nmpc.make_step(bad, ref)
+    u = nmpc.make_step(torch.zeros(NX, dtype=F64, requires_grad=True), torch.from_numpy(ref))
+    assert np.all(np.isfinite(u)) and not nmpc.stats[-1].fallback

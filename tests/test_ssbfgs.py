@@ -11,7 +11,7 @@ from pinnmpc.systems import PowerCube
 from pinnmpc.train import train
 from pinnmpc.training.data import CollocationDataModule
 from pinnmpc.training.module import PINNModule
-from pinnmpc.training.ssbfgs import SSBFGS
+from pinnmpc.training.ssbfgs import SSBFGS, InverseHessian, Step
 from tests.conftest import TINY_TRAIN
 
 
@@ -30,7 +30,7 @@ def _minimise(f, x0: torch.Tensor, **kwargs) -> tuple[torch.Tensor, SSBFGS]:
     return x.detach(), opt
 
 
-@pytest.mark.parametrize("variant", ["ssbfgs", "bfgs"])
+@pytest.mark.parametrize("variant", ["ssbfgs", "ssbroyden", "bfgs"])
 def test_a_convex_quadratic_is_solved_and_h_stays_positive_definite(variant):
     g = torch.Generator().manual_seed(0)
     a = torch.randn(8, 8, generator=g, dtype=torch.float64)
@@ -54,6 +54,29 @@ def test_updates_kept_aside_give_the_iterates_of_updates_applied_at_once():
     assert torch.allclose(at_once, kept, rtol=0, atol=1e-9)
     H_eager, H_lazy = (o.state[o._params[0]]["H"].matrix() for o in (eager, lazy))
     assert torch.allclose(H_eager, H_lazy, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("variant", ["ssbfgs", "ssbroyden", "bfgs"])
+@pytest.mark.parametrize("first", [True, False])
+def test_an_update_keeps_the_secant_equation_and_h_positive_definite(variant, first):
+    g = torch.Generator().manual_seed(2)
+    n = 12
+    opt = SSBFGS([torch.nn.Parameter(torch.zeros(n, dtype=torch.float64))], variant=variant, hessian_dtype="float64")
+    for trial in range(20):  # random SPD H and pairs with y's > 0, a step along -H g as the optimiser takes
+        a = torch.randn(n, n, generator=g, dtype=torch.float64)
+        H = InverseHessian(n, 1.0, torch.float64, torch.device("cpu"), buffer=4)
+        H.D = a @ a.T / n + 0.1 * torch.eye(n, dtype=torch.float64)
+        grad, t = torch.randn(n, generator=g, dtype=torch.float64), 0.3 + trial / 10
+        s = -t * (H @ grad)
+        y = torch.linalg.solve(H.D, s) * (0.2 + trial / 5) + 0.05 * torch.randn(n, generator=g, dtype=torch.float64)
+        if float(y @ s) <= 0:
+            continue
+        slope = -float(grad @ s)
+        step = Step(s=s, y=y, hy=H @ y, slope=slope, sbs=t * slope, first=first)
+        opt._update(H, step)
+        new = H.matrix()
+        assert torch.allclose(new @ y, s, rtol=1e-9, atol=1e-11)  # H+ y = s for every member of the family
+        assert torch.allclose(new, new.T) and torch.linalg.eigvalsh(new).min() > 0
 
 
 def test_the_rosenbrock_valley_is_followed_to_its_minimum():

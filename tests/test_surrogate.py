@@ -13,7 +13,7 @@ from torch.func import jacrev, vmap
 from pinnmpc.flow_numpy import BlockDiagonal, NumpyFlow
 from pinnmpc.integrators import rk4_step
 from pinnmpc.pinn import PINN
-from pinnmpc.surrogate import FORMAT, FORMAT_VERSION, SHIPPED, CheckpointError, Surrogate, load_surrogate
+from pinnmpc.surrogate import FORMAT, FORMAT_VERSION, SHIPPED, CheckpointError, Surrogate, load_surrogate, shipped
 from pinnmpc.systems import PowerCube
 
 torch.set_num_threads(1)  # a training job shares this 2-core machine
@@ -223,6 +223,26 @@ def test_wrong_last_dimension_names_expected_shape(
             call()
         assert fragment in str(err.value)
         assert f"x0 {x_shape}" in str(err.value) and f"u {u_shape}" in str(err.value)
+
+
+def test_time_outside_the_trained_interval_is_refused_and_broadcasts_inside_it(s: Surrogate) -> None:
+    x0, u = _points(1)
+    for t in (-0.01, 2 * s.t_max):
+        with pytest.raises(ValueError, match=f"t in \\[0, t_max={s.t_max:g}\\] s"):
+            s(torch.full((1, 1), t, dtype=torch.float64), x0, u)
+    many = s(torch.tensor([[0.0], [s.tau], [s.t_max]], dtype=torch.float64), x0[0], u[0])  # one state, three times
+    assert many.shape == (3, NX)
+    torch.testing.assert_close(many[1], s.step(x0[0], u[0]))
+    torch.testing.assert_close(many[0], x0[0])  # hard initial condition
+
+
+def test_a_checkpoint_of_another_system_is_refused_and_dtype_may_be_a_name(tmp_path: Path) -> None:
+    with pytest.raises(CheckpointError, match="was trained for states \\['alpha'"):
+        load_surrogate(shipped("powercube"), system="planar3")
+    assert load_surrogate(shipped("powercube"), system="powercube").state_names[0] == "alpha"
+    assert load_surrogate(dtype="float32").dtype == torch.float32
+    with pytest.raises(TypeError, match="dtype must be a torch floating dtype.*got 'int64'"):
+        load_surrogate(dtype="int64")
 
 
 def test_time_with_wrong_last_dimension(s: Surrogate) -> None:

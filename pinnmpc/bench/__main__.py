@@ -8,7 +8,7 @@ import hydra
 from omegaconf import DictConfig
 
 from pinnmpc.bench.run import run_bench
-from pinnmpc.cli import run_cli
+from pinnmpc.cli import check_choices, run_cli
 
 
 @hydra.main(version_base="1.3", config_path="../../conf", config_name="bench")
@@ -21,4 +21,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_choices("pinnmpc.bench")
     main()

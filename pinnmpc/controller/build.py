@@ -16,6 +16,7 @@ from pinnmpc.systems.base import System
 MODELS = ("surrogate", "exact_values")  # controller.model: what the OCP predicts with
 GAUSS_NEWTON = ("lifted_gauss_newton", "gauss_newton")  # the solvers that take a numpy model's Jacobians
 
+REQUIRED = ("horizon", "Q", "R")  # what every NMPC config names
 OPTIONAL = {  # what a Python caller may leave out (conf/controller/nmpc.yaml sets all of it for the CLIs)
     "R_rate": None,
     "u_low": None,
@@ -60,6 +61,11 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
     solver, prediction model (exact_values needs the system)."""
     if isinstance(cfg, DictConfig):
         cfg = OmegaConf.to_container(cfg, resolve=True)  # plain values: config objects are slow in hot loops
+    missing = [key for key in REQUIRED if key not in cfg]
+    unknown = sorted(set(cfg) - set(REQUIRED) - set(OPTIONAL) - {"kind"})
+    if missing or unknown:
+        what = f"lacks {missing}" if missing else f"has unknown keys {unknown}"
+        raise ValueError(f"the controller config {what}; expected {list(REQUIRED)} and any of {list(OPTIONAL)}")
     cfg = {**OPTIONAL, **cfg}
     solver = make_solver(cfg["solver"], **((cfg["solvers"] or {}).get(cfg["solver"]) or {}))
     ocp = HorizonOCP(

@@ -19,6 +19,7 @@ from pinnmpc.controller.nmpc import StepStats, disturbance_bound, filtered_distu
 from pinnmpc.stick_slip import coulomb_joints
 
 RTI_STATUSES = {"Solve_Succeeded", "Maximum_Iterations_Exceeded"}  # what one SQP step may end with and be used
+CAPPED = "Maximum_Iterations_Exceeded"  # the status of a solve stopped by its iteration cap
 
 
 class CasadiNMPC:
@@ -35,6 +36,7 @@ class CasadiNMPC:
         disturbance_gain: float = 0.0,
         disturbance_max: Sequence[float] | None = None,
         smooth_solver: NlpSolver | None = None,
+        accept_defect: float | None = None,
     ) -> None:
         self.ocp, self.solver, self.label = ocp, solver, label
         self.horizon, self.nx, self.nu = ocp.horizon, ocp.nx, ocp.nu
@@ -42,6 +44,9 @@ class CasadiNMPC:
         self.warm_start, self.rti = bool(warm_start), bool(rti)
         self.cold_solver = cold_solver or solver  # RTI: a full solve while there is no solution to iterate from
         self.smooth_solver = smooth_solver  # the same OCP with sign(v) friction smoothed: tried when a solve fails
+        if accept_defect is not None and not (np.isfinite(accept_defect) and accept_defect >= 0):
+            raise ValueError(f"controller.accept_defect={accept_defect!r}; expected a number >= 0 or null")
+        self.accept_defect = accept_defect  # a capped solve whose defects are below this is still used
         self.disturbance_gain = float(disturbance_gain)
         self._d_max = disturbance_bound(disturbance_max, self.nx, self.disturbance_gain)
         self.stats: list[StepStats] = []
@@ -124,10 +129,12 @@ class CasadiNMPC:
         )
         return U[0].copy()
 
-    @staticmethod
-    def _usable(sol: Solution, rti: bool) -> bool:
-        """A solve counts when the solver succeeded (RTI: took its one step) and everything is finite."""
-        if not (sol.success or (rti and sol.status in RTI_STATUSES)):
+    def _usable(self, sol: Solution, rti: bool) -> bool:
+        """A solve counts when the solver succeeded (RTI: took its one step), or stopped at its iteration cap on a
+        plan that obeys the model to accept_defect (Gauss-Newton SQP converges linearly far from the reference), and
+        everything is finite."""
+        capped = sol.status == CAPPED and self.accept_defect is not None and sol.defect <= self.accept_defect
+        if not (sol.success or capped or (rti and sol.status in RTI_STATUSES)):
             return False
         return bool(np.isfinite(sol.w).all() and np.isfinite(sol.cost))
 
@@ -233,4 +240,5 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
         disturbance_gain=float(d.get("gain", 0.0)),
         disturbance_max=d.get("max_abs"),
         smooth_solver=smooth_solver,
+        accept_defect=cfg.get("accept_defect"),
     )

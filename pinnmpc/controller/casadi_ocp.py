@@ -121,6 +121,7 @@ class Solution:
     success: bool
     iterations: int
     status: str
+    defect: float  # the largest constraint violation |g| (initial state and dynamics defects: all equalities)
 
 
 class CasadiOCP:
@@ -371,6 +372,7 @@ class NlpSolver:
             success=bool(stats.get("success", False)) or status in self._success,
             iterations=int(stats.get("iter_count", 0)),
             status=status,
+            defect=float(np.abs(self.g).max(initial=0.0)),
         )
 
     def flow(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:

@@ -99,6 +99,10 @@ class NMPC:
             raise ValueError(
                 f"input bounds must have {nu} entries each, got {list(self.u_low)} and {list(self.u_high)}"
             )
+        if not (torch.isfinite(self.low).all() and torch.isfinite(self.high).all()):
+            raise ValueError(
+                f"input bounds u_low={self.low.tolist()}, u_high={self.high.tolist()}; expected finite numbers"
+            )
         if torch.any(self.low > self.high):
             raise ValueError(f"input lower bound {self.low.tolist()} exceeds upper bound {self.high.tolist()}")
         self._low, self._high = self.low.numpy(), self.high.numpy()
@@ -187,13 +191,18 @@ class NMPC:
         """The solver's warm state the next make_step hands back to it (NO_WARM: a cold start)."""
         return self._warm
 
-    def _solve_one(self, x0: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, SolveInfo, Any]:
-        """One problem in the solver's own array library: batch-1 solves are dominated by per-call overhead."""
+    def _checked(self, x: np.ndarray | Tensor, x_ref: np.ndarray | Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """The measured state (nx,) and reference (H, nx) as float64 arrays, their shapes checked first."""
+        x0, ref = _array(x), _array(x_ref)
         if x0.shape != (self.ocp.nx,):
             raise ValueError(f"the state must have {self.ocp.nx} entries, got shape {x0.shape}")
-        if x_ref.shape != (self.horizon, self.ocp.nx):
+        if ref.shape != (self.horizon, self.ocp.nx):
             want = (self.horizon, self.ocp.nx)
-            raise ValueError(f"x_ref must cover the horizon: expected {want[0]} x {want[1]}, got {x_ref.shape}")
+            raise ValueError(f"x_ref must cover the horizon: expected {want[0]} x {want[1]}, got {ref.shape}")
+        return x0, ref
+
+    def _solve_one(self, x0: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, SolveInfo, Any]:
+        """One problem in the solver's own array library: batch-1 solves are dominated by per-call overhead."""
         args = (x0[None], self._U[None], x_ref[None], self._u_prev[None], self._low, self._high)
         if self.solver.array_api != "numpy":
             args = tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in args)
@@ -203,8 +212,7 @@ class NMPC:
 
     def make_step(self, x: np.ndarray | Tensor, x_ref: np.ndarray | Tensor) -> np.ndarray:
         """Input to apply now, given the measured state and the next H reference states."""
-        x0 = np.asarray(x, dtype=np.float64)
-        ref = np.asarray(x_ref, dtype=np.float64)
+        x0, ref = self._checked(x, x_ref)
         start = time.perf_counter()
         fallback = False
         try:
@@ -262,3 +270,10 @@ class NMPC:
     def _shifted(U: np.ndarray) -> np.ndarray:
         """Warm start for the next solve: drop the applied input, repeat the last one."""
         return np.concatenate((U[1:], U[-1:]), axis=0)
+
+
+def _array(v: np.ndarray | Tensor | Sequence) -> np.ndarray:
+    """float64 numpy copy of an array, list or tensor (one that requires grad too: measurements are data)."""
+    if isinstance(v, Tensor):
+        v = v.detach().cpu()
+    return np.array(v, dtype=np.float64)

@@ -27,7 +27,10 @@ __all__ = ["LIMIT_KEYS", "Array", "HorizonOCP", "JointLimits", "cat", "psd_sqrt"
 
 def psd_sqrt(matrix: Sequence[Sequence[float]] | Sequence[float], n: int, name: str) -> Tensor:
     """Symmetric square root W of a PSD weight (W^T W = matrix); a flat list is a diagonal."""
-    m = torch.as_tensor(matrix, dtype=torch.float64)
+    try:
+        m = torch.as_tensor(matrix, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"{name}={matrix!r}; expected {n} diagonal entries or an {n}x{n} matrix of numbers") from None
     if m.ndim == 1:
         m = torch.diag(m)
     if m.shape != (n, n):
@@ -126,8 +129,8 @@ class HorizonOCP:
         R_rate: Sequence | None = None,
         joint_limits: JointLimits | Mapping | None = None,
     ) -> None:
-        if int(horizon) < 1:
-            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
+            raise ValueError(f"horizon={horizon!r}; expected a whole number >= 1")
         check_flow_map(model)
         self.model = model
         self.horizon = int(horizon)

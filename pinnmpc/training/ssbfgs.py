@@ -18,18 +18,20 @@ import torch
 from torch import Tensor
 from torch.optim.lbfgs import _strong_wolfe
 
-VARIANTS = ("ssbfgs", "bfgs")
+VARIANTS = ("ssbfgs", "ssbroyden", "bfgs")
 HESSIAN_DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
 @dataclass
 class Step:
-    """One accepted iteration: its curvature pair, H y, and the slope -s'g where it started."""
+    """One accepted iteration: its curvature pair, H y, the slope -s'g where it started and s'B s (B = H^-1)."""
 
     s: Tensor
     y: Tensor
     hy: Tensor
     slope: float
+    sbs: float  # s' H^-1 s: t * slope for a step along -H g of length t
+    first: bool = False  # the first pair after H was (re)built from the identity
 
 
 class InverseHessian:
@@ -162,23 +164,30 @@ class SSBFGS(torch.optim.Optimizer):
         return sd
 
     def _update(self, H: InverseHessian, step: Step) -> Callable[[Tensor, Tensor], Tensor]:
-        """Self-scaled BFGS update of the inverse Hessian (a scale plus rank two); returns the map
+        """Self-scaled Broyden-family update of the inverse Hessian (a scale plus rank two); returns the map
         H v -> H+ v, so the next direction needs no second product with the n x n matrix.
 
-        H+ = (1/tau) (H - Hy Hy'/y'Hy + v v') + s s'/y's, v = sqrt(y'Hy) (s/y's - Hy/y'Hy), with
-        tau = min(1, y's / (-s'g)) for ssbfgs (1 for bfgs): below 1 when the curvature along s is smaller than the
-        slope predicted, i.e. H was too small there. A pair that fails the curvature condition is skipped.
+        H+ = (1/tau) (H - Hy Hy'/y'Hy + phi y'Hy v v') + s s'/y's, v = s/y's - Hy/y'Hy. bfgs: phi = tau = 1;
+        ssbfgs: phi = 1, tau = min(1, y's / (-s'g)), below 1 when the curvature along s is smaller than the slope
+        predicted (H was too small there); ssbroyden: phi and tau both from the pair (_broyden_parameters). A pair
+        that fails the curvature condition is skipped.
         """
         s, y, hy = step.s.to(H.dtype), step.y.to(H.dtype), step.hy
         ys, yhy = float(y @ s), float(y @ hy)
         if not (math.isfinite(ys) and math.isfinite(yhy)) or ys <= 1e-10 * float(s.norm() * y.norm()) or yhy <= 0:
             return lambda hv, v: hv  # keeps H positive definite
-        tau = 1.0
+        tau, phi = 1.0, 1.0
         if self.variant == "ssbfgs" and step.slope > 0:
             tau = min(1.0, ys / step.slope)
+        elif self.variant == "ssbroyden" and step.sbs > 0:
+            phi, tau = _broyden_parameters(yhy / ys, step.sbs / ys, self.n, step.first)
         a = 1.0 / ys
         # H+ = H/tau + [s Hy] M [s Hy]' with this 2 x 2 M (the v v' term expanded)
-        m = torch.tensor([[(yhy * a * a) / tau + a, -a / tau], [-a / tau, 0.0]], dtype=H.dtype, device=s.device)
+        m = torch.tensor(
+            [[(phi * yhy * a * a) / tau + a, -phi * a / tau], [-phi * a / tau, (phi - 1.0) / (tau * yhy)]],
+            dtype=H.dtype,
+            device=s.device,
+        )
         U = torch.stack([s, hy], dim=1)
         Um = U @ m
         H.update(Um, U, tau)
@@ -229,14 +238,17 @@ class SSBFGS(torch.optim.Optimizer):
             x = x + s
             self._set_params(x)
             y = g_new - g
-            if H is None or hg is None:  # the first curvature pair scales the identity (Nocedal and Wright 6.20)
+            fresh = H is None or hg is None
+            if fresh:  # the first curvature pair scales the identity (Nocedal and Wright 6.20)
                 ys = float(y @ s)
                 scale = ys / float(y @ y) if ys > 0 else 1.0
                 H = InverseHessian(self.n, scale, self.hessian_dtype, g.device, self.buffer)
                 hg = scale * g.to(H.dtype)
             g64 = g_new.to(H.dtype)
             hg_new = H @ g64
-            apply = self._update(H, Step(s=s, y=y, hy=hg_new - hg, slope=-gtd * t))
+            # s' H^-1 s: of the scaled identity for the first pair, else t * slope (s = -t H g)
+            sbs = float(s @ s) / H.c if fresh else -gtd * t * t
+            apply = self._update(H, Step(s=s, y=y, hy=hg_new - hg, slope=-gtd * t, sbs=sbs, first=fresh))
             hg = apply(hg_new, g64)
             change = abs(loss_new - loss)
             loss, g = loss_new, g_new
@@ -249,3 +261,22 @@ class SSBFGS(torch.optim.Optimizer):
         else:
             state.pop("H", None)
         return first
+
+
+def _broyden_parameters(h: float, b: float, n: int, first: bool) -> tuple[float, float]:
+    """phi and tau of the self-scaled Broyden update (Al-Baali et al. 2014, as used for PINNs by Urban et al. 2024
+    and Kiyani et al. 2025) from h = y'Hy/y's and b = s'H^-1 s/y's: the family parameter kept in the interval where H
+    stays positive definite and well scaled, and the scale that keeps its determinant in check."""
+    a = max(b * h - 1.0, 0.0)  # >= 0 for positive definite H (Cauchy-Schwarz); rounding can make it slightly negative
+    if a <= 1e-12:  # y is an eigenvector's image: every member of the family is the same update
+        return 1.0, min(1.0, 1.0 / b)
+    rho_minus = min(1.0, h * (1.0 - math.sqrt(a / (1.0 + a))))
+    theta = max((rho_minus - 1.0) / a, min(1.0 / rho_minus, (1.0 - b) / b))
+    sigma = 1.0 + a * theta  # > 0: theta >= (rho_minus - 1) / a
+    if first:
+        tau = h / sigma
+    else:
+        root = sigma ** (1.0 / (1.0 - n)) if n > 1 else 1.0
+        rho = min(1.0, 1.0 / b)
+        tau = min(rho * root, sigma) if theta <= 0 else rho * min(root, 1.0 / theta)
+    return (1.0 - theta) / sigma, tau
