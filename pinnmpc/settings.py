@@ -89,9 +89,8 @@ def optional(check: Check) -> Check:
         bad = None if v is None else check(v, dims)
         if bad is None:
             return None
-        return (
-            f"null or {bad}" if bad.startswith("a list") else f"{bad} or null"
-        )  # "or null" after a list reads as per entry
+        # "or null" after a list would read as allowed for each entry
+        return f"null or {bad}" if bad.startswith("a list") else f"{bad} or null"
 
     return _check
 

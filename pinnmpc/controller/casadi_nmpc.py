@@ -19,7 +19,6 @@ from pinnmpc.controller.nmpc import StepStats, disturbance_bound, filtered_distu
 from pinnmpc.stick_slip import coulomb_joints
 
 RTI_STATUSES = {"Solve_Succeeded", "Maximum_Iterations_Exceeded"}  # what one SQP step may end with and be used
-CAPPED = "Maximum_Iterations_Exceeded"  # the status of a solve stopped by its iteration cap
 
 
 class CasadiNMPC:
@@ -36,7 +35,7 @@ class CasadiNMPC:
         disturbance_gain: float = 0.0,
         disturbance_max: Sequence[float] | None = None,
         smooth_solver: NlpSolver | None = None,
-        accept_defect: float | None = None,
+        keep_unconverged: bool = True,
     ) -> None:
         self.ocp, self.solver, self.label = ocp, solver, label
         self.horizon, self.nx, self.nu = ocp.horizon, ocp.nx, ocp.nu
@@ -44,9 +43,7 @@ class CasadiNMPC:
         self.warm_start, self.rti = bool(warm_start), bool(rti)
         self.cold_solver = cold_solver or solver  # RTI: a full solve while there is no solution to iterate from
         self.smooth_solver = smooth_solver  # the same OCP with sign(v) friction smoothed: tried when a solve fails
-        if accept_defect is not None and not (np.isfinite(accept_defect) and accept_defect >= 0):
-            raise ValueError(f"controller.accept_defect={accept_defect!r}; expected a number >= 0 or null")
-        self.accept_defect = accept_defect  # a capped solve whose defects are below this is still used
+        self.keep_unconverged = bool(keep_unconverged)  # an unconverged solve's inputs against the previous plan
         self.disturbance_gain = float(disturbance_gain)
         self._d_max = disturbance_bound(disturbance_max, self.nx, self.disturbance_gain)
         self.stats: list[StepStats] = []
@@ -103,40 +100,50 @@ class CasadiNMPC:
             ok = self._usable(sol, rti=solver is self.solver and self.rti)
             if not ok and self.smooth_solver is not None:  # e.g. sign(v) friction at rest: no smooth NLP solution
                 iterations = sol.iterations
-                self._load(self.smooth_solver, x0, ref)
-                sol = self.smooth_solver()
+                solver = self.smooth_solver
+                self._load(solver, x0, ref)
+                sol = solver()
                 sol.iterations += iterations
                 ok = self._usable(sol, rti=False)
                 self.smoothed_solves += 1
+            kept = not ok and self.keep_unconverged and self._cheaper_than_plan(sol, solver.p)
         except (RuntimeError, FloatingPointError, np.linalg.LinAlgError):  # e.g. an evaluation error on NaN
-            ok = False
-        if ok:
+            ok = kept = False
+        if ok or kept:
             U = np.clip(sol.w[self.ocp.iu], self.low, self.high)  # an interior point may overshoot by 1e-8
         else:  # self._U is the previous plan shifted: its first entry is the input planned for now
             U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self.low, self.high)
         elapsed = time.perf_counter() - start
-        self._shift(sol if ok else None, U)
+        self._shift(sol if ok or kept else None, U)
         self._u_prev = U[0].copy()
         self._last = (x0.copy(), self._u_prev)
         self.stats.append(
             StepStats(
                 time_s=elapsed,
                 iterations=sol.iterations if sol is not None else 0,
-                cost=sol.cost if ok else float("nan"),
+                cost=sol.cost if ok or kept else float("nan"),
                 converged=bool(ok and sol.success),
-                fallback=not ok,
+                fallback=not (ok or kept),
             )
         )
         return U[0].copy()
 
-    def _usable(self, sol: Solution, rti: bool) -> bool:
-        """A solve counts when the solver succeeded (RTI: took its one step), or stopped at its iteration cap on a
-        plan that obeys the model to accept_defect (Gauss-Newton SQP converges linearly far from the reference), and
-        everything is finite."""
-        capped = sol.status == CAPPED and self.accept_defect is not None and sol.defect <= self.accept_defect
-        if not (sol.success or capped or (rti and sol.status in RTI_STATUSES)):
+    @staticmethod
+    def _usable(sol: Solution, rti: bool) -> bool:
+        """A solve counts when the solver succeeded (RTI: took its one step) and everything is finite."""
+        if not (sol.success or (rti and sol.status in RTI_STATUSES)):
             return False
         return bool(np.isfinite(sol.w).all() and np.isfinite(sol.cost))
+
+    def _cheaper_than_plan(self, sol: Solution, p: np.ndarray) -> bool:
+        """Whether an unconverged solve's inputs, simulated through the model, cost less than the previous plan's
+        (far off the reference Gauss-Newton SQP converges linearly: its iterate at the cap is usually far better)."""
+        U = sol.w[self.ocp.iu]
+        if not np.isfinite(U).all():
+            return False
+        plan = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self.low, self.high)
+        mine, theirs = (self.ocp.rollout_cost(np.clip(u, self.low, self.high), p) for u in (U, plan))
+        return bool(np.isfinite(mine) and not mine >= theirs)
 
     def _load(self, s: NlpSolver, x0: np.ndarray, ref: np.ndarray) -> None:
         """Parameters and starting point into the solver's input buffers."""
@@ -240,5 +247,5 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
         disturbance_gain=float(d.get("gain", 0.0)),
         disturbance_max=d.get("max_abs"),
         smooth_solver=smooth_solver,
-        accept_defect=cfg.get("accept_defect"),
+        keep_unconverged=bool(cfg.get("keep_unconverged", True)),
     )

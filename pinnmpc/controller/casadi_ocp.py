@@ -121,7 +121,6 @@ class Solution:
     success: bool
     iterations: int
     status: str
-    defect: float  # the largest constraint violation |g| (initial state and dynamics defects: all equalities)
 
 
 class CasadiOCP:
@@ -168,6 +167,7 @@ class CasadiOCP:
                 self._limit_sides += [(int(j), -1.0, lo)] if math.isfinite(lo) else []
                 self._limit_sides += [(int(j), 1.0, hi)] if math.isfinite(hi) else []
         self.F, self.F_sens = rk4_flow(rhs, self.tau, self.rk4_steps)
+        self._rollout_cost: ca.Function | None = None  # built on first use (see rollout_cost)
         self._layout()
         self._build()
 
@@ -261,6 +261,19 @@ class CasadiOCP:
                 du = us[k] - (u_prev if k == 0 else us[k - 1])
                 cost += ca.bilin(self.R_rate, du, du)
         return cost
+
+    def rollout_cost(self, U: np.ndarray, p: np.ndarray) -> float:
+        """The horizon cost of inputs U (H, nu) simulated through the model from p's state (a plan without defects):
+        what an unconverged solve's inputs are worth against the previous plan's. Built on first use, uncompiled."""
+        if self._rollout_cost is None:
+            u, par = ca.MX.sym("u", self.horizon * self.nu), ca.MX.sym("p", self.np)
+            us = [u[k * self.nu : (k + 1) * self.nu] for k in range(self.horizon)]
+            xs, d = [par[self.p_x0]], par[self.p_d]
+            for k in range(self.horizon):
+                xs.append(self.F(xs[-1], us[k]) + d)
+            ref = ca.reshape(par[self.p_ref], self.nx, self.horizon)
+            self._rollout_cost = ca.Function("rollout_cost", [u, par], [self._cost(xs, us, ref, par[self.p_uprev])])
+        return float(self._rollout_cost(np.asarray(U, dtype=np.float64).reshape(-1), p))
 
     # -- solvers --------------------------------------------------------------------------------------------
     def solver(
@@ -372,7 +385,6 @@ class NlpSolver:
             success=bool(stats.get("success", False)) or status in self._success,
             iterations=int(stats.get("iter_count", 0)),
             status=status,
-            defect=float(np.abs(self.g).max(initial=0.0)),
         )
 
     def flow(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
