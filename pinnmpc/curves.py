@@ -38,6 +38,8 @@ def read_curve(run_dir: Path, label: str | None = None) -> Curve:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     tb = run_dir / "tensorboard"
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"{run_dir} does not exist; expected a pinnmpc.train run dir")
     if not tb.is_dir():
         raise FileNotFoundError(f"{run_dir} has no tensorboard/ folder; expected a pinnmpc.train run dir")
     acc = EventAccumulator(str(tb), size_guidance={"scalars": 0})
@@ -108,13 +110,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="PNG to write (a CSV of the points goes beside it)")
     parser.add_argument("--title", default="", help="figure title")
     args = parser.parse_args(argv)
+    if args.out.suffix.lower() != ".png":
+        print(f"pinnmpc.curves: error: --out {args.out}: expected a .png file name", file=sys.stderr)
+        return 2
     curves = []
     for spec in args.runs:
         path, _, label = spec.partition("=")
         try:
             curves.append(read_curve(Path(path), label or None))
         except (FileNotFoundError, ValueError) as e:
-            print(f"pinnmpc.curves: {e}", file=sys.stderr)
+            print(f"pinnmpc.curves: error: {e}", file=sys.stderr)
             return 2
     plot_curves(curves, args.out, args.title)
     write_csv(curves, args.out.with_suffix(".csv"))

@@ -168,9 +168,19 @@ def per_state_targets() -> Check:
 
 
 def duration() -> Check:
-    """Lightning's wall-time budget DD:HH:MM:SS."""
+    """Lightning's wall-time budget DD:HH:MM:SS, above zero (a zero budget trains nothing and writes no network)."""
     pattern = re.compile(r"\d+:\d\d:\d\d:\d\d")
-    return lambda v, _d: None if isinstance(v, str) and pattern.fullmatch(v.strip()) else "a duration DD:HH:MM:SS"
+
+    def _check(v: Any, _d: Dims) -> str | None:
+        ok = isinstance(v, str) and pattern.fullmatch(v.strip()) and any(int(f) for f in v.strip().split(":"))
+        return None if ok else "a duration DD:HH:MM:SS above zero"
+
+    return _check
+
+
+def epochs() -> Check:
+    """Lightning's max_epochs: -1 (no limit) or at least one epoch (0 trains nothing and writes no network)."""
+    return lambda v, _d: None if _is_int(v) and (v == -1 or v >= 1) else "-1 (no limit) or an integer >= 1"
 
 
 SCIPY_METHODS = ("RK45", "RK23", "DOP853", "Radau", "BDF", "LSODA")
@@ -286,6 +296,7 @@ TRAIN: dict[str, Check] = {
     "self_loop_figure.steps": integer(2),
     "self_loop_figure.amplitude": vector("nu"),
     "init_from": optional(text()),
+    "model.hidden": listof(integer(1)),  # before stage.hidden, which defaults to it
     "stage.base": optional(text()),
     "stage.hidden": listof(integer(1)),
     "stage.error_scale": positive(),
@@ -293,13 +304,47 @@ TRAIN: dict[str, Check] = {
     "stage.last_layer_gain": positive(),
     "stage.samples": integer(1),
     "stage.h": positive(),
-    "model.hidden": listof(integer(1)),
     "model.prior": optional(one_of(*PRIOR_KINDS)),
     "module.anchor_state_weight": optional(vector("nx", positive())),
-    "trainer.max_epochs": integer(-1),
+    "module.weight_physics": real(0.0),
+    "module.weight_data": real(0.0),
+    "module.weight_anchor": real(0.0),
+    "module.adam_epochs": integer(0),
+    "module.adam_lr": positive(),
+    "module.lbfgs_lr": positive(),
+    "module.lbfgs_max_iter": integer(1),
+    "module.lbfgs_history": integer(1),
+    "data.resample_every": integer(0),
+    "trainer.max_epochs": epochs(),
     "trainer.max_time": optional(duration()),
     "trainer.check_val_every_n_epoch": optional(integer(1)),
 }
+
+BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one failed deep inside a section)
+    "threads": integer(1),
+    "seed": SEED,
+    "step.batch_sizes": listof(integer(1)),
+    "step.n_states": integer(1),
+    "step.repeats": integer(1),
+    "step.warmup": integer(0),
+    "step.rk45_loop_repeats": integer(1),
+    "closed_loop.max_steps": optional(integer(1)),
+    "optimality.n_states": integer(1),
+    "optimality.random_starts": integer(0),
+    "scaling.horizons": listof(integer(1)),
+    "scaling.batch_sizes": listof(integer(1)),
+    "scaling.base_batch": integer(1),
+    "scaling.base_horizon": optional(integer(1)),
+    "scaling.repeats": integer(1),
+    "scaling.warmup": integer(0),
+    "scaling.step_batch_sizes": listof(integer(1)),
+    "scaling.step_repeats": integer(1),
+    "scaling.step_warmup": integer(0),
+    "plant.method": one_of(*SCIPY_METHODS),
+    "plant.friction_scale": real(0.0),
+    "plant.mass_scale": positive(),
+}
+BENCH_SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical")
 
 
 def _plain(value: Any) -> Any:
@@ -384,3 +429,11 @@ def validate_train(cfg: DictConfig, system: Any) -> None:
         raise SettingError(
             f"t_max={cfg.t_max} is below tau={cfg.tau}: expected t_max >= tau (the network predicts x(tau))"
         )
+
+
+def validate_bench(cfg: DictConfig, system: Any) -> None:
+    """bench settings: the sections' sizes, and at least one section to run."""
+    validate(cfg, BENCH, system_dims(system))
+    if not any(OmegaConf.select(cfg, f"{name}.enabled", default=False) for name in BENCH_SECTIONS):
+        keys = ", ".join(f"{name}.enabled" for name in BENCH_SECTIONS)
+        raise SettingError(f"every bench section is off ({keys} all false); expected at least one enabled")

@@ -156,6 +156,32 @@ def recorded_best(ckpt: dict[str, Any]) -> float | None:
     return None
 
 
+def check_continuable(cfg: DictConfig, ckpt: dict[str, Any], label: str) -> None:
+    """A checkpoint this configuration can train on: the same optimizer (its state is restored), and budget left
+    (a spent trainer.max_time or max_epochs runs no epoch and would rewrite the run's results from nothing)."""
+    have, want = (ckpt.get("hyper_parameters") or {}).get("optimizer"), cfg.module.get("optimizer")
+    if have is not None and have != want:
+        raise ValueError(
+            f"{label} was trained with module.optimizer={have}, this configuration has module.optimizer={want}; "
+            f"expected the same (its optimizer state is restored), or init_from=<its surrogate.pt> to start anew"
+        )
+    spent = ((ckpt.get("callbacks") or {}).get("Timer") or {}).get("time_elapsed", {}).get("train")
+    budget = cfg.trainer.get("max_time")
+    if budget and spent is not None:
+        seconds = sum(int(v) * f for v, f in zip(str(budget).split(":"), (86400, 3600, 60, 1)))
+        if spent >= seconds:
+            raise ValueError(
+                f"{label} has trained {spent / 60:.1f} min, so trainer.max_time={budget} is spent; expected a longer "
+                "trainer.max_time to continue"
+            )
+    limit, done = cfg.trainer.get("max_epochs"), int(ckpt.get("epoch", -1)) + 1
+    if limit is not None and limit != -1 and done >= limit:
+        raise ValueError(
+            f"{label} has trained {done} epochs, so trainer.max_epochs={limit} is reached; expected a larger "
+            "trainer.max_epochs to continue"
+        )
+
+
 def check_fits(ckpt: dict[str, Any], label: str, module: L.LightningModule) -> None:
     """The checkpoint's network has this configuration's parameter shapes (else Lightning fails mid-restore)."""
     have = {k: tuple(v.shape) for k, v in ckpt["state_dict"].items() if isinstance(v, torch.Tensor)}
@@ -260,6 +286,13 @@ def train(
     ckpt_path = resolve_ckpt(cfg, run_dir)
     label = f"ckpt_path={ckpt_path}" if cfg.ckpt_path else f"resume=true: {ckpt_path}"
     ckpt = None if ckpt_path is None else read_ckpt(ckpt_path, label)
+    if ckpt is not None:
+        check_continuable(cfg, ckpt, label)
+    elif (run_dir / "checkpoints" / "last.ckpt").is_file():
+        raise ValueError(
+            f"hydra.run.dir={run_dir} holds a training run (checkpoints/last.ckpt); expected resume=true to continue "
+            "it, or another run dir (a fresh run there would overwrite it)"
+        )
     quiet_lightning()
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     torch.set_num_threads(cfg.threads)
@@ -307,7 +340,11 @@ def train(
     # DDP: every process that finished fit gathers the record (one stopped at once by a second signal does not)
     distributed = ddp_record(trainer, module, datamodule) if trainer.world_size > 1 and finished else None
     interrupted = stop is not None and stop.requested
-    source = best.best_model_path or last.best_model_path
+    # this run dir's own checkpoints only: resumed from a copy of another run dir, Lightning keeps that dir's best path
+    mine = ckpt_dir.resolve()
+    own = [Path(p) for p in (best.best_model_path, last.best_model_path) if p and Path(p).resolve().parent == mine]
+    fallback = [p for p in (ckpt_dir / "best.ckpt", ckpt_dir / "last.ckpt") if p.is_file()]
+    source = str((own or fallback or [""])[0])
     meta = {
         "trained_with": command,
         "config": OmegaConf.to_container(cfg, resolve=True),
@@ -384,7 +421,7 @@ def exit_interrupted(summary: dict[str, Any], run_dir: Path, stop: StopSignal) -
         n for n in ("checkpoints/last.ckpt", "surrogate.pt", "train_metrics.json") if (run_dir / n).is_file()
     )
     print(
-        f"pinnmpc.train: interrupted by {stop.name} after epoch {summary['epochs']}; kept in {run_dir}: {kept}",
+        f"pinnmpc.train: interrupted by {stop.name} after {summary['epochs']} epochs; kept in {run_dir}: {kept}",
         file=sys.stderr,
     )
     if summary["resume_command"]:

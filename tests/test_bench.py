@@ -308,13 +308,6 @@ def test_classical_alone_runs_its_own_pinn_row_and_extra_solvers(tmp_path: Path)
     assert "| classical NMPC, casadi-ipopt |" in (tmp_path / "bench.md").read_text()
 
 
-def test_all_sections_off_still_writes_reports(tmp_path: Path) -> None:
-    result = run_bench(_cfg(SECTIONS_OFF), tmp_path)
-    assert set(SECTIONS).isdisjoint(result) and result["targets"] == []
-    assert "Machine:" in (tmp_path / "bench.md").read_text()
-    assert json.loads((tmp_path / "bench.json").read_text())["elapsed_s"] == {}
-
-
 def test_rk4_model_jacobians_agree() -> None:
     system = PowerCube()
     x0 = torch.tensor([[0.3, -0.4, 0.5, 1e-3], [-1.0, 0.8, -0.2, 0.7]], dtype=torch.float64)
@@ -416,3 +409,21 @@ def test_planar3_bench_is_generic(planar3: tuple[dict[str, Any], Path]) -> None:
         assert text in md, text
     for text in ("paper", "alpha", "Table 1"):  # the PowerCube's publication stays out of another arm's report
         assert text not in md, text
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("step.batch_sizes=[]", "step.batch_sizes=[]: expected a non-empty list, each entry an integer >= 1"),
+        ("step.batch_sizes=[0]", "step.batch_sizes=[0]: expected a non-empty list"),
+        ("scaling.horizons=[0]", "scaling.horizons=[0]: expected a non-empty list"),
+        ("optimality.n_states=0", "optimality.n_states=0: expected an integer >= 1"),
+        (" ".join(SECTIONS_OFF), "every bench section is off"),
+    ],
+)
+def test_bad_sizes_are_refused_before_any_work(tmp_path: Path, override: str, message: str) -> None:
+    from pinnmpc.settings import SettingError
+
+    with pytest.raises(SettingError) as e:
+        run_bench(_cfg([*TINY, *override.split()]), tmp_path)
+    assert str(e.value).startswith(message) and not list(tmp_path.iterdir())

@@ -30,3 +30,7 @@ def test_a_dir_that_is_no_training_run_is_named_in_the_error(tmp_path, capsys):
     assert main([str(tmp_path), "--out", str(tmp_path / "x.png")]) == 2
     assert f"{tmp_path} has no tensorboard/ folder" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
+    assert main([str(tmp_path / "gone"), "--out", str(tmp_path / "x.png")]) == 2
+    assert f"pinnmpc.curves: error: {tmp_path / 'gone'} does not exist" in capsys.readouterr().err
+    assert main([str(tmp_path), "--out", str(tmp_path / "x.txt")]) == 2
+    assert "--out" in capsys.readouterr().err and not (tmp_path / "x.txt").exists()

@@ -11,6 +11,7 @@ from pinnmpc.surrogate import load_surrogate, shipped
 from pinnmpc.systems import PowerCube, load_system
 from pinnmpc.train import build_model, train
 from pinnmpc.training.grow import widened
+from pinnmpc.training.pipeline import base_training_time
 from tests.conftest import TINY_TRAIN
 
 
@@ -148,3 +149,11 @@ def test_angle_sums_grown_onto_a_trained_network_start_deaf():
         torch.testing.assert_close(model(t, x0, u), base(t, x0, u), rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match=r"cannot start from a network with angle sums \[\[0, 1\], \[0, 1, 2\]\]"):
         widened(two, hidden, 0, basis, angle_sums=[[1, 2]])
+
+
+def test_a_run_started_from_a_checkpoint_counts_its_training_time(make_cfg, base_run, tmp_path):
+    last = base_run.parent / "checkpoints" / "last.ckpt"
+    spent = torch.load(last, weights_only=True)["callbacks"]["Timer"]["time_elapsed"]["train"]
+    assert base_training_time(str(last)) == spent > 0
+    assert base_training_time(str(base_run)) == load_surrogate(base_run).meta["training_time_s"]
+    assert base_training_time(str(tmp_path / "nope.ckpt")) == 0.0

@@ -125,9 +125,13 @@ def test_sigterm_during_training_checkpoints_and_says_how_to_resume(make_cfg, tm
     assert load_surrogate(run_dir / "surrogate.pt").nx == 4
     last = torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True)
     assert last["epoch"] == 0 and not (run_dir / LOCK_NAME).exists()
-    # the checkpoint resumes: with max_epochs reached it only has to load and export
-    done = train(make_cfg("train", [*TINY, *ENDLESS_EPOCH, "trainer.max_epochs=1", "resume=true"]), run_dir)
-    assert done["status"] == "ok" and done["epochs"] == 1
+    # the checkpoint resumes; a budget it has spent is refused before anything in the run dir changes
+    before = {f: f.stat().st_mtime_ns for f in run_dir.rglob("*") if f.is_file()}
+    with pytest.raises(ValueError, match="has trained 1 epochs, so trainer.max_epochs=1 is reached"):
+        train(make_cfg("train", [*TINY, *ENDLESS_EPOCH, "trainer.max_epochs=1", "resume=true"]), run_dir)
+    assert before == {f: f.stat().st_mtime_ns for f in run_dir.rglob("*") if f.is_file()}
+    done = train(make_cfg("train", [*TINY, "trainer.max_epochs=2", "resume=true"]), run_dir)
+    assert done["status"] == "ok" and done["epochs"] == 2
 
 
 def test_sigint_during_a_closed_loop_keeps_what_was_reached(tmp_path):
@@ -365,6 +369,13 @@ def test_clean_keeps_live_runs_and_shipped_checkpoints(tmp_path):
             "module.anchor_state_weight=[1]",
             "module.anchor_state_weight=[1]: expected null or a list of 4 entries",
         ),
+        ("train", "module.weight_physics=-1", "module.weight_physics=-1: expected a finite number >= 0"),
+        ("train", "module.weight_anchor=nan", "module.weight_anchor=nan: expected a finite number >= 0"),
+        ("train", "module.lbfgs_lr=-1", "module.lbfgs_lr=-1: expected a finite number > 0"),
+        ("train", "module.lbfgs_max_iter=0", "module.lbfgs_max_iter=0: expected an integer >= 1"),
+        ("train", "data.resample_every=-1", "data.resample_every=-1: expected an integer >= 0"),
+        ("train", "trainer.max_epochs=0", "trainer.max_epochs=0: expected -1 (no limit) or an integer >= 1"),
+        ("train", "trainer.max_time=00:00:00:00", "trainer.max_time='00:00:00:00': expected a duration"),
         ("self_loop", "steps=2.5", "steps=2.5: expected an integer >= 2"),
         ("self_loop", "x0=[0,0]", "x0=[0, 0]: expected a list of 4 entries (nx)"),
         ("self_loop", "amplitude=[nan,1]", "amplitude=[nan, 1]: expected a list of 2 entries (nu)"),

@@ -127,6 +127,13 @@ def test_a_run_with_ssbfgs_checkpoints_without_the_matrix_and_resumes(make_cfg, 
     assert train(make_cfg("train", overrides), tmp_path)["status"] == "ok"
     state = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=False)["optimizer_states"][0]["state"][0]
     assert "H" not in state and state["n_iter"] > 0
+    before = {f: f.stat().st_mtime_ns for f in tmp_path.rglob("*") if f.is_file()}
+    with pytest.raises(ValueError, match="trained with module.optimizer=ssbfgs, this configuration has .*=lbfgs"):
+        other = [*overrides, "module.optimizer=lbfgs", "trainer.max_epochs=4", "resume=true"]
+        train(make_cfg("train", other), tmp_path)
+    with pytest.raises(ValueError, match="holds a training run .*expected resume=true to continue it"):
+        train(make_cfg("train", [*overrides, "trainer.max_epochs=4"]), tmp_path)  # a fresh run over it
+    assert before == {f: f.stat().st_mtime_ns for f in tmp_path.rglob("*") if f.is_file()}  # nothing touched
     resumed = train(make_cfg("train", [*overrides, "trainer.max_epochs=4", "resume=true"]), tmp_path)
     assert resumed["epochs"] == 4 and resumed["status"] == "ok"
 

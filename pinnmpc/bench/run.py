@@ -22,6 +22,7 @@ from pinnmpc.bench.targets import check_targets
 from pinnmpc.bench.timing import machine_info
 from pinnmpc.io import atomic_write, save_json
 from pinnmpc.references import Reference
+from pinnmpc.settings import validate_bench
 from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import build_system
@@ -60,6 +61,7 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
             "exact_values rows to section 6 itself (classical.exact_values=true); leave controller.model=surrogate"
         )
     system: System = build_system(cfg.system)
+    validate_bench(cfg, system)
     names = tuple(system.state_names)
     pinn64 = load_pinn(cfg, system)
     paper = cfg.get("paper")

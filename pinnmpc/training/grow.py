@@ -11,6 +11,7 @@ fitted on from the trained network. New angle-sum inputs start deaf: the first l
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import torch
 from torch import Tensor, nn
@@ -123,6 +124,8 @@ def grown_model(
 ) -> PINN:
     """The trained surrogate at `path` (init_from) grown to `hidden`, `time_basis` and `angle_sums`, checked
     against this run (tau, t_max and the prior kind cannot change: they define the function it learned)."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"init_from={path} does not exist; expected a trained surrogate.pt or a run's .ckpt")
     surrogate = load_surrogate(path, state_names=tuple(system.state_names))
     base = surrogate.model
     for what, have, want in (("tau", surrogate.tau, tau), ("t_max", base.t_max, t_max)):

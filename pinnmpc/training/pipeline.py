@@ -96,10 +96,16 @@ def train_in_stages(cfg: DictConfig, run_dir: Path, fit: Trainer, resume_command
 
 
 def base_training_time(base: str | None) -> float:
-    """Training time behind a stage's frozen base (from its surrogate's meta; 0 for a .ckpt or no base), so a
-    stage's training_time_s counts every network it is made of."""
-    if not base or not str(base).endswith(".pt"):
+    """Training time behind a stage's frozen base or init_from network (its surrogate's meta, or a training
+    checkpoint's timer; 0 without one), so training_time_s counts every network a run is made of."""
+    if not base or not Path(base).is_file():
         return 0.0
+    if str(base).endswith(".ckpt"):
+        import torch
+
+        ckpt = torch.load(base, map_location="cpu", weights_only=True)
+        timer = (ckpt.get("callbacks") or {}).get("Timer") or {}
+        return float(timer.get("time_elapsed", {}).get("train") or 0.0)
     from pinnmpc.surrogate import load_surrogate
 
     return float(load_surrogate(base).meta.get("training_time_s") or 0.0)
