@@ -121,6 +121,11 @@ def main(argv: list[str] | None = None) -> int:
         except (FileNotFoundError, ValueError) as e:
             print(f"pinnmpc.curves: error: {e}", file=sys.stderr)
             return 2
+    labels = [c.label for c in curves]
+    twice = sorted({label for label in labels if labels.count(label) > 1})
+    if twice:
+        print(f"pinnmpc.curves: error: label {twice[0]!r} names two runs; expected one label per run", file=sys.stderr)
+        return 2
     plot_curves(curves, args.out, args.title)
     write_csv(curves, args.out.with_suffix(".csv"))
     print(f"wrote {args.out} and {args.out.with_suffix('.csv')}")

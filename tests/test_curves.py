@@ -24,6 +24,8 @@ def test_a_training_run_logs_each_epoch_and_gives_a_curve_plot_and_csv(make_cfg,
     assert out.read_bytes().startswith(b"\x89PNG")
     rows = out.with_suffix(".csv").read_text().splitlines()
     assert rows[0] == "run,minutes,rmse_position,rmse_velocity" and len(rows) == 4
+    assert main([f"{run}=tiny", f"{run}=tiny", "--out", str(tmp_path / "twice.png")]) == 2  # one label, two runs
+    assert not (tmp_path / "twice.png").exists()
 
 
 def test_a_dir_that_is_no_training_run_is_named_in_the_error(tmp_path, capsys):
