@@ -96,13 +96,7 @@ class Surrogate(Dimensions):
                 f"surrogate expects x0 (..., {self.nx}) {self.state_names} and u (..., {self.nu}) {self.input_names}, "
                 f"got x0 {tuple(x0.shape)} and u {tuple(u.shape)}"
             )
-        try:
-            batch = torch.broadcast_shapes(x0.shape[:-1], u.shape[:-1])
-        except RuntimeError:
-            raise ValueError(
-                f"surrogate expects x0 and u with the same (or broadcastable) batch shapes, got x0 {tuple(x0.shape)} "
-                f"and u {tuple(u.shape)}"
-            ) from None
+        batch = _batch(x0=x0, u=u)
         return x0.expand(*batch, self.nx), u.expand(*batch, self.nu)
 
     def __call__(self, t: Tensor, x0: Tensor, u: Tensor) -> Tensor:
@@ -116,13 +110,7 @@ class Surrogate(Dimensions):
                 f"surrogate expects t in [0, t_max={self.t_max:g}] s (the interval it was trained on), got t from "
                 f"{float(t.min()):g} to {float(t.max()):g}"
             )
-        try:
-            batch = torch.broadcast_shapes(t.shape[:-1], x0.shape[:-1])
-        except RuntimeError:
-            raise ValueError(
-                f"surrogate expects t, x0 and u with broadcastable batch shapes, got t {tuple(t.shape)}, x0 "
-                f"{tuple(x0.shape)} and u {tuple(u.shape)}"
-            ) from None
+        batch = _batch(t=t, x0=x0, u=u)
         return self.model(t.expand(*batch, 1), x0.expand(*batch, self.nx), u.expand(*batch, self.nu))
 
     def step(self, x0: Tensor, u: Tensor) -> Tensor:
@@ -195,6 +183,17 @@ def _unpack(obj: dict[str, Any], path: Path) -> tuple[dict[str, Any], dict[str, 
             f"{path} has format version {facts['version']}; this pinnmpc reads up to {FORMAT_VERSION}"
         )
     return facts["model"], state, facts
+
+
+def _batch(**arrays: Tensor) -> torch.Size:
+    """The batch shape arrays (..., n) share (broadcast), or an error naming each one's shape."""
+    try:
+        return torch.broadcast_shapes(*(a.shape[:-1] for a in arrays.values()))
+    except RuntimeError:
+        names, shapes = " and ".join(arrays), " and ".join(f"{k} {tuple(a.shape)}" for k, a in arrays.items())
+        raise ValueError(
+            f"surrogate expects {names} with the same (or broadcastable) batch shapes, got {shapes}"
+        ) from None
 
 
 def load_surrogate(
