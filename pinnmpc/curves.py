@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,10 +58,18 @@ def read_curve(run_dir: Path, label: str | None = None) -> Curve:
         elapsed = np.cumsum(np.where(gaps > MAX_GAP_S, 0.0, gaps))
     return Curve(
         label or run_dir.name,
-        elapsed / 60.0,
+        (elapsed + _base_seconds(run_dir)) / 60.0,
         np.array([e.value for e in pos]),
         np.array([e.value for e in vel]),
     )
+
+
+def _base_seconds(run_dir: Path) -> float:
+    """Training time behind the network a run started from (init_from, a stage's base): where its curve begins."""
+    metrics = run_dir / "train_metrics.json"
+    if not metrics.is_file():
+        return 0.0
+    return float(json.loads(metrics.read_text()).get("base_training_time_s") or 0.0)
 
 
 def plot_curves(curves: list[Curve], out: Path, title: str = "") -> None:

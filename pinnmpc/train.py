@@ -340,6 +340,7 @@ def train(
     # DDP: every process that finished fit gathers the record (one stopped at once by a second signal does not)
     distributed = ddp_record(trainer, module, datamodule) if trainer.world_size > 1 and finished else None
     interrupted = stop is not None and stop.requested
+    base_time = base_training_time(cfg.stage.base or cfg.get("init_from"))
     # this run dir's own checkpoints only: resumed from a copy of another run dir, Lightning keeps that dir's best path
     mine = ckpt_dir.resolve()
     own = [Path(p) for p in (best.best_model_path, last.best_model_path) if p and Path(p).resolve().parent == mine]
@@ -351,7 +352,8 @@ def train(
         "status": f"interrupted by {stop.name}" if interrupted and stop is not None else "ok",
         "wall_time_s": wall,
         # every network inside this one counts: a stage's frozen base or the network it started from too
-        "training_time_s": training_time(trainer, wall) + base_training_time(cfg.stage.base or cfg.get("init_from")),
+        "training_time_s": training_time(trainer, wall) + base_time,
+        "base_training_time_s": base_time,  # that part (where a curve of this run starts: pinnmpc.curves)
         "epochs": trainer.current_epoch,
         "best_val_rmse_position": float(best.best_model_score) if best.best_model_score is not None else None,
         "resumed_best_val_rmse_position": recorded,  # what the checkpoint resumed from had reached (None: fresh)

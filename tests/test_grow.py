@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from pinnmpc.curves import read_curve
 from pinnmpc.pinn import PINN
 from pinnmpc.settings import SettingError, validate_train
 from pinnmpc.surrogate import load_surrogate, shipped
@@ -52,6 +53,8 @@ def test_a_widened_network_starts_at_the_trained_outputs_and_trains_on(make_cfg,
     assert grown.model.net.layers[1].weight[:16, 16:].abs().max() > 0
     assert grown.model.net.layers[-1].weight[-4:].abs().max() > 0  # and so did the new gate's head
     assert summary["training_time_s"] > base.meta["training_time_s"]  # the base's time is counted
+    assert summary["base_training_time_s"] == base.meta["training_time_s"]
+    assert read_curve(tmp_path / "grown").minutes[0] * 60 > base.meta["training_time_s"]  # its curve starts there
 
 
 @pytest.mark.parametrize("new_gates", [[], [0.002, 0.008]])
