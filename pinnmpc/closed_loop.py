@@ -309,6 +309,9 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
     plant = make_plant(system, cfg.plant, tau)
     requested = None if stop is None else (lambda: stop.requested)
     start = None if cfg.get("x0") is None else [float(v) for v in cfg.x0]
+    far = "" if start is None else diverged(np.asarray(start), divergence_box(system))
+    if far:  # a run would stop there as failed at once
+        raise ValueError(f"x0={start}: {far}; expected a start within the state box (or near it)")
     if start is not None and system.joint_limits is not None:  # as a reference there would be: no arm starts there
         low, high = np.asarray(system.joint_limits.low), np.asarray(system.joint_limits.high)
         q = np.asarray(start[: len(low)])

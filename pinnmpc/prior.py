@@ -58,12 +58,12 @@ class FrozenArmPrior(nn.Module):
         if not isinstance(arm, RigidArm):
             raise ValueError(
                 f"model.prior='frozen_arm' needs an arm from a URDF (a RigidArm); system={system!r} is "
-                f"{type(arm).__name__}: set model.prior=null"
+                f"{type(arm).__name__}: set system.network.prior=null"
             )
         if not all(k > 0 for k in arm.linear_gain):
             raise ValueError(
                 f"model.prior='frozen_arm' needs a positive viscous coefficient or servo gain on every joint; "
-                f"{system} has {list(arm.linear_gain)}: set model.prior=null"
+                f"{system} has {list(arm.linear_gain)}: set system.network.prior=null"
             )
         self.arm, self.nq = arm, arm.nq
         self.kv = torch.tensor(arm.linear_gain, dtype=torch.float64)  # float64 whatever the network's dtype
@@ -200,7 +200,7 @@ class FrozenArmPrior(nn.Module):
         if not off < 1e-8:
             raise RuntimeError(
                 f"the compiled frozen-arm prior of {self.arm.name} disagrees with its torch form (relative {off:.1e}, "
-                "expected < 1e-8): set model.prior=null"
+                "expected < 1e-8): set system.network.prior=null"
             )
 
 

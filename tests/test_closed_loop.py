@@ -259,6 +259,9 @@ def test_a_start_past_the_joint_limits_is_refused_like_a_reference(make_cfg, tmp
     with pytest.raises(ValueError, match=r"q_joint4 = 0.2 is outside its joint limits \[-3.07.*, -0.069.*\]"):
         run_closed_loop(cfg, tmp_path)
     assert not (tmp_path / "metrics.json").exists()
+    far = make_cfg("closed_loop", ["progress=false", "plots=false", "max_steps=2", "x0=[0,0,30,0]"])  # the PowerCube
+    with pytest.raises(ValueError, match=r"x0=\[0.0, 0.0, 30.0, 0.0\]: state 2 = 30, beyond the state box"):
+        run_closed_loop(far, tmp_path)
 
 
 def test_a_diverged_state_is_named_and_arms_that_turn_round_have_no_position_bound():
