@@ -289,10 +289,31 @@ def warn_jumps(ref: Reference, system: System) -> None:
         )  # fmt: skip
 
 
+def checked_start(cfg: DictConfig, system: System) -> list[float] | None:
+    """The start x0 the user set (None: the reference's), refused where no arm can start or a run would fail at once:
+    checked before the controller is built (a classical Panda build takes minutes)."""
+    start = None if cfg.get("x0") is None else [float(v) for v in cfg.x0]
+    far = "" if start is None else diverged(np.asarray(start), divergence_box(system))
+    if far:  # a run would stop there as failed at once
+        raise ValueError(f"x0={start}: {far}; expected a start within the state box (or near it)")
+    if start is not None and system.joint_limits is not None:  # as a reference there would be: no arm starts there
+        low, high = np.asarray(system.joint_limits.low), np.asarray(system.joint_limits.high)
+        q = np.asarray(start[: len(low)])
+        past = np.flatnonzero((q < low) | (q > high))
+        if past.size:
+            j = int(past[0])
+            raise ValueError(
+                f"x0={start}: {system.state_names[j]} = {q[j]:g} is outside its joint limits "
+                f"[{low[j]:g}, {high[j]:g}]; expected a start within the joint limits"
+            )
+    return start
+
+
 def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = None) -> dict[str, Any]:
     """Check the settings, load controller and reference, run the loop (until the end, a plant failure or a signal
     to stop), write metrics.json, trajectory.npz and plots."""
     system: System = job_system(cfg, validate_closed_loop)
+    start = checked_start(cfg, system)
     controller, domain, tau = build_controller(cfg, system)
     if cfg.tau is not None and abs(cfg.tau - tau) > 1e-12:
         raise ValueError(
@@ -308,20 +329,6 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
             )
     plant = make_plant(system, cfg.plant, tau)
     requested = None if stop is None else (lambda: stop.requested)
-    start = None if cfg.get("x0") is None else [float(v) for v in cfg.x0]
-    far = "" if start is None else diverged(np.asarray(start), divergence_box(system))
-    if far:  # a run would stop there as failed at once
-        raise ValueError(f"x0={start}: {far}; expected a start within the state box (or near it)")
-    if start is not None and system.joint_limits is not None:  # as a reference there would be: no arm starts there
-        low, high = np.asarray(system.joint_limits.low), np.asarray(system.joint_limits.high)
-        q = np.asarray(start[: len(low)])
-        past = np.flatnonzero((q < low) | (q > high))
-        if past.size:
-            j = int(past[0])
-            raise ValueError(
-                f"x0={start}: {system.state_names[j]} = {q[j]:g} is outside its joint limits "
-                f"[{low[j]:g}, {high[j]:g}]; expected a start within the joint limits"
-            )
     run = simulate(
         controller,
         plant,

@@ -314,7 +314,8 @@ def train(
     figure = SelfLoopFigure(
         cfg.self_loop_figure.every_n_epochs, cfg.self_loop_figure.steps, cfg.self_loop_figure.amplitude
     )
-    callbacks: list[L.Callback] = [best, last, SurrogateFacts(cfg.tau), figure, BudgetBar(cfg.progress)]
+    base_time = base_training_time(cfg.stage.base or cfg.get("init_from"))
+    callbacks: list[L.Callback] = [best, last, SurrogateFacts(cfg.tau, base_time), figure, BudgetBar(cfg.progress)]
     callbacks += [EpochLog(run_dir / "train.log", system.state_names), TrainingClock()]
     if cfg.trainer.get("max_time") is None:  # with max_time Lightning adds this Timer itself
         callbacks.append(Timer())  # counts training time across resumes (its state is in every checkpoint)
@@ -340,7 +341,6 @@ def train(
     # DDP: every process that finished fit gathers the record (one stopped at once by a second signal does not)
     distributed = ddp_record(trainer, module, datamodule) if trainer.world_size > 1 and finished else None
     interrupted = stop is not None and stop.requested
-    base_time = base_training_time(cfg.stage.base or cfg.get("init_from"))
     # this run dir's own checkpoints only: resumed from a copy of another run dir, Lightning keeps that dir's best path
     mine = ckpt_dir.resolve()
     own = [Path(p) for p in (best.best_model_path, last.best_model_path) if p and Path(p).resolve().parent == mine]

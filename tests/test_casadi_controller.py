@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.controller.casadi_nmpc import CasadiNMPC, build_casadi_nmpc
-from pinnmpc.controller.casadi_ocp import CasadiOCP, stable_rk4_steps
+from pinnmpc.controller.casadi_ocp import CasadiOCP, Solution, stable_rk4_steps
 from pinnmpc.plant import ScipyPlant
 from pinnmpc.systems import load_system
 
@@ -152,7 +152,12 @@ def test_an_unconverged_solve_is_kept_when_its_simulated_inputs_beat_the_previou
     assert fell_back.fallback and np.all(u_off == 0.0)  # the cold plan: zero inputs
     p = c.solver.p.copy()
     plan, zeros = np.vstack([u, c.plan[:-1]]), np.zeros((5, 3))  # the kept inputs, and the zero plan
+    assert kept.cost == pytest.approx(c.ocp.rollout_cost(plan, p), rel=1e-12)  # the cost it was kept for
     assert c.ocp.rollout_cost(plan, p) < 0.5 * c.ocp.rollout_cost(zeros, p)
+    # an iterate with non-finite multipliers would poison the next warm start: never kept
+    bad = Solution(w=c._w.copy(), lam_x=np.full_like(c._w, np.nan), lam_g=np.zeros(c.ocp.ng), cost=0.0,
+                   success=False, iterations=20, status="Maximum_Iterations_Exceeded")  # fmt: skip
+    assert c._kept_cost(bad, p) is None
 
 
 def test_rti_takes_one_step_per_sample(base_cfg: Callable[..., dict], systems: dict) -> None:

@@ -54,6 +54,8 @@ def test_a_widened_network_starts_at_the_trained_outputs_and_trains_on(make_cfg,
     assert grown.model.net.layers[-1].weight[-4:].abs().max() > 0  # and so did the new gate's head
     assert summary["training_time_s"] > base.meta["training_time_s"]  # the base's time is counted
     assert summary["base_training_time_s"] == base.meta["training_time_s"]
+    grown_ckpt = str(tmp_path / "grown" / "checkpoints" / "last.ckpt")  # a later run from it counts both
+    assert base_training_time(grown_ckpt) > base.meta["training_time_s"]
     assert read_curve(tmp_path / "grown").minutes[0] * 60 > base.meta["training_time_s"]  # its curve starts there
 
 

@@ -106,9 +106,10 @@ class CasadiNMPC:
                 sol.iterations += iterations
                 ok = self._usable(sol, rti=False)
                 self.smoothed_solves += 1
-            kept = not ok and self.keep_unconverged and self._cheaper_than_plan(sol, solver.p)
+            kept_cost = None if ok or not self.keep_unconverged else self._kept_cost(sol, solver.p)
         except (RuntimeError, FloatingPointError, np.linalg.LinAlgError):  # e.g. an evaluation error on NaN
-            ok = kept = False
+            ok, kept_cost = False, None
+        kept = kept_cost is not None
         if ok or kept:
             U = np.clip(sol.w[self.ocp.iu], self.low, self.high)  # an interior point may overshoot by 1e-8
         else:  # self._U is the previous plan shifted: its first entry is the input planned for now
@@ -121,7 +122,7 @@ class CasadiNMPC:
             StepStats(
                 time_s=elapsed,
                 iterations=sol.iterations if sol is not None else 0,
-                cost=sol.cost if ok or kept else float("nan"),
+                cost=sol.cost if ok else kept_cost if kept else float("nan"),
                 converged=bool(ok and sol.success),
                 fallback=not (ok or kept),
             )
@@ -135,15 +136,16 @@ class CasadiNMPC:
             return False
         return bool(np.isfinite(sol.w).all() and np.isfinite(sol.cost))
 
-    def _cheaper_than_plan(self, sol: Solution, p: np.ndarray) -> bool:
-        """Whether an unconverged solve's inputs, simulated through the model, cost less than the previous plan's
-        (far off the reference Gauss-Newton SQP converges linearly: its iterate at the cap is usually far better)."""
-        U = sol.w[self.ocp.iu]
-        if not np.isfinite(U).all():
-            return False
+    def _kept_cost(self, sol: Solution, p: np.ndarray) -> float | None:
+        """The cost of an unconverged solve's inputs simulated through the model, when it is below the previous plan's
+        (far off the reference Gauss-Newton SQP converges linearly: its iterate at the cap is usually far better);
+        None when it is not, or when the iterate (the next warm start) is not finite."""
+        if not all(np.isfinite(a).all() for a in (sol.w, sol.lam_x, sol.lam_g)):
+            return None
         plan = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self.low, self.high)
-        mine, theirs = (self.ocp.rollout_cost(np.clip(u, self.low, self.high), p) for u in (U, plan))
-        return bool(np.isfinite(mine) and not mine >= theirs)
+        U = np.clip(sol.w[self.ocp.iu], self.low, self.high)
+        mine, theirs = (self.ocp.rollout_cost(u, p) for u in (U, plan))
+        return mine if np.isfinite(mine) and not mine >= theirs else None
 
     def _load(self, s: NlpSolver, x0: np.ndarray, ref: np.ndarray) -> None:
         """Parameters and starting point into the solver's input buffers."""

@@ -40,8 +40,9 @@ class AtomicCheckpoint(ModelCheckpoint):
 class SurrogateFacts(L.Callback):
     """Store the network config and system facts inside every Lightning checkpoint."""
 
-    def __init__(self, tau: float) -> None:
+    def __init__(self, tau: float, base_training_time_s: float = 0.0) -> None:
         self.tau = float(tau)
+        self.base_training_time_s = float(base_training_time_s)  # the network it started from, for later runs
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
         """Add what load_surrogate needs next to Lightning's own keys."""
@@ -52,6 +53,7 @@ class SurrogateFacts(L.Callback):
             "state_names": list(system.state_names),
             "input_names": list(system.input_names),
             "model": pl_module.model.config,
+            "base_training_time_s": self.base_training_time_s,
         }
 
 
