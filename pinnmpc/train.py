@@ -31,7 +31,7 @@ from pinnmpc.systems.registry import build_system
 from pinnmpc.training.callbacks import AtomicCheckpoint, GracefulStop, SelfLoopFigure, SurrogateFacts
 from pinnmpc.training.data import CollocationDataModule, flow_scale
 from pinnmpc.training.grow import grown_model
-from pinnmpc.training.pipeline import base_training_time, train_in_stages
+from pinnmpc.training.pipeline import base_training_time, seconds, train_in_stages
 from pinnmpc.training.progress import BudgetBar, EpochLog, TrainingClock, quiet_lightning, timer_of
 from pinnmpc.training.stage import staged_model
 
@@ -167,13 +167,11 @@ def check_continuable(cfg: DictConfig, ckpt: dict[str, Any], label: str) -> None
         )
     spent = ((ckpt.get("callbacks") or {}).get("Timer") or {}).get("time_elapsed", {}).get("train")
     budget = cfg.trainer.get("max_time")
-    if budget and spent is not None:
-        seconds = sum(int(v) * f for v, f in zip(str(budget).split(":"), (86400, 3600, 60, 1)))
-        if spent >= seconds:
-            raise ValueError(
-                f"{label} has trained {spent / 60:.1f} min, so trainer.max_time={budget} is spent; expected a longer "
-                "trainer.max_time to continue"
-            )
+    if budget and spent is not None and spent >= seconds(str(budget)):
+        raise ValueError(
+            f"{label} has trained {spent / 60:.1f} min, so trainer.max_time={budget} is spent; expected a longer "
+            "trainer.max_time to continue"
+        )
     limit, done = cfg.trainer.get("max_epochs"), int(ckpt.get("epoch", -1)) + 1
     if limit is not None and limit != -1 and done >= limit:
         raise ValueError(
