@@ -23,6 +23,8 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 
+from pinnmpc.io import atomic_write
+
 T = TypeVar("T")
 
 USER_ERRORS = (ValueError, FileNotFoundError, KeyError, OmegaConfBaseException)  # bad input, not a bug of ours
@@ -71,17 +73,6 @@ _STATE: dict[Path, RunDirState] = {}  # run dirs this process guards
 def absolute(path: str | Path) -> Path:
     """The key of a run dir: absolute and normalised the way Hydra makes runtime.output_dir."""
     return Path(os.path.abspath(str(path)))
-
-
-def _pid_alive(pid: int) -> bool:
-    """Whether a process with this PID exists (a PID we may not signal still exists)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def holder(run_dir: Path) -> int | None:
@@ -267,7 +258,7 @@ def discard_own_files(run_dir: Path | None) -> None:
             if f.name not in state.hydra_files:
                 _remove(f)
         for name, data in state.hydra_files.items():
-            (hydra_dir / name).write_bytes(data)
+            atomic_write(hydra_dir / name, lambda tmp, data=data: tmp.write_bytes(data))
 
 
 def _discard_unguarded(run_dir: Path) -> None:

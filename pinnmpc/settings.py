@@ -301,7 +301,7 @@ TRAIN: dict[str, Check] = {
     "stage.hidden": listof(integer(1)),
     "stage.error_scale": positive(),
     "stage.first_layer_gain": positive(),
-    "stage.last_layer_gain": positive(),
+    "stage.last_layer_gain": real(0.0),  # 0: the stage starts exactly at the base network
     "stage.samples": integer(1),
     "stage.h": positive(),
     "model.prior": optional(one_of(*PRIOR_KINDS)),
@@ -399,8 +399,12 @@ def validate_self_loop(cfg: DictConfig, system: Any) -> None:
 
 
 def validate_residuals(cfg: DictConfig, system: Any) -> None:
-    """residuals settings."""
+    """residuals settings: every t bin must hold a point, or its RMS would read 0."""
     validate(cfg, RESIDUALS, system_dims(system))
+    if cfg.bins > cfg.points:
+        raise SettingError(
+            f"bins={cfg.bins} exceeds points={cfg.points}: expected bins <= points (each bin needs a point)"
+        )
 
 
 def validate_time_basis(cfg: DictConfig, system: Any) -> None:

@@ -347,7 +347,7 @@ def train(
     meta = {
         "trained_with": command,
         "config": OmegaConf.to_container(cfg, resolve=True),
-        "status": f"interrupted by {stop.name}" if interrupted and stop is not None else "ok",
+        "status": "interrupted" if interrupted else "ok",  # the same word as train_metrics.json and closed loops
         "wall_time_s": wall,
         # every network inside this one counts: a stage's frozen base or the network it started from too
         "training_time_s": training_time(trainer, wall) + base_time,
@@ -357,6 +357,8 @@ def train(
         "resumed_best_val_rmse_position": recorded,  # what the checkpoint resumed from had reached (None: fresh)
         "final_metrics": {k: float(v) for k, v in trainer.callback_metrics.items()},
     }
+    if interrupted and stop is not None:
+        meta["signal"] = stop.name
     if distributed is not None:
         meta["distributed"] = distributed
     if not trainer.is_global_zero:  # DDP: rank 0 writes the run's files
@@ -377,8 +379,6 @@ def train(
     summary = {**meta, "best_checkpoint": source or None}
     summary.pop("config")
     if interrupted:
-        summary["status"] = "interrupted"
-        summary["signal"] = stop.name if stop is not None else ""
         resumable = (run_dir / "checkpoints" / "last.ckpt").is_file()
         summary["resume_command"] = resume_command(overrides or [], run_dir) if resumable else None
     save_json(run_dir / "train_metrics.json", summary)

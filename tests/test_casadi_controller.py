@@ -198,6 +198,9 @@ def test_bad_settings_are_rejected(base_cfg: Callable[..., dict], systems: dict)
         build_casadi_nmpc(base_cfg("powercube"), s).make_step(np.zeros(4), np.zeros((3, 4)))
     with pytest.raises(ValueError, match="exceeds upper bound"):
         build_casadi_nmpc(base_cfg("powercube", u_low=[0.1, 0.1], u_high=[0.0, 0.0]), s)
+    for key, value in (("horizon", 2.7), ("rk4_steps", 2.5), ("rk4_steps", "abc"), ("horizon", True)):
+        with pytest.raises(ValueError, match=f"controller.{key}={value!r}; expected a whole number"):
+            build_casadi_nmpc(base_cfg("powercube", **{key: value}), s)  # never silently truncated
 
 
 def test_dictconfig_and_disturbance_estimator(base_cfg: Callable[..., dict], systems: dict) -> None:

@@ -872,3 +872,14 @@ def test_make_step_checks_shapes_before_the_estimator_and_takes_tensors_that_req
             nmpc.make_step(bad, ref)
     u = nmpc.make_step(torch.zeros(NX, dtype=F64, requires_grad=True), torch.from_numpy(ref))
     assert np.all(np.isfinite(u)) and not nmpc.stats[-1].fallback
+
+
+def test_lbfgs_reports_unconverged_when_its_rounds_run_out(s: Surrogate) -> None:
+    H = 3
+    ocp = HorizonOCP(s, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
+    x0, U0, x_ref, u_prev = _ocp_problem(7, 2, H)
+    problem = Problem(ocp, x0, x_ref, u_prev, torch.full((H, NU), -0.5, dtype=F64), torch.full((H, NU), 0.5, dtype=F64))
+    _, short, _ = LBFGSSolver(max_iter=1, rounds=1).solve(problem, U0.clone())
+    assert not short.converged.any()  # one iteration of one round settles nothing
+    _, full, _ = LBFGSSolver(max_iter=50, rounds=20, tol=1e-6).solve(problem, U0.clone())
+    assert full.converged.all() and full.cost.sum() < short.cost.sum()  # it lowers the summed cost

@@ -20,8 +20,9 @@ from pinnmpc.cli import LOCK_NAME, USER_ERRORS, StopSignal, acquire, clean, disc
 from pinnmpc.closed_loop import run_closed_loop, verdict
 from pinnmpc.robustness import run_robustness
 from pinnmpc.self_loop import run_self_loop
-from pinnmpc.settings import SettingError
+from pinnmpc.settings import SettingError, validate_train
 from pinnmpc.surrogate import SHIPPED, load_surrogate
+from pinnmpc.systems import load_system
 from pinnmpc.train import train
 from tests.conftest import ROOT, TINY_TRAIN
 
@@ -66,14 +67,18 @@ def trained(tmp_path_factory) -> Path:
 # 1. a run never deletes what it did not create
 
 
-def test_bad_input_leaves_a_chosen_run_dir_as_it_was(tmp_path):
+@pytest.mark.parametrize(
+    ("entry", "override", "message"),
+    [("closed_loop", "tau=0", "tau=0: expected a finite number > 0 or null"), ("bench", "threads=0", "threads")],
+)
+def test_bad_input_leaves_a_chosen_run_dir_as_it_was(tmp_path, entry, override, message):
     run_dir = tmp_path / "mine"
     (run_dir / ".hydra").mkdir(parents=True)
     (run_dir / ".hydra" / "config.yaml").write_text("earlier: run\n")
     (run_dir / "notes.log").write_text("my own notes\n")
-    r = _cli("closed_loop", "tau=0", "progress=false", f"hydra.run.dir={run_dir}")
+    r = _cli(entry, override, "progress=false", f"hydra.run.dir={run_dir}")
     assert r.returncode == 2
-    assert "tau=0: expected a finite number > 0 or null" in _one_line_error(r, "pinnmpc.closed_loop")
+    assert message in _one_line_error(r, f"pinnmpc.{entry}")
     assert sorted(p.name for p in run_dir.iterdir()) == [".hydra", "notes.log"]
     assert (run_dir / "notes.log").read_text() == "my own notes\n"
     assert [p.name for p in (run_dir / ".hydra").iterdir()] == ["config.yaml"]
@@ -122,7 +127,8 @@ def test_sigterm_during_training_checkpoints_and_says_how_to_resume(make_cfg, tm
     args = shlex.split(resume.removeprefix("resume with: "))
     assert args[:3] == ["python", "-m", "pinnmpc.train"] and args[-2:] == ["resume=true", f"hydra.run.dir={run_dir}"]
     assert summary["resume_command"] == resume.removeprefix("resume with: ")
-    assert load_surrogate(run_dir / "surrogate.pt").nx == 4
+    meta = load_surrogate(run_dir / "surrogate.pt").meta
+    assert (meta["status"], meta["signal"]) == ("interrupted", "SIGTERM")  # the network's meta says the same
     last = torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True)
     assert last["epoch"] == 0 and not (run_dir / LOCK_NAME).exists()
     # the checkpoint resumes; a budget it has spent is refused before anything in the run dir changes
@@ -356,6 +362,10 @@ def test_clean_keeps_live_runs_and_shipped_checkpoints(tmp_path):
 # 6. settings of the other entry points; a run dir that cannot be one
 
 
+def test_a_stage_may_start_exactly_at_its_base(make_cfg) -> None:
+    validate_train(make_cfg("train", ["stage.last_layer_gain=0"]), load_system("powercube"))  # zero-init: allowed
+
+
 @pytest.mark.parametrize(
     ("entry", "override", "message"),
     [
@@ -376,6 +386,7 @@ def test_clean_keeps_live_runs_and_shipped_checkpoints(tmp_path):
         ("train", "data.resample_every=-1", "data.resample_every=-1: expected an integer >= 0"),
         ("train", "trainer.max_epochs=0", "trainer.max_epochs=0: expected -1 (no limit) or an integer >= 1"),
         ("train", "trainer.max_time=00:00:00:00", "trainer.max_time='00:00:00:00': expected a duration"),
+        ("train", "stage.last_layer_gain=-1", "stage.last_layer_gain=-1: expected a finite number >= 0"),
         ("self_loop", "steps=2.5", "steps=2.5: expected an integer >= 2"),
         ("self_loop", "x0=[0,0]", "x0=[0, 0]: expected a list of 4 entries (nx)"),
         ("self_loop", "amplitude=[nan,1]", "amplitude=[nan, 1]: expected a list of 2 entries (nu)"),

@@ -39,3 +39,5 @@ def test_entry_point_writes_json_and_heat_map_and_refuses_bad_bins(make_cfg, tmp
     assert (tmp_path / "residuals.png").stat().st_size > 10_000
     with pytest.raises(SettingError, match="bins"):
         run_residuals(make_cfg("residuals", ["bins=0"]), tmp_path / "bad")
+    with pytest.raises(SettingError, match="bins=9 exceeds points=8"):  # an empty bin would read as RMS 0
+        run_residuals(make_cfg("residuals", ["points=8", "bins=9"]), tmp_path / "empty")

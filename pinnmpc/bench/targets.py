@@ -19,7 +19,7 @@ def _per_state(what: str, values: dict[str, float], names: Sequence[str], limits
         return []
     if len(limits) != len(names):
         raise ValueError(f"targets for {what} list {len(limits)} limits; expected one per state {list(names)}")
-    return [_target(f"{what} {n}", values[n], lim) for n, lim in zip(names, limits) if lim]
+    return [_target(f"{what} {n}", values[n], lim) for n, lim in zip(names, limits) if lim is not None]
 
 
 def check_targets(cfg: DictConfig, result: dict[str, Any], names: Sequence[str]) -> list[dict[str, Any]]:

@@ -96,6 +96,11 @@ def rk4_flow(rhs: ca.Function, tau: float, steps: int) -> tuple[ca.Function, ca.
     return flow, ca.Function("F_sens", [xm, um], outs, ["x", "u"], ["xf", "A", "B"])
 
 
+def _whole(value: Any) -> bool:
+    """A count from a config or a caller: an int >= 1, never a float silently truncated or a bool."""
+    return not isinstance(value, bool) and isinstance(value, (int, np.integer)) and value >= 1
+
+
 def merged(base: dict, extra: dict) -> dict:
     """base updated by extra, nested dicts (a plugin's own options) merged key by key; copies."""
     out = {k: dict(v) if isinstance(v, dict) else v for k, v in base.items()}
@@ -139,17 +144,17 @@ class CasadiOCP:
         joint_limits: JointLimits | Mapping | None = None,
         coulomb_width: float | None = None,
     ) -> None:
-        if int(horizon) < 1:
-            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        if not _whole(horizon):
+            raise ValueError(f"controller.horizon={horizon!r}; expected a whole number >= 1")
         rhs = system.casadi_rhs() if coulomb_width is None else system.casadi_rhs(coulomb_width)
         self.name = system.name
         self.horizon, self.nx, self.nu = int(horizon), rhs.size1_in(0), rhs.size1_in(1)
         self.tau = float(system.tau)
         if rk4_steps is None:
             rk4_steps = stable_rk4_steps(system, self.tau, rhs=rhs, at_rest=coulomb_width is not None)
+        if not _whole(rk4_steps):
+            raise ValueError(f"controller.rk4_steps={rk4_steps!r}; expected a whole number >= 1 or null (automatic)")
         self.rk4_steps = int(rk4_steps)
-        if self.rk4_steps < 1:
-            raise ValueError(f"rk4_steps must be >= 1 (or null: automatic), got {rk4_steps}")
         self.low = np.array(u_low, dtype=np.float64)
         self.high = np.array(u_high, dtype=np.float64)
         if self.low.shape != (self.nu,) or self.high.shape != (self.nu,):

@@ -38,7 +38,7 @@ class LBFGSSolver:
         with torch.no_grad():  # per problem the best feasible point so far: L-BFGS lowers the summed cost, and
             best_u = torch.maximum(torch.minimum(U0, high), low)  # a projection can undo a round's gain
             best = ocp.cost(x0, best_u, x_ref, u_prev)
-        prev = float("inf")
+        prev, settled = float("inf"), False
         for _ in range(self.rounds):
             cost = float(opt.step(closure).detach())
             with torch.no_grad():
@@ -47,7 +47,9 @@ class LBFGSSolver:
                 better = reached < best
                 best_u[better], best = U[better], torch.where(better, reached, best)
             if abs(prev - cost) < self.tol * max(1.0, abs(cost)):
+                settled = True
                 break
             prev = cost
-        converged = torch.ones(best.shape, dtype=torch.bool)
+        # the rounds share one summed cost, so the batch settles (or runs out of rounds) as a whole
+        converged = torch.full(best.shape, settled, dtype=torch.bool)
         return best_u, SolveInfo(torch.full(best.shape, evals[0]), best, converged), NO_WARM
