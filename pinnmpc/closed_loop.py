@@ -291,7 +291,7 @@ def warn_jumps(ref: Reference, system: System) -> None:
 
 def checked_start(cfg: DictConfig, system: System) -> list[float] | None:
     """The start x0 the user set (None: the reference's), refused where no arm can start or a run would fail at once:
-    checked before the controller is built (a classical Panda build takes minutes)."""
+    checked before the controller is built (a classical Panda build compiles C first)."""
     start = None if cfg.get("x0") is None else [float(v) for v in cfg.x0]
     far = "" if start is None else diverged(np.asarray(start), divergence_box(system))
     if far:  # a run would stop there as failed at once

@@ -74,12 +74,12 @@ def _base_seconds(run_dir: Path) -> float:
 
 def plot_curves(curves: list[Curve], out: Path, title: str = "") -> None:
     """Two log-scale panels (positions, velocities) against training minutes, one line per run."""
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from pinnmpc.plots import save_figure
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharex=True)
+    fig = Figure(figsize=(11, 4), layout="constrained")
+    axes = fig.subplots(1, 2, sharex=True)
     for c in curves:
         axes[0].semilogy(c.minutes, c.position, marker=".", label=c.label)
         axes[1].semilogy(c.minutes, c.velocity, marker=".", label=c.label)
@@ -91,9 +91,7 @@ def plot_curves(curves: list[Curve], out: Path, title: str = "") -> None:
     axes[0].legend(fontsize=8)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    atomic_write(out, lambda p: fig.savefig(p, dpi=110, format="png"))
-    plt.close(fig)
+    save_figure(fig, out)
 
 
 def write_csv(curves: list[Curve], out: Path) -> None:

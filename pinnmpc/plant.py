@@ -20,7 +20,7 @@ class PlantError(RuntimeError):
 
 @dataclass
 class ScipyPlant:
-    """Zero-hold plant x_{k+1} = flow(x_k, u_k, tau) integrated by solve_ivp around the torch rhs."""
+    """Zero-hold plant x_{k+1} = flow(x_k, u_k, tau) integrated by solve_ivp around the numpy rhs."""
 
     system: System
     tau: float

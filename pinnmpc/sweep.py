@@ -12,6 +12,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.io import atomic_write
+from pinnmpc.report import fmt, md_table
 
 METRICS = ("best_val_rmse_position", "wall_time_s", "epochs")  # train_metrics.json keys in the table
 
@@ -50,11 +51,11 @@ def write_tables(sweep_dir: Path, rows: list[dict[str, Any]]) -> None:
     atomic_write(sweep_dir / "sweep_results.csv", lambda p: p.write_text(buf.getvalue()))
 
     def cell(v: Any) -> str:
-        return f"{v:.3g}" if isinstance(v, float) else str(v)
+        """One cell in the reports' format; lists and other values as written."""
+        return fmt(v) if v is None or isinstance(v, (int, float, str)) else str(v)
 
-    lines = ["| " + " | ".join(fields) + " |", "|" + "---|" * len(fields)]
-    lines += ["| " + " | ".join(cell(r.get(f, "")) for f in fields) + " |" for r in rows]
-    atomic_write(sweep_dir / "sweep_results.md", lambda p: p.write_text("\n".join(lines) + "\n"))
+    table = md_table(fields, [[cell(r.get(f)) for f in fields] for r in rows])
+    atomic_write(sweep_dir / "sweep_results.md", lambda p: p.write_text(table + "\n"))
 
 
 class SweepTable(Callback):

@@ -7,7 +7,7 @@ from threadpoolctl import threadpool_limits
 
 
 def use_threads(n: int) -> None:
-    """Small controller solves are fastest single-threaded: threaded BLAS adds ~2x to each tiny GEMM here."""
+    """Small controller solves are fastest single-threaded: threaded BLAS adds overhead to each tiny GEMM."""
     if int(n) < 1:
         raise ValueError(f"threads must be >= 1, got {n}")
     torch.set_num_threads(int(n))

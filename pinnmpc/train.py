@@ -28,6 +28,7 @@ from pinnmpc.staged import StagedPINN
 from pinnmpc.surrogate import FORMAT, load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import build_system
+from pinnmpc.threads import use_threads
 from pinnmpc.training.callbacks import AtomicCheckpoint, GracefulStop, SelfLoopFigure, SurrogateFacts
 from pinnmpc.training.data import CollocationDataModule, flow_scale
 from pinnmpc.training.grow import grown_model
@@ -293,7 +294,7 @@ def train(
         )
     quiet_lightning()
     L.seed_everything(cfg.seed, workers=True, verbose=False)
-    torch.set_num_threads(cfg.threads)
+    use_threads(cfg.threads)  # torch and numpy BLAS alike
     model = build_model(cfg, system)
     # _convert_="all": plain lists, not OmegaConf ones, reach the hyper-parameters stored in checkpoints,
     # which load_surrogate reads with torch.load(weights_only=True)

@@ -23,6 +23,7 @@ import casadi as ca
 import numpy as np
 
 from pinnmpc.controller.ocp import JointLimits, psd_sqrt
+from pinnmpc.integrators import rk4_fixed
 from pinnmpc.systems.compiled import compile_functions
 
 SOLVERS = ("ipopt", "sqpmethod", "fatrop")  # nlpsol plugins this controller knows how to configure
@@ -74,15 +75,11 @@ def stable_rk4_steps(
 def rk4_flow(rhs: ca.Function, tau: float, steps: int) -> tuple[ca.Function, ca.Function]:
     """F(x, u): the zero-order-hold flow over tau by `steps` RK4 steps, a loop (mapaccum) of one SX step, and
     F_sens(x, u) = (F, dF/dx, dF/du) by forward sensitivities carried through the same loop (one SX step with
-    its own Jacobian: a few times cheaper than AD through the loop)."""
+    its own Jacobian, cheaper than AD through the loop)."""
     nx, nu = rhs.size1_in(0), rhs.size1_in(1)
     h = tau / steps
     x, u, s = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("s", nx, nx + nu)
-    k1 = rhs(x, u)
-    k2 = rhs(x + h / 2 * k1, u)
-    k3 = rhs(x + h / 2 * k2, u)
-    k4 = rhs(x + h * k3, u)
-    nxt = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    nxt = rk4_fixed(rhs, x, u, h, 1)  # one step on symbols: the same RK4 as every other path
     step = ca.Function("rk4_step", [x, u], [nxt], {"cse": True})
     s_next = ca.jacobian(nxt, x) @ s + ca.horzcat(ca.SX.zeros(nx, nx), ca.jacobian(nxt, u))
     sens = ca.Function("rk4_sens", [x, u, s], [nxt, s_next], {"cse": True})

@@ -33,7 +33,8 @@ def cache_dir() -> Path:
 def compile_functions(name: str, functions: list[ca.Function], opt: str = "-O1") -> dict[str, ca.Function]:
     """Generate C for the functions, compile it once (cached by source hash) and load each as an external.
 
-    opt: -O1 compiles large generated files (a 7-joint arm) in seconds and runs within ~10% of -O3."""
+    opt: the C compiler's optimisation flag; lower levels compile large generated files (a 7-joint arm) sooner
+    and run a little slower (docs/results.md, panda)."""
     gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
     for f in functions:
         gen.add(f)
@@ -52,7 +53,7 @@ def compile_functions(name: str, functions: list[ca.Function], opt: str = "-O1")
         if compiler is None:
             raise RuntimeError(f"no C compiler found (CC={os.environ.get('CC', 'cc')}); install gcc to compile {name}")
         lib.parent.mkdir(parents=True, exist_ok=True)
-        # a large arm's generated code takes minutes at -O2: say what the wait is (once; the library is cached)
+        # a large arm's generated code is slow to compile: say what the wait is (once; the library is cached)
         print(f"compiling {name} ({len(source) // 1024} kB of C, {opt}) into {lib.parent}", file=sys.stderr)
         with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
             src = Path(tmp) / f"{name}.c"

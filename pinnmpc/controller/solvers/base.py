@@ -27,6 +27,10 @@ def project(u: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.where(u - lo <= tol, lo, np.where(hi - u <= tol, hi, u))
 
 
+# inputs, iterations, cost, converged, and the next solve's warm-start array (None: none)
+SolveResult = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]
+
+
 def result(
     shape: tuple[int, ...],
     U: np.ndarray,
@@ -34,7 +38,7 @@ def result(
     cost: np.ndarray,
     converged: np.ndarray,
     warm: np.ndarray | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+) -> SolveResult:
     """A solve's outputs in the problems' own batch shape (warm: the next solve's warm-start array, flat batch)."""
     lead = shape[:-2]
     return U.reshape(shape), iterations.reshape(lead), cost.reshape(lead), converged.reshape(lead), warm

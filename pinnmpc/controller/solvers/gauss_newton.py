@@ -16,7 +16,16 @@ from torch import Tensor
 from pinnmpc.controller.arrays import Array
 from pinnmpc.controller.box_step import newton_step, normal_equations
 from pinnmpc.controller.ocp import HorizonOCP
-from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, project, result, wrong_warm
+from pinnmpc.controller.solvers.base import (
+    NO_WARM,
+    NoWarm,
+    Problem,
+    SolveInfo,
+    SolveResult,
+    project,
+    result,
+    wrong_warm,
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,7 +122,17 @@ class GaussNewtonSolver:
         """Shape per problem of the warm array this solver takes: the sensitivities d x_i / d U."""
         return (ocp.horizon, ocp.nx, ocp.horizon * ocp.nu)
 
-    def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):
+    def _solve(
+        self,
+        ocp: HorizonOCP,
+        x0: np.ndarray,
+        U0: np.ndarray,
+        x_ref: np.ndarray,
+        u_prev: np.ndarray,
+        low: np.ndarray,
+        high: np.ndarray,
+        prior: np.ndarray | None,
+    ) -> SolveResult:
         """Iterate until every problem has converged or max_iter is reached.
 
         The first two line searches evaluate their candidates with Jacobians, so the accepted one's is
@@ -177,7 +196,15 @@ class GaussNewtonSolver:
                 break
         return result(shape, project(U, lo, hi), iterations, cost, ~running, sens)
 
-    def _jacobian(self, ocp, x0, U, x_ref, u_prev, prior=None):
+    def _jacobian(
+        self,
+        ocp: HorizonOCP,
+        x0: np.ndarray,
+        U: np.ndarray,
+        x_ref: np.ndarray,
+        u_prev: np.ndarray,
+        prior: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Residuals, Jacobian and (numpy surrogates) the state sensitivities that a later solve may reuse."""
         if ocp.flow is not None and self.reuse_jacobian:
             return ocp.jacobian_rollout(x0, U, x_ref, u_prev, prior)
@@ -207,13 +234,28 @@ class GaussNewtonSolver:
             rho = np.where(fast & (latest <= self.fast_ratio), latest, rho)
         return np.where(rho < 1.0, decrease * rho / (1.0 - rho), np.inf)
 
-    def _line_search(self, ocp, x0, x_ref, u_prev, u, delta, f, lo, hi, with_jacobian):
+    def _line_search(
+        self,
+        ocp: HorizonOCP,
+        x0: np.ndarray,
+        x_ref: np.ndarray,
+        u_prev: np.ndarray,
+        u: np.ndarray,
+        delta: np.ndarray,
+        f: np.ndarray,
+        lo: np.ndarray,
+        hi: np.ndarray,
+        with_jacobian: bool,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
         """The first step length alone (usually the full step, which near the optimum always wins), then the
         others in one batch only for the problems it did not improve; with_jacobian: residuals and Jacobians
         come along (None otherwise)."""
         horizon_nu = (ocp.horizon, ocp.nu)
 
-        def evaluate(x0, cand, x_ref, u_prev):
+        def evaluate(
+            x0: np.ndarray, cand: np.ndarray, x_ref: np.ndarray, u_prev: np.ndarray
+        ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+            """Costs, residuals and (with_jacobian) Jacobians and sensitivities of candidate inputs."""
             if with_jacobian:
                 r, jac, sens = self._jacobian(ocp, x0, cand.reshape(-1, cand.shape[-1]), x_ref, u_prev)
             else:

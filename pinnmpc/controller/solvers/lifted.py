@@ -15,7 +15,7 @@ from pinnmpc.controller.arrays import Array
 from pinnmpc.controller.box_step import newton_step
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.shooting import linearise, reached
-from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, project, result
+from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, SolveResult, project, result
 from pinnmpc.controller.solvers.gauss_newton import GaussNewtonSolver
 
 
@@ -51,7 +51,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     fast_ratio: float = 1e-3  # a full step whose predicted decrease fell below this x the one before: see _remaining
     lifted_max_iter: int = 5  # lifted iterations before single shooting (max_iter more) takes over
     tol_final_defect: float = 1e-8  # the cost reached is measured by a full rollout where a defect exceeds this
-    rti: bool = False  # real-time iteration: one step from the last plan's states per solve (see _rti_step)
+    rti: bool = False  # real-time iteration: one step from the last plan's states per solve (see _rti_steps)
     rti_steps: int = 1  # lifted steps per sample in the real-time iteration (more: closer to converged, slower)
     tol_promise_inexact: float = 1e-3  # relative slack of the promise check when the model's Jacobians are not the
     #   derivatives of its values (flow.approximate_jacobians, controller.model=exact_values)
@@ -75,7 +75,17 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         """The states the solution reaches: the next solve's warm start, and the plan's prediction for NMPC."""
         return (NO_WARM if out is None else LiftedWarm(out)), out
 
-    def _solve(self, ocp, x0, U0, x_ref, u_prev, low, high, prior):
+    def _solve(
+        self,
+        ocp: HorizonOCP,
+        x0: np.ndarray,
+        U0: np.ndarray,
+        x_ref: np.ndarray,
+        u_prev: np.ndarray,
+        low: np.ndarray,
+        high: np.ndarray,
+        prior: np.ndarray | None,
+    ) -> SolveResult:
         """Lifted iterations on the numpy surrogate; single shooting when there is none or they fail."""
         if ocp.flow is None:
             return (*super()._solve(ocp, x0, U0, x_ref, u_prev, low, high, None)[:4], None)
@@ -166,7 +176,16 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             X[rows] = ocp.rollout(x0b[rows], U[rows].reshape(-1, horizon, nu))
         return result(shape, project(U, lo, hi), iterations, cost, ~running, X)
 
-    def _rti_steps(self, ocp, nodes, U, refb, upb, lo, hi):
+    def _rti_steps(
+        self,
+        ocp: HorizonOCP,
+        nodes: np.ndarray,
+        U: np.ndarray,
+        refb: np.ndarray,
+        upb: np.ndarray,
+        lo: np.ndarray,
+        hi: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Real-time iteration, the PINN counterpart of the classical controller's rti: rti_steps lifted Gauss-Newton
         steps (one by default) from the last plan's states, no convergence test and no further network call. Returns
         the inputs, the last step's linearised prediction of the states and its model cost (the problem counts as
