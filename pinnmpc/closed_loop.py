@@ -265,7 +265,7 @@ def system_reference(cfg: DictConfig, system: System, tau: float) -> Reference:
     leaves the system's joint limits."""
     box, limits = system.state_box, getattr(system, "joint_limits", None)
     return load_reference(
-        resolve_reference_path(cfg.reference.path, bool(cfg.system.get("paper_reference", False))),
+        resolve_reference_path(cfg.reference.path, cfg.system.get("paper_reference")),
         tau,
         cfg.reference.name,
         system.state_names,

@@ -193,6 +193,9 @@ class PINN(nn.Module):
     q = q0 + v0 t + scale_v * sum_k G_k(t) N_k(.) with G_k the time integral of gate g_k, and the velocity
     is its exact time derivative. dq/dt = v then holds by construction (in the first-order form its
     residual is the largest source of position error at tau), and both q(0) = q0 and v(0) = v0 are exact.
+
+    The keyword defaults are the paper's network (tanh, hard initial condition); the project's default network
+    is conf/model/pinn.yaml with the system's time basis, which `python -m pinnmpc.train` builds.
     """
 
     def __init__(

@@ -17,7 +17,7 @@ import scipy.io
 MAT_FILES = ("y_soll", "Dy_soll", "t_soll")  # paper's layout: positions (nq, N), velocities (nq, N), times (1, N)
 KINDS = "a folder with y_soll.mat, Dy_soll.mat and t_soll.mat, a .npz (t, x) or a .csv (t and the state names)"
 BUILTIN_DT = 0.01  # s, sampling of the built-in references; fine enough to resample to any controller step
-PAPER_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "powercube" / "reference"  # never copied here
+PROJECT_ROOT = Path(__file__).resolve().parents[1]  # a system's paper_reference is relative to it
 RESAMPLE_SLACK = 1e-9  # s, a grid point this close past the last sample still counts as inside
 MILLISECONDS = (300.0, 3000.0)  # velocities this many times the positions' rate of change: t was given in ms
 
@@ -480,9 +480,14 @@ def check_joint_limits(
     )
 
 
-def resolve_reference_path(path: str | Path | None, paper: bool = True) -> str | None:
-    """'auto': the paper's reference in ../shared for a system it was made for (paper) when it exists, else None
-    (the system's built-in); other values as given."""
+def resolve_reference_path(path: str | Path | None, paper: str | Path | None = None) -> str | None:
+    """'auto': the system's paper reference (system.paper_reference, relative to the project root; data never
+    copied into the project) when it exists, else None (the system's built-in); other values as given."""
+    if paper is not None and not isinstance(paper, (str, Path)):
+        raise ReferenceError(
+            f"system.paper_reference={paper!r}; expected a folder path (relative to the project root) or null"
+        )
     if str(path) == "auto":
-        return str(PAPER_REFERENCE) if paper and PAPER_REFERENCE.is_dir() else None
+        found = None if paper is None else PROJECT_ROOT / Path(paper)
+        return str(found.resolve()) if found is not None and found.is_dir() else None
     return None if path is None else str(path)

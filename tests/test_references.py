@@ -470,8 +470,12 @@ def test_driven_reference_is_a_motion_of_the_true_arm_under_in_box_inputs() -> N
 
 def test_auto_is_the_papers_reference_only_for_the_arm_it_was_made_for() -> None:
     # reference.path=auto once handed the PowerCube's 4-state file to planar3 (`make robustness system=planar3`)
-    assert resolve_reference_path("auto", paper=False) is None  # the system's built-in
-    assert resolve_reference_path("auto", paper=True) == (str(PAPER_REFERENCE) if PAPER_REFERENCE.is_dir() else None)
-    assert resolve_reference_path("my.csv", paper=False) == "my.csv" and resolve_reference_path(None) is None
-    flags = {name: system_config(name)["paper_reference"] for name in ("powercube", "planar3", "panda")}
-    assert flags == {"powercube": True, "planar3": False, "panda": False}
+    assert resolve_reference_path("auto", paper=None) is None  # the system's built-in
+    paper = system_config("powercube")["paper_reference"]
+    found = str(PAPER_REFERENCE.resolve()) if PAPER_REFERENCE.is_dir() else None
+    assert resolve_reference_path("auto", paper=paper) == found  # relative to the project root, wherever run from
+    assert resolve_reference_path("auto", paper="no/such/folder") is None
+    with pytest.raises(ReferenceError, match="system.paper_reference=True; expected a folder path"):
+        resolve_reference_path("auto", paper=True)  # the flag of earlier versions
+    assert resolve_reference_path("my.csv", paper=None) == "my.csv" and resolve_reference_path(None) is None
+    assert system_config("planar3")["paper_reference"] is None and system_config("panda")["paper_reference"] is None

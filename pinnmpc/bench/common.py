@@ -24,7 +24,7 @@ def make_plant(cfg: DictConfig, system: System, tau: float) -> ScipyPlant:
 
 
 def bench_reference(cfg: DictConfig, system: System, tau: float, name: str | None = None) -> Reference:
-    """reference.path (auto: the paper's reference for a system with system.paper_reference, else its built-in),
+    """reference.path (auto: system.paper_reference where it exists, else the system's built-in),
     or the built-in `name`, on the grid of tau, as pinnmpc.closed_loop loads it."""
     path = None if name is not None else cfg.reference.path
     node = OmegaConf.create(
@@ -32,7 +32,7 @@ def bench_reference(cfg: DictConfig, system: System, tau: float, name: str | Non
             "reference": {"path": path, "name": cfg.reference.name if name is None else name},
             "system": {
                 "references": OmegaConf.to_container(cfg.system.references, resolve=True),
-                "paper_reference": bool(cfg.system.get("paper_reference", False)),
+                "paper_reference": cfg.system.get("paper_reference"),
             },
         }
     )

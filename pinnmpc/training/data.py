@@ -71,6 +71,8 @@ class CollocationDataModule(L.LightningDataModule):
     carries `share` = N x shard size / n_collocation, which makes the mean over the processes of each shard's
     weighted physics loss the mean over all points. The anchors are sharded the same way (`anchor_share`). The data
     points at t = 0 and the validation set are the same on every process.
+
+    The keyword defaults are the paper's data (one draw, no anchors); the project's are conf/data/collocation.yaml.
     """
 
     def __init__(

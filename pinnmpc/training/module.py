@@ -40,6 +40,9 @@ class PINNModule(L.LightningModule):
     Under DDP each process holds a shard of the points (CollocationDataModule); every loss the optimiser or the
     stall test sees is the mean over the processes (so all of them take the same line-search and stall decisions)
     and DDP averages the gradients in manual_backward: the parameters stay identical on every process.
+
+    The keyword defaults are the paper's training (L-BFGS, residual only); the project's defaults are
+    conf/module/pinn.yaml, which `python -m pinnmpc.train` instantiates.
     """
 
     def __init__(
