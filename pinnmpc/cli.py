@@ -358,17 +358,41 @@ CONF = Path(__file__).resolve().parents[1] / "conf"  # the Hydra config tree the
 CHOICE = re.compile(r"^\+{0,2}([a-z_]+)=([A-Za-z0-9_.-]+)$")  # a plain `group=option` override (no sweeps)
 
 
+def _config_dirs(argv: list[str]) -> list[Path] | None:
+    """conf/ and the dirs a command line adds (--config-dir, -cd, hydra.searchpath); None where one is not a plain
+    folder (e.g. pkg://), so that no option is refused that Hydra might still find."""
+    dirs, it = [CONF], iter(argv)
+    for arg in it:
+        if arg in ("--config-dir", "-cd"):
+            dirs.append(Path(next(it, "")))
+        elif arg.startswith(("--config-dir=", "-cd=")):
+            dirs.append(Path(arg.split("=", 1)[1]))
+        elif arg.lstrip("+").startswith("hydra.searchpath="):
+            for entry in arg.split("=", 1)[1].strip("[]").split(","):
+                entry = entry.strip().strip("'\"")
+                if entry.startswith("pkg://"):
+                    return None
+                dirs.append(Path(entry.removeprefix("file://")))
+    return dirs
+
+
 def check_choices(prog: str, argv: list[str] | None = None) -> None:
-    """Before Hydra composes: a `group=option` override whose conf/group/option.yaml does not exist ends the process
-    with one line naming it and the options there (Hydra's own message is a multi-line search-path dump)."""
-    for arg in sys.argv[1:] if argv is None else argv:
+    """Before Hydra composes: a `group=option` override whose group/option.yaml exists in no config dir (conf/,
+    --config-dir, hydra.searchpath) ends the process with one line naming it and the options there (Hydra's own
+    message is a multi-line search-path dump)."""
+    args = sys.argv[1:] if argv is None else argv
+    dirs = _config_dirs(args)
+    if dirs is None:
+        return
+    for arg in args:
         match = CHOICE.match(arg)
-        if match is None or not (CONF / match[1]).is_dir():
+        if match is None or not any((d / match[1]).is_dir() for d in dirs):
             continue
         group, option = match[1], match[2]
-        if not (CONF / group / f"{option}.yaml").is_file():
-            have = sorted(f.stem for f in (CONF / group).glob("*.yaml"))
-            print(f"{prog}: error: {group}={option!r}: no conf/{group}/{option}.yaml; expected one of {have}",
+        if not any((d / group / f"{option}.yaml").is_file() for d in dirs):
+            have = sorted({f.stem for d in dirs for f in (d / group).glob("*.yaml")})
+            where = "conf" if len(dirs) == 1 else "any config dir"
+            print(f"{prog}: error: {group}={option!r}: no {group}/{option}.yaml in {where}; expected one of {have}",
                   file=sys.stderr)  # fmt: skip
             sys.exit(EXIT_BAD_INPUT)
 

@@ -69,7 +69,24 @@ def build_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box |
         cfg.checkpoint, system=system.name if cfg.checkpoint is None else None, state_names=system.state_names
     )
     check_input_bounds(cfg, surrogate.input_box)
+    differs = arm_differences(surrogate.meta, cfg)
+    if differs:
+        log.warning(
+            "WARNING: the network was trained for another description of this arm (system.dynamics %s differ): "
+            "it predicts a different arm from the one the plant simulates",
+            ", ".join(differs),
+        )
     return build_nmpc(cfg.controller, surrogate, system), surrogate.domain, surrogate.tau
+
+
+def arm_differences(meta: dict[str, Any] | None, cfg: DictConfig) -> list[str]:
+    """system.dynamics keys whose value in the network's training config differs from this run's (names alone do
+    not tell two arms apart: a checkpoint of a j1/j2 arm loads on any other); empty where the meta has none."""
+    trained = ((meta or {}).get("config") or {}).get("system", {}).get("dynamics")
+    if not isinstance(trained, dict) or "dynamics" not in cfg.system:
+        return []
+    now = OmegaConf.to_container(cfg.system.dynamics, resolve=True)
+    return sorted(k for k in set(trained) & set(now) if trained[k] != now[k])
 
 
 def bounds_outside(cfg: DictConfig, box: Box) -> list[str]:
@@ -351,6 +368,8 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
         "friction_scale": float(cfg.plant.friction_scale),
         "mass_scale": float(cfg.plant.mass_scale),
     }
+    model = getattr(controller, "surrogate", None)
+    result["network_arm_differs"] = arm_differences(getattr(model, "meta", None), cfg)  # system.dynamics keys
     st = controller.stats
     n = len(run["x"])
     save_npz(

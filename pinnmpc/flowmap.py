@@ -221,6 +221,7 @@ class ExactValues(Dimensions):
         self.state_box: Box = surrogate.state_box
         self.input_box: Box = surrogate.input_box
         self.domain = getattr(surrogate, "domain", None)
+        self.meta = getattr(surrogate, "meta", None)  # the network's provenance, for reports
 
     def numpy_flow(self) -> ExactValues:
         """Itself: it already works on numpy arrays."""

@@ -77,18 +77,22 @@ CURVATURES: dict[str, Callable[[Tensor, Tensor, Tensor], Tensor]] = {  # second 
 
 
 def _checked_prior(prior: dict | None, ic: str, second_order: bool) -> dict | None:
-    """prior as {'kind', 'system'}: a known kind, on a first-order network with an exact initial condition."""
+    """prior as {'kind', 'system'[, 'dynamics']}: a known kind, on a first-order network with an exact initial
+    condition (dynamics: the arm's description, which networks since 2026-11-26 carry; older ones name it)."""
     if prior is None:
         return None
-    if not isinstance(prior, dict) or set(prior) != {"kind", "system"}:
-        raise ValueError(f"prior must be null or {{'kind': ..., 'system': ...}}, got {prior!r}")
+    if not isinstance(prior, dict) or not {"kind", "system"} <= set(prior) <= {"kind", "system", "dynamics"}:
+        raise ValueError(f"prior must be null or {{'kind': ..., 'system': ..., 'dynamics': ...}}, got {prior!r}")
+    if prior.get("dynamics") is not None and not isinstance(prior["dynamics"], dict):
+        raise ValueError(f"prior dynamics must be the arm's description (a dict), got {prior['dynamics']!r}")
     check_prior(prior["kind"])
     if ic == "soft" or second_order:
         raise ValueError(
             f"a prior needs a first-order network with an exact initial condition; got ic={ic!r}, "
             f"second_order={second_order}"
         )
-    return {"kind": str(prior["kind"]), "system": str(prior["system"])}
+    checked = {"kind": str(prior["kind"]), "system": str(prior["system"])}
+    return checked if prior.get("dynamics") is None else {**checked, "dynamics": prior["dynamics"]}
 
 
 def _checked_sums(angle_sums: Sequence[Sequence[int]], periodic: Sequence[int]) -> list[list[int]]:
@@ -292,7 +296,8 @@ class PINN(nn.Module):
         self.register_buffer("sum_map", sum_map, persistent=False)  # (n_sums, nx): the angle sums of x0
         n_trig = len(periodic) + 2 * len(angle_sums)  # cosines of the periodic states, then sin and cos of the sums
         self.net = TangentMLP(n_lin + n_trig, self.n_head * self.n_gates, hidden, activation)
-        self.prior = None if prior is None else FrozenArmPrior(prior["system"])  # no parameters, no state
+        # no parameters, no state; the arm from its description (older networks: by its system name)
+        self.prior = None if prior is None else FrozenArmPrior(prior.get("dynamics") or prior["system"])
 
     @property
     def sum_columns(self) -> tuple[slice, slice]:

@@ -50,8 +50,12 @@ class ScipyPlant:
         self.system.rhs(*mid)  # once, untimed: the first call loads lazy imports (Pinocchio), not a plant step's cost
 
     def _fun(self, _t: float, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """The system rhs on numpy arrays: no torch dispatch per scipy call."""
-        return self.system.rhs(x, u)
+        """The system rhs on numpy arrays: no torch dispatch per scipy call. A non-finite one stops the step (RK45
+        would otherwise shrink its step on NaN error estimates without end)."""
+        dx = self.system.rhs(x, u)
+        if not np.isfinite(dx).all():
+            raise FloatingPointError(f"non-finite dx/dt {np.asarray(dx).tolist()} at x={x.tolist()}")
+        return dx
 
     def _integrate(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """solve_ivp over one period; a step whose sign(v) friction chatters is redone by stick-slip modes."""

@@ -16,13 +16,14 @@ full-batch training evaluates it on the same points every step) and CasADi compi
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import casadi as ca
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 from torch import Tensor, nn
 
 KINDS = ("frozen_arm",)  # model.prior values besides null
@@ -48,13 +49,18 @@ class CompiledPrior:
 
 
 class FrozenArmPrior(nn.Module):
-    """x_p(t) of the arm frozen at q0 (see the module docstring) for a URDF arm known by its system name."""
+    """x_p(t) of the arm frozen at q0 (see the module docstring) for a URDF arm: a System, its `dynamics`
+    description (what a network's config stores) or the name of a shipped system."""
 
-    def __init__(self, system: str) -> None:
+    def __init__(self, system: Any) -> None:
         super().__init__()
-        from pinnmpc.systems import RigidArm, load_system
+        from pinnmpc.systems import RigidArm, build_system, load_system
 
-        arm = load_system(system)
+        if isinstance(system, Mapping):
+            arm = build_system(OmegaConf.create(dict(system)))
+        else:
+            arm = load_system(system) if isinstance(system, str) else system
+        system = getattr(arm, "name", system)
         if not isinstance(arm, RigidArm):
             raise ValueError(
                 f"model.prior='frozen_arm' needs an arm from a URDF (a RigidArm); system={system!r} is "

@@ -483,6 +483,8 @@ def check_joint_limits(
 def resolve_reference_path(path: str | Path | None, paper: str | Path | None = None) -> str | None:
     """'auto': the system's paper reference (system.paper_reference, relative to the project root; data never
     copied into the project) when it exists, else None (the system's built-in); other values as given."""
+    if paper is False:  # the flag of earlier system configs: false meant none
+        paper = None
     if paper is not None and not isinstance(paper, (str, Path)):
         raise ReferenceError(
             f"system.paper_reference={paper!r}; expected a folder path (relative to the project root) or null"

@@ -53,11 +53,14 @@ def fresh_model(cfg: DictConfig, system: System) -> PINN:
     """A new network of cfg.model for this system's training box (output scale estimated from the flow when
     'auto'): what training and the capacity check start from."""
     kind = cfg.model.get("prior")
-    prior = None if kind is None else {"kind": str(kind), "system": system.name}
+    # the arm's own description travels with the network: a user's arm outside conf/system, or one whose name a
+    # shipped arm shares, rebuilds the same prior wherever the network is loaded
+    dynamics = OmegaConf.to_container(cfg.system.dynamics, resolve=True) if "dynamics" in cfg.system else None
+    prior = None if kind is None else {"kind": str(kind), "system": system.name, "dynamics": dynamics}
     scale = cfg.model.output_scale
     if scale == "auto":
         a = cfg.model.auto_scale
-        start = None if prior is None else FrozenArmPrior(system.name)
+        start = None if prior is None else FrozenArmPrior(system)
         scale = flow_scale(system, cfg.t_max, a.samples, a.h, a.quantile, cfg.seed, start)
     return PINN(
         state_low=system.state_box.low,

@@ -71,7 +71,7 @@ def test_an_unknown_config_option_is_named_in_one_line_before_hydra_starts(modul
     )  # fmt: skip
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.strip().splitlines() == [
-        f"pinnmpc.{module}: error: system='nope': no conf/system/nope.yaml; expected one of "
+        f"pinnmpc.{module}: error: system='nope': no system/nope.yaml in conf; expected one of "
         "['panda', 'planar3', 'powercube']"
     ]
 
@@ -83,3 +83,16 @@ def test_only_plain_group_choices_are_checked() -> None:
     with pytest.raises(SystemExit) as stop:
         check_choices("x", ["controller=fast"])
     assert stop.value.code == 2
+
+
+def test_config_dirs_of_the_command_line_count(tmp_path, capsys) -> None:
+    from pinnmpc.cli import check_choices
+
+    (tmp_path / "system").mkdir()
+    (tmp_path / "system" / "mine.yaml").write_text("{}\n")
+    for extra in (["--config-dir", str(tmp_path)], [f"-cd={tmp_path}"], [f"hydra.searchpath=[file://{tmp_path}]"]):
+        check_choices("x", [*extra, "system=mine"])  # a user's own arm, outside the package
+        with pytest.raises(SystemExit):
+            check_choices("x", [*extra, "system=nope"])
+        assert "in any config dir; expected one of ['mine', 'panda', 'planar3', 'powercube']" in capsys.readouterr().err
+    check_choices("x", ["hydra.searchpath=[pkg://elsewhere.conf]", "system=nope"])  # Hydra may find it there

@@ -307,3 +307,12 @@ def test_a_system_configs_per_joint_lists_are_checked_by_every_job(make_cfg, tmp
     with pytest.raises(SettingError, match=message):
         run_closed_loop(cfg, tmp_path)
     assert not any(tmp_path.iterdir())
+
+
+def test_a_network_of_another_arm_description_is_named(make_cfg, tmp_path, caplog):
+    common = ["system=planar3", "max_steps=2", "progress=false", "plots=false"]
+    assert run_closed_loop(make_cfg("closed_loop", common), tmp_path / "same")["network_arm_differs"] == []
+    other = [*common, "system.dynamics.viscous=[10.0,8.0,2.0]"]  # the shipped network learned viscous 20 on joint 1
+    m = run_closed_loop(make_cfg("closed_loop", other), tmp_path / "other")
+    assert m["network_arm_differs"] == ["viscous"]
+    assert "trained for another description of this arm (system.dynamics viscous differ)" in caplog.text

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -597,15 +598,15 @@ def test_solvers_reach_the_optimum_of_the_disturbed_problem(s: Surrogate, solver
 @pytest.mark.parametrize(
     ("kwargs", "fragment"),
     [
-        ({"disturbance_gain": 1.5}, "disturbance gain must be in [0, 1], got 1.5"),
-        ({"disturbance_gain": -0.1}, "disturbance gain must be in [0, 1], got -0.1"),
-        ({"disturbance_max": [0.1, 0.1]}, "disturbance max must be 4 non-negative numbers"),
-        ({"disturbance_max": [0.1, -0.1, 0.1, 0.1]}, "disturbance max must be 4 non-negative numbers"),
+        ({"disturbance_gain": 1.5}, "controller.disturbance.gain=1.5; expected a number in [0, 1]"),
+        ({"disturbance_gain": -0.1}, "controller.disturbance.gain=-0.1; expected a number in [0, 1]"),
+        ({"disturbance_max": [0.1, 0.1]}, "controller.disturbance.max_abs=[0.1, 0.1] (system.control.disturbance_max)"),
+        ({"disturbance_max": [0.1, -0.1, 0.1, 0.1]}, "expected null or 4 numbers >= 0, one per state"),
     ],
 )
 def test_bad_disturbance_settings_are_refused(s: Surrogate, kwargs: dict, fragment: str) -> None:
     ocp = HorizonOCP(s, 3, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
-    with pytest.raises(ValueError, match=fragment.replace("[", r"\[").replace("]", r"\]")):
+    with pytest.raises(ValueError, match=re.escape(fragment)):
         NMPC(ocp, make_solver("lifted_gauss_newton"), *ASYMMETRIC, **kwargs)
     for bad in ([1.0, 2.0], [0.0, float("nan"), 0.0, 0.0]):
         with pytest.raises(ValueError, match="disturbance must be 4 finite numbers"):

@@ -476,6 +476,7 @@ def test_auto_is_the_papers_reference_only_for_the_arm_it_was_made_for() -> None
     assert resolve_reference_path("auto", paper=paper) == found  # relative to the project root, wherever run from
     assert resolve_reference_path("auto", paper="no/such/folder") is None
     with pytest.raises(ReferenceError, match="system.paper_reference=True; expected a folder path"):
-        resolve_reference_path("auto", paper=True)  # the flag of earlier versions
+        resolve_reference_path("auto", paper=True)  # the flag of earlier versions: which file it meant is unknown
+    assert resolve_reference_path("auto", paper=False) is None  # ... and false still means none
     assert resolve_reference_path("my.csv", paper=None) == "my.csv" and resolve_reference_path(None) is None
     assert system_config("planar3")["paper_reference"] is None and system_config("panda")["paper_reference"] is None

@@ -30,10 +30,13 @@ class StepStats:
 def disturbance_bound(d_max: Sequence[float] | None, nx: int, gain: float) -> np.ndarray | None:
     """Validated offset-free settings (gain in [0, 1], nx non-negative bounds); the bound as an array."""
     if not 0.0 <= gain <= 1.0:
-        raise ValueError(f"disturbance gain must be in [0, 1], got {gain}")
+        raise ValueError(f"controller.disturbance.gain={gain}; expected a number in [0, 1]")
     bound = None if d_max is None else np.array(d_max, dtype=np.float64)
     if bound is not None and (bound.shape != (nx,) or np.any(~(bound >= 0))):
-        raise ValueError(f"disturbance max must be {nx} non-negative numbers (one per state), got {list(d_max)}")
+        raise ValueError(
+            f"controller.disturbance.max_abs={list(d_max)} (system.control.disturbance_max); expected null or {nx} "
+            "numbers >= 0, one per state"
+        )
     return bound
 
 

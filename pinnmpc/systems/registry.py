@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
@@ -18,20 +19,32 @@ def available() -> list[str]:
     return sorted(p.stem for p in SYSTEM_CONF.glob("*.yaml"))
 
 
-def system_config(name: str) -> DictConfig:
-    """conf/system/<name>.yaml, interpolations resolved within it."""
+def system_config(name: str | Path) -> DictConfig:
+    """conf/system/<name>.yaml, or a system .yaml by path (a user's own arm outside the package)."""
+    own = Path(name).expanduser()
+    if own.suffix in (".yaml", ".yml"):
+        if not own.is_file():
+            raise ValueError(f"system={str(name)!r}: no such file; expected a system .yaml or one of {available()}")
+        return OmegaConf.load(own)
     path = SYSTEM_CONF / f"{name}.yaml"
     if not path.is_file():
-        raise ValueError(f"system={name!r}: no {path}; expected one of {available()}")
+        raise ValueError(f"system={str(name)!r}: no {path}; expected one of {available()} or a path to a .yaml")
     return OmegaConf.load(path)
 
 
 def build_system(cfg: Any) -> System:
-    """The System of a composed `system` config node (its `dynamics` part)."""
+    """The System of a composed `system` config node (its `dynamics` part); a description the system refuses
+    raises its own one-line error, not Hydra's wrapper around it."""
     node = cfg.dynamics if "dynamics" in cfg else cfg
-    return instantiate(node)
+    try:
+        return instantiate(node)
+    except InstantiationException as e:
+        if isinstance(e.__cause__, (ValueError, FileNotFoundError)):
+            raise e.__cause__ from None
+        raise
 
 
-def load_system(name: str = "powercube") -> System:
-    """A controlled arm by name: rhs(x, u) batched and differentiable in torch, state/input names, tau."""
+def load_system(name: str | Path = "powercube") -> System:
+    """A controlled arm by name (conf/system) or by the path of its .yaml: rhs(x, u) batched and differentiable in
+    torch, state/input names, tau."""
     return build_system(system_config(name))

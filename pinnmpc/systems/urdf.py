@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import re
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -51,8 +52,9 @@ def resolve_urdf(path: str | Path) -> Path:
 
 
 def locked_urdf(path: Path, joints: Sequence[str]) -> str:
-    """URDF text with every movable joint not in `joints` made fixed (adam refuses prismatic joints, even
-    unactuated ones, and the controlled arm holds its other joints still)."""
+    """URDF text with every movable joint not in `joints` made fixed at q = 0 (adam refuses prismatic joints, even
+    unactuated ones, and the controlled arm holds its other joints still) and every joint axis of unit length
+    (Pinocchio normalises axes, adam does not); what pinnmpc cannot model is refused here, naming the joint."""
     try:
         root = ET.parse(path).getroot()
     except ET.ParseError as e:
@@ -61,13 +63,59 @@ def locked_urdf(path: Path, joints: Sequence[str]) -> str:
     missing = [j for j in joints if j not in movable]
     if missing:
         raise ValueError(f"joints={list(joints)}: {missing} not movable joints of {path.name}; it has {list(movable)}")
+    _refuse_unsupported(root, path, joints)
     for name, j in movable.items():
         if name not in joints:
             j.set("type", "fixed")
+    for axis in root.iter("axis"):
+        _unit_axis(axis, path)
     for dyn in root.iter("dynamics"):  # vendor attributes (Franka's K, D, mu_*) make URDF parsers warn per joint
         for key in [k for k in dyn.attrib if k not in ("damping", "friction")]:
             del dyn.attrib[key]
     return ET.tostring(root, encoding="unicode")
+
+
+def _refuse_unsupported(root: ET.Element, path: Path, joints: Sequence[str]) -> None:
+    """Fixed-base arms of revolute joints with full <limit> tags, no mimic couplings: anything else is refused."""
+    for j in root.findall("joint"):
+        name, kind = j.get("name"), j.get("type")
+        if kind == "floating":
+            raise ValueError(
+                f"urdf={path}: joint {name!r} is floating; expected a fixed-base arm (pinnmpc models no base)"
+            )
+        mimic = j.find("mimic")
+        if mimic is not None and (name in joints or mimic.get("joint") in joints):
+            raise ValueError(
+                f"urdf={path}: joint {name!r} mimics {mimic.get('joint')!r}; expected independent joints (mimic "
+                "couplings are not modelled: leave both out of system.dynamics.joints)"
+            )
+        if name not in joints:
+            continue
+        if kind != "revolute":
+            raise ValueError(
+                f"urdf={path}: joint {name!r} is {kind}; expected revolute joints in system.dynamics.joints "
+                "(continuous, prismatic and planar joints are not supported; leave it out to lock it at 0)"
+            )
+        limit = j.find("limit")
+        absent = [k for k in ("lower", "upper", "effort", "velocity") if limit is None or limit.get(k) is None]
+        if absent:
+            raise ValueError(
+                f"urdf={path}: joint {name!r} has no <limit> {' '.join(absent)}; expected <limit lower= upper= "
+                "effort= velocity=> on every revolute joint (the URDF standard)"
+            )
+
+
+def _unit_axis(axis: ET.Element, path: Path) -> None:
+    """Scale an <axis xyz> to unit length in place; a zero or malformed axis is refused."""
+    try:
+        xyz = [float(v) for v in (axis.get("xyz") or "1 0 0").split()]
+    except ValueError:
+        xyz = []
+    norm = math.sqrt(sum(v * v for v in xyz)) if len(xyz) == 3 else 0.0
+    if not (norm > 0 and math.isfinite(norm)):
+        raise ValueError(f"urdf={path}: <axis xyz={axis.get('xyz')!r}>; expected three numbers, not all zero")
+    if abs(norm - 1.0) > 1e-12:  # unit axes keep their text
+        axis.set("xyz", " ".join(repr(v / norm) for v in xyz))
 
 
 def urdf_joint_limits(path: Path, joints: Sequence[str]) -> Box:
@@ -118,9 +166,18 @@ class RigidArm:
     input_names: tuple[str, ...] = field(init=False)
 
     def __post_init__(self) -> None:
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(self.name)):
+            raise ValueError(
+                f"system name {self.name!r}; expected letters, digits and _ only, not starting with a digit (it names "
+                "the compiled C functions)"
+            )
         path = resolve_urdf(self.urdf)
         joints = tuple(self.joints) or tuple(revolute_joints(path))
-        locked_urdf(path, joints)  # unknown joint names fail here, with the URDF's list
+        if not joints:
+            raise ValueError(
+                f"urdf={path}: no revolute joints; expected an arm of revolute joints (system.dynamics.joints)"
+            )
+        locked_urdf(path, joints)  # unknown joint names and what pinnmpc cannot model fail here, with the URDF's list
         n = len(joints)
         set_ = functools.partial(object.__setattr__, self)
         set_("joints", joints)
@@ -153,6 +210,38 @@ class RigidArm:
                 f"{self.name}: state_box has {self.state_box.dim} and input_box {self.input_box.dim} entries; "
                 f"expected {2 * n} and {n} for joints {list(joints)}"
             )
+        self._check_pinocchio()
+
+    def _check_pinocchio(self) -> None:
+        """At load, not mid-run: the tip frame exists and every joint moves some inertia (else M(q) is singular and
+        the plant's ABA returns NaN)."""
+        import pinocchio as pin
+
+        model, data = self.pinocchio
+        if self.tip_frame and not model.existFrame(self.tip_frame):
+            frames = [f.name for f in model.frames]
+            raise ValueError(
+                f"{self.name}: tip_frame={self.tip_frame!r} is not a frame of {self.urdf}; expected one of {frames}"
+            )
+        order = self._pin_order if self._pin_order is not None else np.arange(self.nq)
+        low, high = np.array(self.state_box.low[: self.nq]), np.array(self.state_box.high[: self.nq])
+        for q in (np.zeros(self.nq), low, high, (low + high) / 2):
+            m = pin.crba(model, data, np.ascontiguousarray(q[order]))
+            m = np.triu(m) + np.triu(m, 1).T
+            if np.linalg.eigvalsh(m).min() <= 1e-12 * max(1.0, float(np.abs(m).max())):
+                weak = [self.joints[order[i]] for i in range(self.nq) if m[i, i] <= 1e-12 * max(1.0, float(m.max()))]
+                raise ValueError(
+                    f"urdf={self.urdf}: the mass matrix is singular at q={q.round(3).tolist()} (joints {weak or '?'} "
+                    "move no mass or inertia); expected every link beyond a listed joint to carry <inertial> mass"
+                )
+
+    @functools.cached_property
+    def _pin_order(self) -> np.ndarray | None:
+        """Pinocchio's joint order (tree order) as indices into self.joints; None when they agree."""
+        model, _ = self.pinocchio
+        names = list(model.names)[1:]
+        order = np.array([self.joints.index(n) for n in names])
+        return None if np.array_equal(order, np.arange(self.nq)) else order
 
     @property
     def nq(self) -> int:
@@ -275,9 +364,17 @@ class RigidArm:
         model, data = self.pinocchio
         q, v = x[: self.nq], x[self.nq :]
         torque = self.actuation_torque(v, u)
+        order = self._pin_order
+        if order is not None:  # joints listed in another order than the tree's: Pinocchio's order and back
+            q, vp, torque = q[order], v[order], torque[order]
+        else:
+            vp = v
         if self.actuation == "velocity_servo":
             torque = torque + self.mass_scale * pin.computeGeneralizedGravity(model, data, q)
-        return np.concatenate((v, pin.aba(model, data, q, v, torque / self.mass_scale)))
+        acc = pin.aba(model, data, q, vp, torque / self.mass_scale)
+        if order is not None:
+            acc = acc[np.argsort(order)]
+        return np.concatenate((v, acc))
 
     def _rhs_numpy(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """dx/dt for numpy arrays: ABA runs per state in C++, so a batch is a loop over states."""
@@ -348,6 +445,8 @@ class RigidArm:
 
         model, data = self.pinocchio
         q = np.atleast_2d(np.asarray(q, dtype=np.float64))[:, : self.nq]
+        if self._pin_order is not None:
+            q = q[:, self._pin_order]
         tip = self.tip_frame
         tip_id = model.getFrameId(tip) if tip else None
         out = np.empty((q.shape[0], self.nq + 2, 3))
