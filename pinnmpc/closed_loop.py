@@ -368,6 +368,8 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
         "friction_scale": float(cfg.plant.friction_scale),
         "mass_scale": float(cfg.plant.mass_scale),
     }
+    # how far a user's start x0 lies off the reference's first state (0: it starts on it)
+    result["start_off_reference"] = 0.0 if start is None else float(np.abs(np.asarray(start) - ref.x[0]).max())
     model = getattr(controller, "surrogate", None)
     result["network_arm_differs"] = arm_differences(getattr(model, "meta", None), cfg)  # system.dynamics keys
     st = controller.stats
@@ -444,6 +446,8 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
     if m.get("saturated_fraction", 0.0) >= SATURATED_NOTE:
         off = {k: v for k, v in (m.get("plant_mismatch") or {}).items() if v != 1.0}
         why = f"the plant differs from the model: {', '.join(f'{k} {v:g}' for k, v in off.items())}" if off else ""
+        if not why and m.get("start_off_reference", 0.0) > 0.0:
+            why = "it starts off the reference, x0"
         why = why or "the reference may ask too much"
         trouble.append(f"inputs at a bound in {m['saturated_fraction']:.0%} of steps ({why})")
     return (

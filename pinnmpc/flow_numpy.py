@@ -261,6 +261,11 @@ class NumpyFlow:
         """Itself: the FlowMap's numpy fast path."""
         return self
 
+    def _check(self, x0: np.ndarray, u: np.ndarray) -> None:
+        """One clear error for arrays of another system, not a reshape or matmul message from deep inside."""
+        if x0.shape[-1:] != (self.nx,) or u.shape[-1:] != (self.nu,):
+            raise ValueError(f"x0 {x0.shape} and u {u.shape}; expected (..., {self.nx}) and (..., {self.nu})")
+
     def _first_layer(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
         """Pre-activation of the first layer (GEMMs on x0 and u, no concatenation), and (sin, cos) of the
         periodic states and angle sums, (..., n_periodic + n_sums) each, or None without periodic states."""
@@ -295,6 +300,7 @@ class NumpyFlow:
 
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """x(tau) for x0 (..., nx), u (..., nu)."""
+        self._check(x0, u)
         z = self.value(self._first_layer(x0, u)[0])
         for w, b in self.hidden:
             z = self.value(z @ w + b)
@@ -311,6 +317,7 @@ class NumpyFlow:
         batch's values in its first rows and their tangents below, so every layer is a single GEMM and
         the values and tangents are contiguous views of it: one call per layer instead of two.
         """
+        self._check(x0, u)
         lead, nx, n_in = x0.shape[:-1], self.nx, self.nx + self.nu
         x0, u = x0.reshape(-1, nx), u.reshape(-1, self.nu)
         batch, width = x0.shape[0], self.b_in.shape[0]
@@ -418,6 +425,7 @@ class SecondOrderNumpyFlow(NumpyFlow):
 
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """x(tau) for x0 (..., nx), u (..., nu)."""
+        self._check(x0, u)
         lead = x0.shape[:-1]
         x0, u = x0.reshape(-1, self.nx), u.reshape(-1, self.nu)
         batch, width = x0.shape[0], self.b_in.shape[0]
@@ -430,6 +438,7 @@ class SecondOrderNumpyFlow(NumpyFlow):
 
     def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """x(tau), A, B: per sample 1 + nx + nu rows [N, dN/dx_j] and their time derivatives, one GEMM a layer."""
+        self._check(x0, u)
         lead, nx, n_in = x0.shape[:-1], self.nx, self.nx + self.nu
         x0, u = x0.reshape(-1, nx), u.reshape(-1, self.nu)
         batch, width = x0.shape[0], self.b_in.shape[0]

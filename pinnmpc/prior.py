@@ -91,7 +91,7 @@ class FrozenArmPrior(nn.Module):
             rows = self._compiled_terms()(q.cpu().numpy(), u.cpu().numpy())
             m, c0 = (torch.from_numpy(a).to(q.device) for a in rows)
             m = m.reshape(-1, self.nq, self.nq)  # M is symmetric: its column-major vec reads back as M
-        a = torch.linalg.solve(m, torch.diag_embed(self.kv.expand_as(q)))
+        a = torch.cholesky_solve(torch.diag_embed(self.kv.expand_as(q)), torch.linalg.cholesky(m))  # M is SPD
         return m, a, c0 / self.kv
 
     def _compiled_terms(self) -> Callable[[np.ndarray, np.ndarray], list[np.ndarray]]:

@@ -323,6 +323,7 @@ TRAIN: dict[str, Check] = {
 BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one failed deep inside a section)
     "threads": integer(1),
     "seed": SEED,
+    "failure.max_fallback_fraction": real(0.0, 1.0),
     "step.batch_sizes": listof(integer(1)),
     "step.n_states": integer(1),
     "step.repeats": integer(1),

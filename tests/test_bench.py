@@ -20,7 +20,7 @@ from pinnmpc.bench.report import md_targets
 from pinnmpc.bench.targets import _per_state
 from pinnmpc.flowmap import RK4Model
 from pinnmpc.pinn import PINN
-from pinnmpc.surrogate import Surrogate
+from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.systems import PowerCube, load_system
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -325,12 +325,33 @@ def test_rk4_model_jacobians_agree() -> None:
     torch.testing.assert_close(Br[1, :, 0], fd, rtol=1e-5, atol=1e-7)
 
 
+def test_rk4_model_jacobians_agree_on_a_urdf_arm_in_a_batch() -> None:
+    # torch 2.13's linalg.solve differentiated by vmap(jacfwd) was wrong past the first row (off by 1e165)
+    system = load_system("planar3")
+    g = torch.Generator().manual_seed(4)
+    x0 = (torch.rand(3, 6, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([3.0, 3.0, 3.0, 2.0, 2.0, 2.0])
+    u = (torch.rand(3, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([20.0, 8.0, 2.0])
+    fwd = RK4Model(system, system.tau, 0.002, "jacfwd").step_with_jacobian(x0, u)
+    rev = RK4Model(system, system.tau, 0.002, "reverse").step_with_jacobian(x0, u)
+    torch.testing.assert_close(fwd, rev, rtol=1e-10, atol=1e-12)
+
+
 def test_true_model_baseline_runs_a_closed_loop() -> None:
     cfg = _cfg(["closed_loop.max_steps=2", "progress=false"])
     system = PowerCube()
     ref = bench_reference(cfg, system, 0.2, "default")
     row, _ = run_controller(cfg, system, RK4Model(system, 0.2, 0.02), ref, "lifted_gauss_newton", record=False)
     assert row["status"] == "ok" and row["steps"] == 2  # the controller takes the true model like a surrogate
+
+
+def test_a_bench_loop_whose_every_solve_fails_is_failed_not_ok() -> None:
+    cfg = _cfg(["closed_loop.max_steps=3", "progress=false"])
+    system, s = PowerCube(), load_surrogate()
+    for p in s.model.parameters():
+        p.data.fill_(math.nan)  # a network that predicts NaN: every solve falls back
+    ref = bench_reference(cfg, system, 0.2, "default")
+    row, _ = run_controller(cfg, system, s, ref, "lifted_gauss_newton", record=False)
+    assert row["fallbacks"] == 3 and row["status"].startswith("failed")  # as pinnmpc.closed_loop says it
 
 
 def test_reference_auto_is_the_papers_only_where_the_paper_ran() -> None:

@@ -227,6 +227,12 @@ def test_metrics_say_when_the_arm_saturates_or_passes_a_joint_limit(make_cfg, tm
     m = run_closed_loop(cfg, tmp_path / "run")
     assert m["status"] == "ok" and m["saturated_fraction"] > 0.5 and m["joint_limit_samples"] == 0
     assert f"inputs at a bound in {m['saturated_fraction']:.0%} of steps" in headline(m, tmp_path)
+    assert "(the reference may ask too much)" in headline(m, tmp_path) and m["start_off_reference"] == 0.0
+    far = make_cfg("closed_loop", ["x0=[0.5,0.5,0,0]", "max_steps=8", "progress=false", "plots=false"])
+    m_far = run_closed_loop(far, tmp_path / "far")  # saturated because it starts 1.3 rad off, not by the reference
+    assert m_far["start_off_reference"] == pytest.approx(1.3) and "(it starts off the reference, x0)" in headline(
+        m_far, tmp_path
+    )
     system = load_system("panda")
     controller, _, _ = build_controller(make_cfg("closed_loop", ["system=panda"]), system)
     x = np.zeros((3, 14))

@@ -613,16 +613,20 @@ def test_bad_disturbance_settings_are_refused(s: Surrogate, kwargs: dict, fragme
             ocp.disturbance = bad
 
 
-@pytest.mark.parametrize("solver", ["lifted_gauss_newton", "gauss_newton"])  # with and without planned states
+@pytest.mark.parametrize("solver", ["lifted_gauss_newton", "gauss_newton", "rti"])  # with and without planned states
 @pytest.mark.parametrize("gain", [1.0, 0.5])
 def test_make_step_estimates_the_last_prediction_error(s: Surrogate, gain: float, solver: str) -> None:
     H = 5
     ocp = HorizonOCP(s, H, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
     d_max = [0.05, 0.05, 0.5, 0.5]
-    nmpc = NMPC(ocp, make_solver(solver), *ASYMMETRIC, disturbance_gain=gain, disturbance_max=d_max)
+    # rti: a real-time iteration's planned states are a linearised prediction, not the network's own
+    chosen = make_solver("lifted_gauss_newton", rti=True) if solver == "rti" else make_solver(solver)
+    nmpc = NMPC(ocp, chosen, *ASYMMETRIC, disturbance_gain=gain, disturbance_max=d_max)
     g = _gen(37)
     x0 = _states(g, 1)[0].numpy()
     ref = _far_reference(g, torch.from_numpy(x0)[None], H)[0].numpy()
+    if solver == "rti":  # near: inputs inside their bounds, where a linearised prediction differs from the network's
+        ref = np.tile(x0 + np.array([0.02, -0.02, 0.0, 0.0]), (H, 1))
     u0 = nmpc.make_step(x0, ref)
     assert nmpc.disturbance is None  # nothing to compare with yet
     x1 = s.step(torch.from_numpy(x0), torch.from_numpy(u0)).numpy() + np.array([3e-3, -2e-3, 0.2, -0.9])

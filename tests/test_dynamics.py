@@ -9,7 +9,7 @@ import torch
 from pinnmpc.dynamics import rhs
 from pinnmpc.integrators import euler_step, rk4_step
 from pinnmpc.plant import PlantError, ScipyPlant
-from pinnmpc.systems import Box, PowerCube, PowerCubeParams
+from pinnmpc.systems import Box, PowerCube, PowerCubeParams, load_system
 from pinnmpc.systems.powercube import mass_matrix, mass_residual
 
 
@@ -118,3 +118,16 @@ def test_physics_parameters_are_validated():
         PowerCubeParams(mass_scale=".nan")
     with pytest.raises(ValueError, match="mass_scale > 0"):
         PowerCubeParams(mass_scale=0.0)
+
+
+@pytest.mark.parametrize("name", ["powercube", "planar3"])
+def test_mass_scale_is_a_heavier_arm_on_every_system(name: str) -> None:
+    # every link's mass and inertia scaled: M, Coriolis and gravity alike, so an arm at rest under no input falls
+    # as the nominal one does (the PowerCube once left its gravity moments unscaled: half the acceleration)
+    arm = load_system(name)
+    x = np.zeros(arm.state_box.dim)
+    x[0] = 0.7
+    u = np.zeros(arm.input_box.dim)
+    nominal, heavy = arm.rhs(x, u), arm.with_mismatch(mass_scale=2.0).rhs(x, u)
+    assert np.abs(nominal[arm.state_box.dim // 2 :]).max() > 1.0  # it falls
+    np.testing.assert_allclose(heavy, nominal, rtol=1e-12, atol=1e-12)

@@ -233,3 +233,11 @@ def test_exact_values_refuse_a_model_of_another_system(maps: dict) -> None:
         ExactValues(surrogate, CompiledRK4(load_system("planar3"), surrogate.tau, 0.0025))
     with pytest.raises(ValueError, match="tau=0.1 differs from the surrogate's tau=0.2"):
         ExactValues(surrogate, CompiledRK4(load_system("powercube"), 0.1, 0.02))
+
+
+def test_the_numpy_path_names_wrong_shapes() -> None:
+    flow = load_surrogate().numpy_flow()
+    for x0, u in ((np.zeros(3), np.zeros(2)), (np.zeros(4), np.zeros(3))):
+        for call in (flow.step, flow.step_with_jacobian):
+            with pytest.raises(ValueError, match=r"expected \(\.\.\., 4\) and \(\.\.\., 2\)"):
+                call(x0, u)

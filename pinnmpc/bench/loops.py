@@ -22,7 +22,7 @@ from pinnmpc.bench.common import (
     optimality_solvers,
 )
 from pinnmpc.bench.timing import as_numpy
-from pinnmpc.closed_loop import metrics, simulate
+from pinnmpc.closed_loop import divergence_box, metrics, simulate, verdict
 from pinnmpc.controller.arrays import Array
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
@@ -80,9 +80,11 @@ def loop_row(
     """One closed loop of any controller on the plant, summarised as a table row (the same protocol for all)."""
     plant = make_plant(cfg, system, tau)
     start = time.perf_counter()
-    run = simulate(controller, plant, ref, domain, 0.0, int(cfg.seed), cfg.closed_loop.max_steps, bool(cfg.progress))
+    steps, box = cfg.closed_loop.max_steps, divergence_box(system)  # a diverged loop stops, as in pinnmpc.closed_loop
+    run = simulate(controller, plant, ref, domain, 0.0, int(cfg.seed), steps, bool(cfg.progress), state_box=box)
     wall = time.perf_counter() - start
     m = metrics(ref, run, controller, plant, system.state_names)
+    m["status"] = verdict(m, float(cfg.failure.max_fallback_fraction))  # too many fallbacks: failed
     ocp = m["ocp_time_s"]
     return {
         "solver": str(m["solver"]),

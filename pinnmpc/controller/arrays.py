@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 Array = Tensor | np.ndarray
+Nd = np.ndarray  # the numpy solvers' arrays (float64), short enough for their many-argument signatures
 
 
 def xp_of(a: Array) -> ModuleType:

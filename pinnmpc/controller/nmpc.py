@@ -261,9 +261,10 @@ class NMPC:
 
     def _planned_next(self, info: SolveInfo) -> np.ndarray | None:
         """The undisturbed prediction of the next state from the plan's own states (saves a network call); None
-        where those states are linearised with Jacobians of another model (exact_values), so not its prediction."""
+        where they are not the model's prediction: linearised with Jacobians of another model (exact_values), or
+        a solve that stopped short (a real-time iteration's linearised states, an unconverged lifted iterate)."""
         states = info.states
-        if states is None or getattr(self.ocp.model, "approximate_jacobians", False):
+        if states is None or not bool(info.converged[0]) or getattr(self.ocp.model, "approximate_jacobians", False):
             return None
         d = self.ocp.disturbance
         nxt = np.asarray(states, dtype=np.float64).reshape(-1, self.horizon, self.ocp.nx)[0, 0]

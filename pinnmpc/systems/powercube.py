@@ -41,7 +41,7 @@ class PowerCubeParams:
     coulomb_b: float = 0.492  # Coulomb friction joint B (sign term)
     gain: float = 161.0  # input matrix B = gain * I (current to torque)
     friction_scale: float = 1.0  # multiplies every friction term (plant mismatch studies)
-    mass_scale: float = 1.0  # multiplies the mass matrix (plant mismatch studies)
+    mass_scale: float = 1.0  # multiplies every link's mass and inertia: M, Coriolis and gravity (plant mismatch)
 
     def __post_init__(self) -> None:
         for name in ("friction_scale", "mass_scale"):
@@ -105,9 +105,9 @@ def generalized_forces(
     s = p.mass_scale
     k1 = -s * p.c * sb * (2 * da * db + db * db)
     k2 = s * p.c * sb * da * da
-    g_ab = p.grav_ab * GRAVITY * xp.sin(alpha + beta)
+    g_ab = s * p.grav_ab * GRAVITY * xp.sin(alpha + beta)  # gravity moments are mass times lever: scaled too
     f = p.friction_scale
-    h1 = p.grav_a * GRAVITY * xp.sin(alpha) + g_ab - f * _friction(da, p.visc_a, p.tanh_a)
+    h1 = s * p.grav_a * GRAVITY * xp.sin(alpha) + g_ab - f * _friction(da, p.visc_a, p.tanh_a)
     sign_b = xp.sign(db) if coulomb_sign is None else coulomb_sign
     h2 = g_ab - f * (_friction(db, p.visc_b, p.tanh_b) + p.coulomb_b * sign_b)
     return h1 - k1 + p.gain * _at(u, 0), h2 - k2 + p.gain * _at(u, 1)

@@ -344,7 +344,10 @@ class RigidArm:
         x, u = x.reshape(-1, 2 * n), u.reshape(-1, n)
         q, v = x[:, :n], x[:, n:]
         m, h, g = self.dynamics_terms(q, v)
-        acc = torch.linalg.solve(m, self.actuation_torque(v, u) - self._bias(h, g))
+        # M is symmetric positive definite: Cholesky, which (unlike torch.linalg.solve in torch 2.13) also
+        # differentiates right under vmap(jacfwd)
+        rhs = (self.actuation_torque(v, u) - self._bias(h, g)).unsqueeze(-1)
+        acc = torch.cholesky_solve(rhs, torch.linalg.cholesky(m)).squeeze(-1)
         return torch.cat((v, acc), dim=-1).reshape(*lead, 2 * n)
 
     # -- numpy (Pinocchio): the plant -------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pinnmpc.controller.arrays import Array
+from pinnmpc.controller.arrays import Array, Nd
 from pinnmpc.controller.box_step import newton_step, normal_equations
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers.base import (
@@ -123,15 +123,7 @@ class GaussNewtonSolver:
         return (ocp.horizon, ocp.nx, ocp.horizon * ocp.nu)
 
     def _solve(
-        self,
-        ocp: HorizonOCP,
-        x0: np.ndarray,
-        U0: np.ndarray,
-        x_ref: np.ndarray,
-        u_prev: np.ndarray,
-        low: np.ndarray,
-        high: np.ndarray,
-        prior: np.ndarray | None,
+        self, ocp: HorizonOCP, x0: Nd, U0: Nd, x_ref: Nd, u_prev: Nd, low: Nd, high: Nd, prior: Nd | None
     ) -> SolveResult:
         """Iterate until every problem has converged or max_iter is reached.
 

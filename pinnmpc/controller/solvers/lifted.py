@@ -11,7 +11,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from pinnmpc.controller.arrays import Array
+from pinnmpc.controller.arrays import Array, Nd
 from pinnmpc.controller.box_step import newton_step
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.shooting import linearise, reached
@@ -76,15 +76,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         return (NO_WARM if out is None else LiftedWarm(out)), out
 
     def _solve(
-        self,
-        ocp: HorizonOCP,
-        x0: np.ndarray,
-        U0: np.ndarray,
-        x_ref: np.ndarray,
-        u_prev: np.ndarray,
-        low: np.ndarray,
-        high: np.ndarray,
-        prior: np.ndarray | None,
+        self, ocp: HorizonOCP, x0: Nd, U0: Nd, x_ref: Nd, u_prev: Nd, low: Nd, high: Nd, prior: Nd | None
     ) -> SolveResult:
         """Lifted iterations on the numpy surrogate; single shooting when there is none or they fail."""
         if ocp.flow is None:
