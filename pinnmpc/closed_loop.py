@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -18,13 +19,14 @@ from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
 from pinnmpc.io import save_json, save_npz
 from pinnmpc.plant import PlantError, ScipyPlant
-from pinnmpc.references import Reference, load_reference, out_of_box, resolve_reference_path
+from pinnmpc.references import Reference, excursions, load_reference, out_of_box, resolve_reference_path
 from pinnmpc.settings import SettingError, validate_closed_loop
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import Box, System
 
 log = logging.getLogger(__name__)
 SATURATED_NOTE = 0.05  # the headline notes inputs at their bounds from this share of the steps on (display only)
+FINAL_SAMPLES = 10  # the last samples whose worst joint-angle error says where a run ended up
 
 
 def _stats(values: np.ndarray) -> dict[str, float]:
@@ -204,6 +206,8 @@ def metrics(
         "mae": {n: float(v) for n, v in zip(names, err.mean(0))},
         "rmse": {n: float(v) for n, v in zip(names, np.sqrt((err**2).mean(0)))},
         "max_abs_error": {n: float(v) for n, v in zip(names, err.max(0))},
+        # where the run ends: the worst joint-angle error over its last FINAL_SAMPLES samples (did it follow?)
+        "final_position_error_max": float(err[-FINAL_SAMPLES:, : len(names) // 2].max()) if len(err) else 0.0,
         "ocp_time_s": _stats(np.array([s.time_s for s in st])),
         "plant_step_time_s": {
             k: v for k, v in _stats(np.array(plant.step_times)).items() if k in ("mean", "median", "p95", "max")
@@ -278,10 +282,12 @@ def verdict(m: dict[str, Any], max_fallback_fraction: float) -> str:
 
 
 def system_reference(cfg: DictConfig, system: System, tau: float) -> Reference:
-    """reference.path if given, else the system's built-in reference.name, on the grid of tau; refused when it
-    leaves the system's joint limits."""
+    """reference.path if given, else the system's built-in reference.name, on the grid of tau (as far as max_steps
+    needs it); refused when it leaves the system's joint limits, or its state box by more than the box's width."""
     box, limits = system.state_box, getattr(system, "joint_limits", None)
-    return load_reference(
+    steps, horizon = cfg.get("max_steps"), cfg.get("controller", {}).get("horizon")
+    needed = None if steps is None or horizon is None else int(steps) + int(horizon) + 1
+    ref = load_reference(
         resolve_reference_path(cfg.reference.path, cfg.system.get("paper_reference")),
         tau,
         cfg.reference.name,
@@ -290,7 +296,18 @@ def system_reference(cfg: DictConfig, system: System, tau: float) -> Reference:
         (box.low[: system.nq], box.high[: system.nq]),
         None if limits is None else (limits.low, limits.high),
         system,
+        needed,
     )
+    far = divergence_box(system)
+    beyond = excursions(ref, far.low, far.high) > (np.asarray(far.high) - np.asarray(far.low))
+    if beyond.any():
+        i, j = (int(v) for v in np.argwhere(beyond)[0])
+        raise ValueError(
+            f"reference {ref.name}: {system.state_names[j]} = {ref.x[i, j]:.4g} at t={ref.t[i]:.4g} s lies farther "
+            f"outside the state box [{far.low[j]:g}, {far.high[j]:g}] than its width (degrees instead of radians?); "
+            "expected states near the box"
+        )
+    return ref
 
 
 def warn_jumps(ref: Reference, system: System) -> None:
@@ -303,6 +320,23 @@ def warn_jumps(ref: Reference, system: System) -> None:
             "reference %s: %s jumps by %.3g rad between t=%.4g and %.4g s (a wrapped angle?); it is tracked as given: "
             "pass angles unwrapped (numpy.unwrap)",
             ref.name, system.state_names[j], jump[i, j], ref.t[i], ref.t[i + 1],
+        )  # fmt: skip
+
+
+def warn_limit_margin(ref: Reference, system: System, limits: Any) -> None:
+    """A reference within the soft joint-limit margin is tracked with an offset there (the controllers keep every
+    joint `margin` inside its limits): say so rather than let the offset look like a tracking error."""
+    if not limits or not limits.get("margin"):
+        return
+    low, high, margin = np.asarray(limits["low"], float), np.asarray(limits["high"], float), float(limits["margin"])
+    q = ref.x[:, : len(low)]
+    inside = (q < low + margin) | (q > high - margin)
+    if inside.any():
+        i, j = (int(v) for v in np.argwhere(inside)[0])
+        log.warning(
+            "reference %s: %s = %.4g at t=%.4g s lies within %g rad of its joint limit; the controllers keep every "
+            "joint that far inside its limits (controller.joint_limits.margin), so they track it with an offset there",
+            ref.name, system.state_names[j], q[i, j], ref.t[i], margin,
         )  # fmt: skip
 
 
@@ -338,12 +372,12 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
         )
     ref = system_reference(cfg, system, tau)
     warn_jumps(ref, system)
-    if domain is not None:
-        dist = out_of_box(ref, domain.low, domain.high)
-        if dist > 0:
-            log.warning(
-                "reference leaves the surrogate's training box by up to %.3g; tracking there is extrapolation", dist
-            )
+    warn_limit_margin(ref, system, cfg.controller.get("joint_limits"))
+    box = domain if domain is not None else system.state_box
+    dist = out_of_box(ref, box.low, box.high)
+    if dist > 0:
+        what = "the surrogate's training box" if domain is not None else "the system's state box"
+        log.warning("reference leaves %s by up to %.3g; tracking there is extrapolation", what, dist)
     plant = make_plant(system, cfg.plant, tau)
     requested = None if stop is None else (lambda: stop.requested)
     run = simulate(
@@ -368,6 +402,8 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
         "friction_scale": float(cfg.plant.friction_scale),
         "mass_scale": float(cfg.plant.mass_scale),
     }
+    # the headline says "did not follow" past this final error (the robustness grid's bound of a bounded run)
+    result["tracking_bound"] = float(cfg.system.get("robustness", {}).get("bound", math.inf))
     # how far a user's start x0 lies off the reference's first state (0: it starts on it)
     result["start_off_reference"] = 0.0 if start is None else float(np.abs(np.asarray(start) - ref.x[0]).max())
     model = getattr(controller, "surrogate", None)
@@ -440,6 +476,8 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
         )
         if m[k] and not (real_time and k == "not_converged")
     ] + (["input bounds beyond the training box"] if m.get("input_bounds_outside_box") else [])
+    if m.get("final_position_error_max", 0.0) > m.get("tracking_bound", math.inf):
+        trouble.append(f"did not follow: it ends {m['final_position_error_max']:.2g} rad off the reference")
     if m.get("joint_limit_samples"):
         past = f"{m['joint_limit_samples']} samples past a joint limit"
         trouble.append(f"{past} (by up to {m['joint_limit_excess_max']:.1e} rad)")

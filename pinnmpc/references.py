@@ -3,221 +3,31 @@
 from __future__ import annotations
 
 import csv
+import logging
 import math
 import warnings
 import zipfile
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import scipy.io
+from scipy.interpolate import CubicHermiteSpline
+
+from pinnmpc.builtin_references import BUILTIN_DT as BUILTIN_DT  # re-exported: where references live for users
+from pinnmpc.builtin_references import builtin_reference
+from pinnmpc.reference_data import Reference as Reference
+from pinnmpc.reference_data import ReferenceError as ReferenceError
 
 MAT_FILES = ("y_soll", "Dy_soll", "t_soll")  # paper's layout: positions (nq, N), velocities (nq, N), times (1, N)
 KINDS = "a folder with y_soll.mat, Dy_soll.mat and t_soll.mat, a .npz (t, x) or a .csv (t and the state names)"
-BUILTIN_DT = 0.01  # s, sampling of the built-in references; fine enough to resample to any controller step
 PROJECT_ROOT = Path(__file__).resolve().parents[1]  # a system's paper_reference is relative to it
 RESAMPLE_SLACK = 1e-9  # s, a grid point this close past the last sample still counts as inside
 MILLISECONDS = (300.0, 3000.0)  # velocities this many times the positions' rate of change: t was given in ms
-
-
-class ReferenceError(ValueError):
-    """Bad reference input; the message names the bad value and what was expected."""
-
-
-@dataclass(frozen=True, eq=False)
-class Reference:
-    """A sampled state trajectory the controller tracks; validated on construction so no consumer re-checks it."""
-
-    t: np.ndarray
-    x: np.ndarray
-    name: str
-
-    def __post_init__(self) -> None:
-        """Coerce to float64 copies and reject anything a tracking loop would choke on later."""
-        t = _as_float(self.t, "t", self.name)
-        x = _as_float(self.x, "x", self.name)
-        if t.ndim != 1:
-            raise ReferenceError(f"{self.name}: t has shape {t.shape}; expected (N,)")
-        if x.ndim != 2 or x.shape[0] != len(t) or x.shape[1] < 2 or x.shape[1] % 2:
-            hint = " (transposed?)" if x.ndim == 2 and x.shape[1] == len(t) else ""
-            hint = hint or (", an odd number of columns" if x.ndim == 2 and x.shape[1] % 2 else "")
-            raise ReferenceError(
-                f"{self.name}: x has shape {x.shape}{hint}; expected ({len(t)}, nx): positions, then velocities"
-            )
-        if len(t) < 2:
-            raise ReferenceError(f"{self.name}: {len(t)} sample(s); expected at least 2")
-        bad_t = np.flatnonzero(~np.isfinite(t))
-        if bad_t.size:
-            i = int(bad_t[0])
-            raise ReferenceError(f"{self.name}: non-finite time {t[i]} at sample {i}; expected finite numbers")
-        bad_x = np.argwhere(~np.isfinite(x))
-        if bad_x.size:
-            i, j = (int(v) for v in bad_x[0])
-            raise ReferenceError(
-                f"{self.name}: non-finite state {j} = {x[i, j]} at sample {i} (t={t[i]:g}); expected finite numbers"
-            )
-        bad_dt = np.flatnonzero(np.diff(t) <= 0)
-        if bad_dt.size:
-            i = int(bad_dt[0]) + 1
-            raise ReferenceError(
-                f"{self.name}: time not strictly increasing at sample {i}: t[{i - 1}]={t[i - 1]:g}, t[{i}]={t[i]:g}; "
-                "expected strictly increasing times"
-            )
-        object.__setattr__(self, "t", t)
-        object.__setattr__(self, "x", x)
-        object.__setattr__(self, "name", str(self.name))
-
-    def __len__(self) -> int:
-        """Number of samples, so callers can size horizons without reaching into the arrays."""
-        return len(self.t)
-
-
-def _as_float(value: object, what: str, name: str) -> np.ndarray:
-    """Copy to float64 so a caller's buffer is never aliased and non-numeric input fails with a clear message."""
-    if np.iscomplexobj(value):  # a cast would drop the imaginary parts with only a warning
-        raise ReferenceError(f"{name}: {what} is complex; expected real float arrays")
-    try:
-        return np.array(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ReferenceError(f"{name}: {what} is not numeric ({exc}); expected float arrays") from None
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# Built-in references, described as data in conf/system/<name>.yaml (`references:`), one entry per name:
-#   {kind: waypoints, joints: [{q: [...], durations: [...]}, ...]}: each joint a chain of quintic (minimum-jerk)
-#       blends between positions reached at rest, so position, velocity and acceleration are continuous;
-#   {kind: sine, amplitude: [...], frequency: [...], offset: [...], duration: s}: sinusoids per joint;
-#   {kind: random, moves: n, duration: s, fraction: f}: quintic moves between random waypoints in the middle
-#       fraction f of the state box (name it `random-<seed>` to pick the seed, default 0);
-#   {kind: driven, moves, duration, fraction, bandwidth: rad/s, damping}: the true system driven around such a
-#       random path by a loose feedback (pinnmpc/driven.py): a motion the true model makes with in-box inputs.
-
-
-@dataclass(frozen=True)
-class Waypoints:
-    """One joint's path: positions q reached at rest, and the duration of each blend between consecutive ones."""
-
-    q: tuple[float, ...]
-    durations: tuple[float, ...]
-
-
-def quintic_blend(t: np.ndarray, waypoints: Waypoints) -> tuple[np.ndarray, np.ndarray]:
-    """Position and exact velocity of minimum-jerk blends, held at the ends, so references are dynamically smooth."""
-    q = np.asarray(waypoints.q, dtype=np.float64)
-    d = np.asarray(waypoints.durations, dtype=np.float64)
-    if len(d) != len(q) - 1 or np.any(d <= 0):
-        raise ReferenceError(f"waypoints {waypoints}: expected len(q) - 1 positive durations")
-    knots = np.concatenate([[0.0], np.cumsum(d)])
-    seg = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, len(d) - 1)
-    s = np.clip((t - knots[seg]) / d[seg], 0.0, 1.0)
-    dq = q[seg + 1] - q[seg]
-    pos = q[seg] + dq * s**3 * (10.0 - 15.0 * s + 6.0 * s**2)
-    vel = dq / d[seg] * 30.0 * s**2 * (1.0 - s) ** 2
-    return pos, vel
-
-
-def _grid(duration: float) -> np.ndarray:
-    """Built-in sample times that hit the end time exactly rather than stopping a float step short."""
-    return np.arange(round(duration / BUILTIN_DT) + 1) * BUILTIN_DT
-
-
-def waypoint_reference(name: str, joints: Sequence[Waypoints]) -> Reference:
-    """Every joint from its waypoint table; shorter ones hold their last position until the longest ends."""
-    t = _grid(max(sum(w.durations) for w in joints))
-    pos, vel = zip(*(quintic_blend(t, w) for w in joints))
-    return Reference(t=t, x=np.stack([*pos, *vel], axis=1), name=f"builtin:{name}")
-
-
-def sine_reference(
-    name: str, amplitude: Sequence[float], frequency: Sequence[float], offset: Sequence[float], duration: float
-) -> Reference:
-    """Sinusoids with analytic velocities: a reference that never rests, unlike the waypoint ones."""
-    sizes = {key: np.size(v) for key, v in (("amplitude", amplitude), ("frequency", frequency), ("offset", offset))}
-    if len(set(sizes.values())) > 1:
-        found = ", ".join(f"{key} {n}" for key, n in sizes.items())
-        raise ReferenceError(f"built-in reference {name!r}: {found} entries; expected one per joint in each")
-    t = _grid(duration)
-    a, f, c = (np.asarray(v, dtype=np.float64)[None, :] for v in (amplitude, frequency, offset))
-    w = 2.0 * math.pi * f
-    x = np.concatenate([a * np.sin(w * t[:, None]) + c, a * w * np.cos(w * t[:, None])], axis=1)
-    return Reference(t=t, x=x, name=f"builtin:{name}")
-
-
-def random_waypoints(
-    low: Sequence[float], high: Sequence[float], seed: int, moves: int, duration: float, fraction: float
-) -> list[Waypoints]:
-    """Per joint: random waypoints in the middle `fraction` of its position range, `duration` s apart."""
-    lo, hi = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
-    mid, half = (lo + hi) / 2, fraction * (hi - lo) / 2
-    q = mid + half * np.random.default_rng(seed).uniform(-1.0, 1.0, size=(int(moves) + 1, len(lo)))
-    q[0] = mid  # start at rest in the middle, where every run of this reference begins
-    return [Waypoints(tuple(q[:, j]), (float(duration),) * int(moves)) for j in range(len(lo))]
-
-
-def random_reference(
-    name: str, low: Sequence[float], high: Sequence[float], seed: int, moves: int, duration: float, fraction: float
-) -> Reference:
-    """Quintic moves of every joint between random waypoints in the middle `fraction` of its position range."""
-    return waypoint_reference(name, random_waypoints(low, high, seed, moves, duration, fraction))
-
-
-def driven_reference(
-    name: str, system: Any, joints: Sequence[Waypoints], bandwidth: object, damping: object
-) -> Reference:
-    """The true system driven around the waypoint path by a loose feedback (pinnmpc/driven.py), sampled."""
-    from pinnmpc.driven import check_gains, drive
-
-    gains = check_gains(name, bandwidth, damping)
-    duration = max(sum(w.durations) for w in joints)
-    t = _grid(duration)
-
-    def path(time: float) -> tuple[np.ndarray, np.ndarray]:
-        """The path's joint positions and velocities at one time."""
-        pos, vel = zip(*(quintic_blend(np.array([time]), w) for w in joints))
-        return np.concatenate(pos), np.concatenate(vel)
-
-    return Reference(t=t, x=drive(system, path, duration, t, *gains), name=f"builtin:{name}")
-
-
-def builtin_reference(
-    name: str,
-    specs: dict[str, Any],
-    position_box: tuple[Sequence[float], Sequence[float]] | None = None,
-    system: Any = None,
-) -> Reference:
-    """A reference described in the system's config (`references:`), so closed loops run without data files;
-    a driven one also needs the system it drives."""
-    spec, seed = specs.get(name), None
-    base, _, suffix = name.rpartition("-")
-    if spec is None and suffix.isdigit() and base in specs:
-        spec, seed = specs[base], int(suffix)
-    if not isinstance(spec, dict):
-        raise ReferenceError(f"unknown built-in reference {name!r}; expected one of: {', '.join(specs)}")
-    kind = spec.get("kind")
-    try:
-        if kind == "waypoints":
-            joints = [Waypoints(tuple(j["q"]), tuple(j["durations"])) for j in spec["joints"]]
-            return waypoint_reference(name, joints)
-        if kind == "sine":
-            keys = ("amplitude", "frequency", "offset", "duration")
-            return sine_reference(name, *(spec[k] for k in keys))
-        if kind in ("random", "driven"):
-            if position_box is None or (kind == "driven" and system is None):
-                raise ReferenceError(f"built-in reference {name!r} needs the system (its joint range)")
-            seed = int(spec.get("seed", 0)) if seed is None else seed
-            keys = (spec["moves"], spec["duration"], spec.get("fraction", 0.5))
-            if kind == "random":
-                return random_reference(name, *position_box, seed, *keys)
-            joints = random_waypoints(*position_box, seed, *keys)
-            return driven_reference(name, system, joints, spec["bandwidth"], spec["damping"])
-    except (KeyError, TypeError) as e:
-        raise ReferenceError(f"built-in reference {name!r}: malformed spec {spec} ({e!r})") from None
-    except ValueError as e:
-        raise ReferenceError(str(e)) from None
-    raise ReferenceError(f"built-in reference {name!r}: kind={kind!r}; expected waypoints, sine, random or driven")
-
+CONSISTENT = (0.5, 2.0)  # ... and this many times: velocities that belong to the positions (else a warning)
+MAX_PERIODS = 1_000_000  # a reference longer than this many control periods is refused unless max_steps cuts it
+log = logging.getLogger(__name__)
 
 # ---------------------------------------------------------------------------------------------------------------
 # Files
@@ -304,6 +114,8 @@ def _read_npz(path: Path) -> Reference:
                     f"{path}: missing array(s) {', '.join(missing)} (found: {found}); expected t and x"
                 )
             t, x = np.asarray(data["t"]), np.asarray(data["x"])
+            if t.ndim == 2 and 1 in t.shape:  # a column or row vector of times, as MATLAB writes them
+                t = t.reshape(-1)
     except ReferenceError:
         raise
     except Exception as exc:  # zipfile, zlib, numpy format errors all mean "not a readable npz"
@@ -320,6 +132,7 @@ def _read_csv(path: Path, state_names: Sequence[str]) -> Reference:
         lines = path.read_text(encoding="utf-8-sig").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise ReferenceError(f"{path}: cannot read as text ({_one_line(exc)}); expected a .csv with a header") from None
+    lines = [",".join(row) for row in csv.reader(lines)]  # quoted cells ("0.1") read as their text
     start = next((i for i, line in enumerate(lines) if line.strip()), None)
     if start is None:
         raise ReferenceError(f"{path}: empty file; expected a header row naming {', '.join(columns)}")
@@ -331,8 +144,12 @@ def _read_csv(path: Path, state_names: Sequence[str]) -> Reference:
         raise ReferenceError(f"{path}: column(s) {', '.join(twice)} named twice in the header; expected each once")
     missing = [c for c in columns if c not in header]
     if missing:
+        other = next(
+            (name for d, name in ((";", "semicolons"), ("\t", "tabs")) if len(header) == 1 and d in header[0]), ""
+        )
+        hint = f" (separated by {other}? expected commas)" if other else ""
         raise ReferenceError(
-            f"{path}: missing column(s) {', '.join(missing)} (found: {', '.join(header)}); "
+            f"{path}: missing column(s) {', '.join(missing)} (found: {', '.join(header)}){hint}; "
             f"expected a header row naming {', '.join(columns)}"
         )
     usecols = [header.index(c) for c in columns]
@@ -375,8 +192,11 @@ def _one_line(exc: Exception) -> str:
 # Resampling and checks
 
 
-def resample(ref: Reference, tau: float) -> Reference:
-    """Linear interpolation onto the controller's step tau, so reference samples line up with MPC steps."""
+def resample(ref: Reference, tau: float, max_samples: int | None = None) -> Reference:
+    """The reference on the controller's step tau, so reference samples line up with MPC steps: the first
+    max_samples (None: all). Between samples cubic Hermite in the positions with the file's velocities as their
+    slopes (so coarse samples keep the path's curvature) where those velocities belong to the positions, else
+    linear; on samples either gives the samples themselves."""
     try:
         tau = float(tau)
     except (TypeError, ValueError):
@@ -389,7 +209,19 @@ def resample(ref: Reference, tau: float) -> Reference:
         raise ReferenceError(
             f"{ref.name}: tau={tau:g} s is longer than the reference ({t_end - t0:g} s); expected tau <= the duration"
         )
+    if max_samples is not None:
+        n = min(n, max(2, int(max_samples)))
+    elif n > MAX_PERIODS:
+        raise ReferenceError(
+            f"{ref.name}: t spans {t_end - t0:g} s, {n} periods of tau={tau:g} s; expected t in seconds and at most "
+            f"{MAX_PERIODS} periods (or set max_steps)"
+        )
     t = t0 + tau * np.arange(n)
+    scale, nq = velocity_scale(ref), ref.x.shape[1] // 2
+    if ref.x.shape[1] % 2 == 0 and scale is not None and CONSISTENT[0] <= scale <= CONSISTENT[1]:
+        path = CubicHermiteSpline(ref.t, ref.x[:, :nq], ref.x[:, nq:], extrapolate=False)
+        tc = np.clip(t, ref.t[0], ref.t[-1])
+        return Reference(t=t, x=np.concatenate((path(tc), path.derivative()(tc)), axis=1), name=ref.name)
     i = np.clip(np.searchsorted(ref.t, t, side="right") - 1, 0, len(ref) - 2)
     w = np.clip((t - ref.t[i]) / (ref.t[i + 1] - ref.t[i]), 0.0, 1.0)[:, None]
     x = (1.0 - w) * ref.x[i] + w * ref.x[i + 1]
@@ -405,20 +237,22 @@ def load_reference(
     position_box: tuple[Sequence[float], Sequence[float]] | None = None,
     joint_limits: tuple[Sequence[float], Sequence[float]] | None = None,
     system: Any = None,
+    max_samples: int | None = None,
 ) -> Reference:
     """What the closed-loop CLI needs: a file if given, else the named built-in, on the controller's grid.
 
     builtins is the system's `references:` config; position_box its joint range, for random references;
     joint_limits (low, high) its joint position limits: a reference that leaves them is refused; system the
-    true model a driven built-in drives."""
+    true model a driven built-in drives; max_samples how many grid samples a run can use (None: all)."""
     if path is None:
         ref = check_states(builtin_reference(name, builtins, position_box, system), state_names)
     else:
         ref = read_reference(path, state_names)
         check_time_unit(ref)
+        warn_velocities(ref)
     if joint_limits is not None:
         check_joint_limits(ref, *joint_limits, state_names)
-    return resample(ref, tau)
+    return resample(ref, tau, max_samples)
 
 
 def velocity_scale(ref: Reference) -> float | None:
@@ -440,6 +274,20 @@ def check_time_unit(ref: Reference) -> None:
         raise ReferenceError(
             f"{ref.name}: its velocities are {scale:.0f}x the rate of change of its positions over t: are the times "
             f"in milliseconds (t ends at {ref.t[-1]:g})? expected t in seconds"
+        )
+
+
+def warn_velocities(ref: Reference) -> None:
+    """Velocities that do not belong to the positions are tracked as given, which is rarely what was meant: say so
+    (columns in another order, velocities in other units, or none given)."""
+    scale = velocity_scale(ref)
+    if scale is not None and not CONSISTENT[0] <= scale <= CONSISTENT[1]:
+        log.warning(
+            "reference %s: its velocities are %.3g x the rate of change of its positions (expected ~1): columns in "
+            "another order, velocities in other units, or none given? They are tracked as given, and the positions "
+            "are interpolated linearly between samples",
+            ref.name,
+            scale,
         )
 
 

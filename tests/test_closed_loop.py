@@ -16,7 +16,9 @@ from pinnmpc.closed_loop import (
     headline,
     limits_and_saturation,
     run_closed_loop,
+    warn_limit_margin,
 )
+from pinnmpc.references import Reference
 from pinnmpc.settings import SettingError
 from pinnmpc.systems import load_system
 from tests.conftest import ROOT
@@ -322,3 +324,34 @@ def test_a_network_of_another_arm_description_is_named(make_cfg, tmp_path, caplo
     m = run_closed_loop(make_cfg("closed_loop", other), tmp_path / "other")
     assert m["network_arm_differs"] == ["viscous"]
     assert "trained for another description of this arm (system.dynamics viscous differ)" in caplog.text
+
+
+def test_a_reference_far_outside_the_state_box_is_refused_before_any_step(make_cfg, tmp_path):
+    t = np.arange(0.0, 4.0 + 1e-9, 0.05)
+    q = np.degrees(0.5 * np.sin(t))  # degrees where radians belong: the velocities reach ~29 "rad/s"
+    path = tmp_path / "degrees.npz"
+    np.savez(path, t=t, x=np.stack([q, q, np.gradient(q, t), np.gradient(q, t)], axis=1))
+    cfg = make_cfg("closed_loop", [f"reference.path={path}", "progress=false", "plots=false"])
+    with pytest.raises(ValueError, match=r"dalpha = 28.64 at t=0 s lies farther outside the state box .* \(degrees"):
+        run_closed_loop(cfg, tmp_path / "run")
+
+
+def test_a_run_that_ends_far_off_the_reference_says_it_did_not_follow(make_cfg, tmp_path):
+    far = make_cfg("closed_loop", ["x0=[2.0,-2.0,0,0]", "max_steps=3", "progress=false", "plots=false"])
+    m = run_closed_loop(far, tmp_path / "far")  # 3 steps cannot bring it back: it ends > 0.2 rad off
+    assert m["final_position_error_max"] > m["tracking_bound"] == 0.2
+    assert "did not follow: it ends" in headline(m, tmp_path)
+    near = run_closed_loop(make_cfg("closed_loop", ["max_steps=3", "progress=false", "plots=false"]), tmp_path / "n")
+    assert near["final_position_error_max"] < 1e-3 and "did not follow" not in headline(near, tmp_path)
+
+
+def test_a_reference_within_the_joint_limit_margin_is_named(caplog):
+    system = load_system("panda")
+    limits = {"low": system.joint_limits.low, "high": system.joint_limits.high, "margin": 0.01}
+    x = np.zeros((3, 14))
+    x[:, 3] = -0.5
+    warn_limit_margin(Reference(t=np.arange(3) * 0.05, x=x, name="mid"), system, limits)
+    assert not caplog.text
+    x[2, 3] = system.joint_limits.high[3]  # joint 4 on its upper limit, -0.0698 rad
+    warn_limit_margin(Reference(t=np.arange(3) * 0.05, x=x, name="edge"), system, limits)
+    assert "q_joint4 = -0.0698 at t=0.1 s lies within 0.01 rad of its joint limit" in caplog.text

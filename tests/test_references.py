@@ -20,6 +20,7 @@ from pinnmpc.references import (
     resample,
     resolve_reference_path,
     velocity_scale,
+    warn_velocities,
 )
 from pinnmpc.references import builtin_reference as _builtin
 from pinnmpc.references import load_reference as _load
@@ -261,7 +262,8 @@ def test_resample_is_linear_interpolation_on_a_tau_grid() -> None:
 
 
 def test_resample_between_samples_and_from_a_nonzero_start() -> None:
-    ref = Reference(t=np.array([1.0, 2.0, 4.0]), x=np.array([[0.0] * 4, [1.0] * 4, [3.0] * 4]), name="test")
+    x = np.array([[0.0, 0.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0], [3.0, 3.0, 1.0, 1.0]])  # a ramp at unit speed
+    ref = Reference(t=np.array([1.0, 2.0, 4.0]), x=x, name="test")
     coarse = resample(ref, 0.5)
     np.testing.assert_allclose(coarse.t, [1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0])
     np.testing.assert_allclose(coarse.x[:, 0], [0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0])
@@ -480,3 +482,34 @@ def test_auto_is_the_papers_reference_only_for_the_arm_it_was_made_for() -> None
     assert resolve_reference_path("auto", paper=False) is None  # ... and false still means none
     assert resolve_reference_path("my.csv", paper=None) == "my.csv" and resolve_reference_path(None) is None
     assert system_config("planar3")["paper_reference"] is None and system_config("panda")["paper_reference"] is None
+
+
+def _sine(t: np.ndarray, velocity_factor: float = 1.0) -> Reference:
+    """A smooth two-joint path sampled at t, its velocities scaled by velocity_factor (1: consistent)."""
+    q = np.stack([0.8 * np.sin(0.9 * t), 0.5 * np.cos(0.7 * t)], axis=1)
+    v = velocity_factor * np.stack([0.72 * np.cos(0.9 * t), -0.35 * np.sin(0.7 * t)], axis=1)
+    return Reference(t=t, x=np.concatenate((q, v), axis=1), name="sine")
+
+
+def test_coarse_samples_keep_the_path_where_their_velocities_belong_to_it() -> None:
+    fine = _sine(np.arange(0.0, 12.0 + 1e-9, 0.2))  # on the grid: the path itself
+    coarse = resample(_sine(np.arange(0.0, 12.0 + 1e-9, 0.6)), 0.2)  # three periods between samples
+    assert np.abs(coarse.x - fine.x).max(axis=0)[:2].max() < 2e-3  # Hermite with the file's slopes
+    linear = resample(_sine(np.arange(0.0, 12.0 + 1e-9, 0.6), velocity_factor=0.0), 0.2)  # no usable velocities
+    assert np.abs(linear.x - fine.x).max(axis=0)[:2].max() > 5e-3  # chords: the path's curvature is lost
+    on_grid = resample(fine, 0.2)
+    np.testing.assert_allclose(on_grid.x, fine.x, rtol=0, atol=1e-12)  # on samples: the samples
+
+
+def test_velocities_that_do_not_belong_to_the_positions_are_named(caplog) -> None:
+    warn_velocities(_sine(np.arange(0.0, 6.0, 0.02)))
+    assert not caplog.text
+    warn_velocities(_sine(np.arange(0.0, 6.0, 0.02), velocity_factor=0.0))  # positions only, velocities 0
+    assert "its velocities are 0 x the rate of change of its positions" in caplog.text
+
+
+def test_a_reference_of_implausibly_many_periods_is_refused_unless_max_steps_cuts_it() -> None:
+    long = Reference(t=np.array([0.0, 1e7]), x=np.zeros((2, 4)), name="long")  # t in microseconds?
+    with pytest.raises(ReferenceError, match="t spans 1e.07 s, 50000001 periods of tau=0.2 s; expected t in seconds"):
+        resample(long, 0.2)
+    assert len(resample(long, 0.2, max_samples=12)) == 12  # what a max_steps run needs, built in no time
