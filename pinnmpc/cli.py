@@ -358,21 +358,33 @@ CONF = Path(__file__).resolve().parents[1] / "conf"  # the Hydra config tree the
 CHOICE = re.compile(r"^\+{0,2}([a-z_]+)=([A-Za-z0-9_.-]+)$")  # a plain `group=option` override (no sweeps)
 
 
+def config_dir_args(argv: list[str] | None = None) -> list[str]:
+    """The command line's config-dir arguments (--config-dir as an absolute path, hydra.searchpath as given), so a
+    printed resume command finds the same configs."""
+    out, it = [], iter(sys.argv[1:] if argv is None else argv)
+    for arg in it:
+        if arg in ("--config-dir", "-cd"):
+            out += ["--config-dir", str(Path(next(it, "")).resolve())]
+        elif arg.startswith(("--config-dir=", "-cd=")):
+            out += ["--config-dir", str(Path(arg.split("=", 1)[1]).resolve())]
+        elif arg.lstrip("+").startswith("hydra.searchpath="):
+            out.append(arg)
+    return out
+
+
 def _config_dirs(argv: list[str]) -> list[Path] | None:
     """conf/ and the dirs a command line adds (--config-dir, -cd, hydra.searchpath); None where one is not a plain
     folder (e.g. pkg://), so that no option is refused that Hydra might still find."""
-    dirs, it = [CONF], iter(argv)
+    dirs, it = [CONF], iter(config_dir_args(argv))
     for arg in it:
-        if arg in ("--config-dir", "-cd"):
-            dirs.append(Path(next(it, "")))
-        elif arg.startswith(("--config-dir=", "-cd=")):
-            dirs.append(Path(arg.split("=", 1)[1]))
-        elif arg.lstrip("+").startswith("hydra.searchpath="):
-            for entry in arg.split("=", 1)[1].strip("[]").split(","):
-                entry = entry.strip().strip("'\"")
-                if entry.startswith("pkg://"):
-                    return None
-                dirs.append(Path(entry.removeprefix("file://")))
+        if arg == "--config-dir":
+            dirs.append(Path(next(it)))
+            continue
+        for entry in arg.split("=", 1)[1].strip("[]").split(","):  # hydra.searchpath=[...]
+            entry = entry.strip().strip("'\"")
+            if entry.startswith("pkg://"):
+                return None
+            dirs.append(Path(entry.removeprefix("file://")))
     return dirs
 
 

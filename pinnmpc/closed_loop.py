@@ -88,6 +88,10 @@ def arm_differences(meta: dict[str, Any] | None, cfg: DictConfig) -> list[str]:
     if not isinstance(trained, dict) or "dynamics" not in cfg.system:
         return []
     now = OmegaConf.to_container(cfg.system.dynamics, resolve=True)
+    if isinstance(trained.get("urdf"), str) and isinstance(now.get("urdf"), str):  # one file, however it was named
+        from pinnmpc.systems.urdf import portable_urdf
+
+        trained, now = {**trained, "urdf": portable_urdf(trained["urdf"])}, {**now, "urdf": portable_urdf(now["urdf"])}
     return sorted(k for k in set(trained) & set(now) if trained[k] != now[k])
 
 

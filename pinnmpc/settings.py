@@ -430,6 +430,12 @@ def validate_train(cfg: DictConfig, system: Any) -> None:
             f"init_from={cfg.init_from} starts one network from a trained one; expected stage.base=null and "
             f"stage.split=null with it, got {cfg.stage.base} and {cfg.stage.get('split')}"
         )
+    staged = cfg.stage.base or cfg.stage.get("split") is not None
+    if staged and cfg.model.get("prior") is not None:  # before the base trains its share, not after
+        raise SettingError(
+            f"stage.split/stage.base with model.prior={cfg.model.prior}: a correction stage does not support a "
+            "prior; expected system.network.prior=null with it"
+        )
     if cfg.t_max < cfg.tau:
         raise SettingError(
             f"t_max={cfg.t_max} is below tau={cfg.tau}: expected t_max >= tau (the network predicts x(tau))"

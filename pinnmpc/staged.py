@@ -42,7 +42,8 @@ class StagedPINN(nn.Module):
         if base["ic"] == "soft":
             raise ValueError("staged training needs an exact initial condition (ic='hard' or 'gated'), got ic='soft'")
         if _setting(base, "prior") is not None:
-            raise ValueError(f"staged training does not support model.prior; got {base['prior']}: set model.prior=null")
+            kind = (base["prior"] or {}).get("kind") if isinstance(base["prior"], dict) else base["prior"]
+            raise ValueError(f"staged training does not support model.prior; got {kind}: set system.network.prior=null")
         if not (math.isfinite(residual_level) and residual_level > 0):
             raise ValueError(f"residual_level must be a positive number, got {residual_level}")
         self.base = PINN(**base).requires_grad_(False)

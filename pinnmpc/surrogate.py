@@ -233,6 +233,8 @@ def load_surrogate(
             raise CheckpointError(f"{path} was trained for a system with {what} dimension {have}; expected {want}")
     try:
         model = pinn_from_state(config, state)
+    except FileNotFoundError as e:  # its prior's arm: the URDF the network was trained on has moved
+        raise CheckpointError(f"{path}: its prior's arm is gone ({e})") from None
     except (RuntimeError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: weights do not fit the stored network config ({e})") from e
     return Surrogate(model, facts["tau"], state_names, input_names, meta=facts.get("meta", {}), dtype=dtype)

@@ -19,7 +19,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import Timer
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.cli import StopSignal, check_choices, run_cli, say
+from pinnmpc.cli import StopSignal, check_choices, config_dir_args, run_cli, say
 from pinnmpc.io import save_json
 from pinnmpc.pinn import PINN
 from pinnmpc.prior import FrozenArmPrior
@@ -45,7 +45,13 @@ def build_model(cfg: DictConfig, system: System) -> PINN | StagedPINN:
     if cfg.get("init_from"):
         hidden, basis, sums = list(cfg.model.hidden), list(cfg.model.time_basis), _angle_sums(cfg)
         prior = cfg.model.get("prior")
-        return grown_model(system, cfg.init_from, cfg.tau, cfg.t_max, hidden, cfg.seed, basis, sums, prior)
+        keys = ("activation", "ic", "second_order", "periodic")
+        form = {
+            k: OmegaConf.to_object(v) if OmegaConf.is_config(v) else v
+            for k in keys
+            if (v := cfg.model.get(k)) is not None
+        }
+        return grown_model(system, cfg.init_from, cfg.tau, cfg.t_max, hidden, cfg.seed, basis, sums, prior, form)
     return fresh_model(cfg, system)
 
 
@@ -56,6 +62,10 @@ def fresh_model(cfg: DictConfig, system: System) -> PINN:
     # the arm's own description travels with the network: a user's arm outside conf/system, or one whose name a
     # shipped arm shares, rebuilds the same prior wherever the network is loaded
     dynamics = OmegaConf.to_container(cfg.system.dynamics, resolve=True) if "dynamics" in cfg.system else None
+    if dynamics is not None and getattr(system, "urdf", None):  # the file the arm was built from, found anywhere
+        from pinnmpc.systems.urdf import portable_urdf
+
+        dynamics["urdf"] = portable_urdf(system.urdf)
     prior = None if kind is None else {"kind": str(kind), "system": system.name, "dynamics": dynamics}
     scale = cfg.model.output_scale
     if scale == "auto":
@@ -167,7 +177,8 @@ def check_continuable(cfg: DictConfig, ckpt: dict[str, Any], label: str) -> None
     if have is not None and have != want:
         raise ValueError(
             f"{label} was trained with module.optimizer={have}, this configuration has module.optimizer={want}; "
-            f"expected the same (its optimizer state is restored), or init_from=<its surrogate.pt> to start anew"
+            "expected the same (its optimizer state is restored, as far as it is saved), or "
+            "init_from=<its surrogate.pt> to start anew"
         )
     spent = ((ckpt.get("callbacks") or {}).get("Timer") or {}).get("time_elapsed", {}).get("train")
     budget = cfg.trainer.get("max_time")
@@ -198,11 +209,19 @@ def check_fits(ckpt: dict[str, Any], label: str, module: L.LightningModule) -> N
         )
     stored = ckpt.get("pinnmpc", {}).get("model", {})
     have_prior, want_prior = stored.get("prior"), getattr(module.model, "config", {}).get("prior")
-    if stored and have_prior != want_prior:  # same shapes, another function: the prior is not in the weights
-        kind, want = ((p or {}).get("kind") or "null" for p in (have_prior, want_prior))
+    # same shapes, another function: the prior is not in the weights. Its kind and arm must match; the arm's
+    # description may change on resume (the run trains on, with this configuration's arm)
+    have, want = ((p or {}).get("kind") or "null" for p in (have_prior, want_prior))
+    if stored and have != want:
         raise ValueError(
-            f"{label} holds a network trained with model.prior={kind}, this configuration has "
-            f"model.prior={want}; expected the same (override system.network.prior={kind})"
+            f"{label} holds a network trained with model.prior={have}, this configuration has "
+            f"model.prior={want}; expected the same (override system.network.prior={have})"
+        )
+    arms = [(p or {}).get("system") for p in (have_prior, want_prior)]
+    if stored and have != "null" and arms[0] != arms[1]:
+        raise ValueError(
+            f"{label} holds a network whose prior is the arm {arms[0]!r}, this configuration's is {arms[1]!r}; "
+            "expected the same system"
         )
 
 
@@ -298,7 +317,11 @@ def train(
     quiet_lightning()
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     use_threads(cfg.threads)  # torch and numpy BLAS alike
-    model = build_model(cfg, system)
+    stored = (ckpt or {}).get("pinnmpc") or {}
+    if ckpt is not None and cfg.get("init_from") and stored.get("model"):
+        model = PINN(**stored["model"])  # resuming a widened network: its form is in the checkpoint, weights follow
+    else:
+        model = build_model(cfg, system)
     # _convert_="all": plain lists, not OmegaConf ones, reach the hyper-parameters stored in checkpoints,
     # which load_surrogate reads with torch.load(weights_only=True)
     datamodule = build_datamodule(cfg, system)
@@ -316,7 +339,11 @@ def train(
     figure = SelfLoopFigure(
         cfg.self_loop_figure.every_n_epochs, cfg.self_loop_figure.steps, cfg.self_loop_figure.amplitude
     )
-    base_time = base_training_time(cfg.stage.base or cfg.get("init_from"))
+    # a resumed run's earlier networks are counted in its checkpoint (the file they came from may be gone)
+    recorded_base = stored.get("base_training_time_s")
+    base_time = (
+        recorded_base if recorded_base is not None else base_training_time(cfg.stage.base or cfg.get("init_from"))
+    )
     callbacks: list[L.Callback] = [best, last, SurrogateFacts(cfg.tau, base_time), figure, BudgetBar(cfg.progress)]
     callbacks += [EpochLog(run_dir / "train.log", system.state_names), TrainingClock()]
     if cfg.trainer.get("max_time") is None:  # with max_time Lightning adds this Timer itself
@@ -401,7 +428,7 @@ def main(cfg: DictConfig) -> float:
     """CLI: returns the best validation position RMSE, so Optuna sweeps can minimise it."""
     hydra_cfg = hydra.core.hydra_config.HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)
-    overrides = list(hydra_cfg.overrides.task)
+    overrides = [*config_dir_args(), *hydra_cfg.overrides.task]  # a user's own config dir travels along
     command = " ".join(["python -m pinnmpc.train", *overrides])
     with StopSignal() as stop:
         run = lambda: train_command(cfg, run_dir, command=command, stop=stop, overrides=overrides)  # noqa: E731

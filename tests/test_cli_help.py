@@ -96,3 +96,11 @@ def test_config_dirs_of_the_command_line_count(tmp_path, capsys) -> None:
             check_choices("x", [*extra, "system=nope"])
         assert "in any config dir; expected one of ['mine', 'panda', 'planar3', 'powercube']" in capsys.readouterr().err
     check_choices("x", ["hydra.searchpath=[pkg://elsewhere.conf]", "system=nope"])  # Hydra may find it there
+
+
+def test_a_resume_command_keeps_the_config_dir(tmp_path, monkeypatch) -> None:
+    from pinnmpc.cli import config_dir_args
+
+    monkeypatch.chdir(tmp_path)
+    args = ["-cd", "arms", "system=mine", "hydra.searchpath=[file:///x]", "seed=1"]
+    assert config_dir_args(args) == ["--config-dir", str(tmp_path / "arms"), "hydra.searchpath=[file:///x]"]

@@ -162,3 +162,20 @@ def test_a_run_started_from_a_checkpoint_counts_its_training_time(make_cfg, base
     assert base_training_time(str(last)) == spent > 0
     assert base_training_time(str(base_run)) == load_surrogate(base_run).meta["training_time_s"]
     assert base_training_time(str(tmp_path / "nope.ckpt")) == 0.0
+
+
+def test_a_widened_run_resumes_without_its_starting_file_and_keeps_its_time(make_cfg, base_run, tmp_path):
+    start = tmp_path / "start.pt"
+    start.write_bytes(base_run.read_bytes())
+    grown = [*TINY_TRAIN, f"init_from={start}", "model.hidden=[24,20]"]
+    first = train(make_cfg("train", [*grown, "trainer.max_epochs=2"]), tmp_path / "grown")
+    start.unlink()  # the checkpoint holds the whole network, and the time behind it
+    again = train(make_cfg("train", [*grown, "trainer.max_epochs=3", "resume=true"]), tmp_path / "grown")
+    assert again["epochs"] == 3 and again["base_training_time_s"] == first["base_training_time_s"] > 0
+    assert again["training_time_s"] > first["training_time_s"]
+
+
+def test_widening_refuses_a_network_form_it_cannot_change(make_cfg, base_run):
+    cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={base_run}", "model.hidden=[24,20]", "model.activation=tanh"])
+    with pytest.raises(ValueError, match="has model.activation=silu; this run has model.activation=tanh"):
+        build_model(cfg, PowerCube())  # it would have exported a silu network labelled tanh

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from pinnmpc.settings import SettingError
@@ -20,6 +22,7 @@ def test_one_command_trains_a_base_then_a_stage_on_it(make_cfg, tmp_path):
     cfg = make_cfg("train", [*TINY_TRAIN, "trainer.max_time=00:00:00:12", "stage.split=0.5", "stage.samples=64"])
     summary = train_command(cfg, tmp_path)
     assert summary["status"] == "ok" and summary["base_run"] == str(tmp_path / "base")
+    assert json.loads((tmp_path / "train_metrics.json").read_text())["base_run"] == summary["base_run"]  # the file too
     base = load_surrogate(tmp_path / "base" / "surrogate.pt")
     staged = load_surrogate(tmp_path / "surrogate.pt")
     assert base.model.config["hidden"] == [16, 16] and staged.model.config["hidden"] == [32, 32]  # merged

@@ -387,6 +387,7 @@ def test_a_stage_may_start_exactly_at_its_base(make_cfg) -> None:
         ("train", "trainer.max_epochs=0", "trainer.max_epochs=0: expected -1 (no limit) or an integer >= 1"),
         ("train", "trainer.max_time=00:00:00:00", "trainer.max_time='00:00:00:00': expected a duration"),
         ("train", "stage.last_layer_gain=-1", "stage.last_layer_gain=-1: expected a finite number >= 0"),
+        ("train", "system=planar3 stage.split=0.5", "stage.split/stage.base with model.prior=frozen_arm"),
         ("self_loop", "steps=2.5", "steps=2.5: expected an integer >= 2"),
         ("self_loop", "x0=[0,0]", "x0=[0, 0]: expected a list of 4 entries (nx)"),
         ("self_loop", "amplitude=[nan,1]", "amplitude=[nan, 1]: expected a list of 2 entries (nu)"),
@@ -397,7 +398,7 @@ def test_a_stage_may_start_exactly_at_its_base(make_cfg) -> None:
 def test_bad_settings_of_every_entry_point_are_refused(make_cfg, tmp_path, entry, override, message):
     run = {"train": train, "self_loop": run_self_loop, "robustness": run_robustness}[entry]
     with pytest.raises(SettingError) as e:
-        run(make_cfg(entry, [override]), tmp_path)
+        run(make_cfg(entry, override.split(" ")), tmp_path)
     assert str(e.value).startswith(message)
     assert not list(tmp_path.iterdir())
 

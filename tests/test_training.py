@@ -524,3 +524,15 @@ def test_a_gpu_trainer_without_a_gpu_is_one_line_and_trainer_gpu_falls_back_to_t
         train(make_cfg("train", [*TINY, "trainer=gpu", "trainer.accelerator=gpu"]), tmp_path / "forced")
     summary = train(make_cfg("train", [*TINY, "trainer=gpu", "trainer.max_epochs=1"]), tmp_path / "auto")
     assert summary["epochs"] == 1 and "distributed" not in summary
+
+
+def test_a_checkpoint_written_before_priors_carried_their_arm_still_resumes(make_cfg, tmp_path):
+    # planar3.pt's checkpoint names its prior's arm only; later networks carry its description too
+    ckpt = ROOT / "checkpoints" / "train" / "planar3-prior-last.ckpt"
+    epoch = torch.load(ckpt, map_location="cpu", weights_only=False)["epoch"]
+    small = [o for o in TINY if not o.startswith(("model.", "module.lbfgs_max_iter"))]
+    overrides = ["experiment=planar3", *small, "module.lbfgs_max_iter=1", f"trainer.max_epochs={epoch + 2}"]
+    summary = train(make_cfg("train", [*overrides, f"ckpt_path={ckpt}"]), tmp_path / "run")
+    assert summary["epochs"] == epoch + 2 and summary["status"] == "ok"
+    prior = load_surrogate(tmp_path / "run" / "surrogate.pt").model.config["prior"]
+    assert prior["system"] == "planar3" and prior["dynamics"]["name"] == "planar3"  # now with its description

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,10 @@ import torch
 from omegaconf import OmegaConf
 
 from pinnmpc.prior import FrozenArmPrior
-from pinnmpc.systems import Box, RigidArm, load_system
+from pinnmpc.surrogate import CheckpointError, Surrogate, load_surrogate
+from pinnmpc.systems import Box, RigidArm, build_system, load_system
+from pinnmpc.systems.urdf import URDF_DIR
+from pinnmpc.train import fresh_model
 
 LIMIT = '<limit lower="-3" upper="3" effort="50" velocity="3"/>'
 LINK = '<link name="{0}"><inertial><origin xyz="{1} 0 0"/><mass value="{2}"/><inertia ixx="0.001" ixy="0" ixz="0" iyy="{3}" iyz="0" izz="{3}"/></inertial></link>'  # noqa: E501
@@ -114,3 +118,19 @@ def test_a_users_arm_loads_by_path_and_its_prior_is_its_own(tmp_path: Path) -> N
     assert prior.arm.urdf == str(urdf) and prior.nq == 2  # not the shipped planar3
     with pytest.raises(ValueError, match="no such file; expected a system .yaml"):
         load_system(tmp_path / "nope.yaml")
+
+
+def test_a_network_finds_its_arm_from_any_working_dir_and_names_it_when_gone(make_cfg, tmp_path, monkeypatch):
+    (tmp_path / "arms").mkdir()
+    shutil.copy(URDF_DIR / "planar3.urdf", tmp_path / "arms" / "mine.urdf")
+    monkeypatch.chdir(tmp_path)  # the user's project, with its URDF given relative to it
+    cfg = make_cfg("train", ["system=planar3", "system.dynamics.urdf=arms/mine.urdf", "model.hidden=[8]"])
+    system = build_system(cfg.system)
+    cfg.model.output_scale = [1.0] * 6  # no flow estimate needed here
+    net = Surrogate(fresh_model(cfg, system), system.tau, system.state_names, system.input_names)
+    path = net.save(tmp_path / "mine.pt")
+    monkeypatch.chdir("/")
+    assert load_surrogate(path).model.prior.arm.urdf == str(tmp_path / "arms" / "mine.urdf")
+    (tmp_path / "arms" / "mine.urdf").rename(tmp_path / "arms" / "moved.urdf")
+    with pytest.raises(CheckpointError, match=r"mine.pt: its prior's arm is gone \(urdf=.*mine.urdf: no such file;"):
+        load_surrogate(path)

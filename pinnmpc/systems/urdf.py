@@ -48,7 +48,18 @@ def resolve_urdf(path: str | Path) -> Path:
     for candidate in (p, URDF_DIR / p):
         if candidate.is_file():
             return candidate.resolve()
-    raise FileNotFoundError(f"urdf={path}: no such file (looked in the working dir and {URDF_DIR}); expected a .urdf")
+    where = "" if p.is_absolute() else f" (looked in the working dir and {URDF_DIR})"
+    raise FileNotFoundError(f"urdf={path}: no such file{where}; expected a .urdf")
+
+
+def portable_urdf(path: str | Path) -> str:
+    """A URDF path that resolves from any working dir: a shipped file by its name, any other absolute (a relative
+    path that does not resolve stays as given)."""
+    try:
+        resolved = resolve_urdf(path)
+    except FileNotFoundError:
+        return str(path)
+    return resolved.name if resolved.parent == URDF_DIR.resolve() else str(resolved)
 
 
 def locked_urdf(path: Path, joints: Sequence[str]) -> str:

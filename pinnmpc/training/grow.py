@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -121,9 +122,11 @@ def grown_model(
     time_basis: Sequence[float] | None = None,
     angle_sums: Sequence[Sequence[int]] | None = None,
     prior: str | None = None,
+    form: dict[str, Any] | None = None,
 ) -> PINN:
     """The trained surrogate at `path` (init_from) grown to `hidden`, `time_basis` and `angle_sums`, checked
-    against this run (tau, t_max and the prior kind cannot change: they define the function it learned)."""
+    against this run (tau, t_max and the prior kind cannot change: they define the function it learned; nor can
+    the network's form, `form`: model.activation, ic, second_order, periodic, which widening keeps)."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"init_from={path} does not exist; expected a trained surrogate.pt or a run's .ckpt")
     surrogate = load_surrogate(path, state_names=tuple(system.state_names))
@@ -138,4 +141,16 @@ def grown_model(
             f"model.prior={prior or 'null'} "
             f"(override system.network.prior={have_prior or 'null'})"
         )
+    for key, want in (form or {}).items():
+        have = base.config.get(key)
+        if want is not None and have is not None and _plain(have) != _plain(want):
+            raise ValueError(
+                f"init_from={path} has model.{key}={have}; this run has model.{key}={want}, which widening cannot "
+                f"change (expected model.{key}={have}, or a fresh network without init_from)"
+            )
     return widened(base, hidden, seed, time_basis, angle_sums)
+
+
+def _plain(value: Any) -> Any:
+    """Lists and tuples alike, for comparing a stored setting with a configured one."""
+    return list(value) if isinstance(value, (list, tuple)) else value

@@ -15,6 +15,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from pinnmpc.io import save_json
 from pinnmpc.settings import SettingError
 
 Trainer = Callable[[DictConfig, Path], dict[str, Any]]  # train(cfg, run_dir) with the CLI's other arguments bound
@@ -92,6 +93,8 @@ def train_in_stages(cfg: DictConfig, run_dir: Path, fit: Trainer, resume_command
     summary["base_run"] = str(base_dir)
     if summary.get("resume_command"):
         summary["resume_command"] = resume_command
+    if (run_dir / "train_metrics.json").is_file():  # the stage wrote its own: the file says what the command did
+        save_json(run_dir / "train_metrics.json", summary)
     return summary
 
 
