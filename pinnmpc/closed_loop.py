@@ -51,7 +51,14 @@ def plant_system(system: System, cfg: DictConfig) -> System:
 def make_plant(system: System, cfg: DictConfig, tau: float) -> ScipyPlant:
     """The simulated robot of every closed loop (and of the bench's RK45 row) from the plant settings."""
     return ScipyPlant(
-        plant_system(system, cfg), tau, cfg.method, cfg.rtol, cfg.atol, cfg.chatter_flips, cfg.stick_slip_tighten
+        plant_system(system, cfg),
+        tau,
+        cfg.method,
+        cfg.rtol,
+        cfg.atol,
+        cfg.chatter_flips,
+        cfg.stick_slip_tighten,
+        int(cfg.max_switches),
     )
 
 

@@ -195,6 +195,17 @@ SYSTEM: dict[str, Check] = {  # the per-joint lists of conf/system/<name>.yaml t
     "system.self_loop.amplitude": vector("nu"),
 }
 
+PLANT: dict[str, Check] = {  # conf/plant/scipy.yaml, in every job that simulates the robot
+    "plant.method": one_of(*SCIPY_METHODS),
+    "plant.rtol": positive(),
+    "plant.atol": positive(),
+    "plant.chatter_flips": optional(integer(1)),
+    "plant.stick_slip_tighten": real(1.0),
+    "plant.max_switches": integer(1),
+    "plant.friction_scale": real(0.0),
+    "plant.mass_scale": positive(),
+}
+
 CLOSED_LOOP: dict[str, Check] = {
     "checkpoint": optional(text()),
     "tau": optional(positive()),
@@ -208,13 +219,7 @@ CLOSED_LOOP: dict[str, Check] = {
     "animate": boolean(),
     "allow_inputs_outside_box": boolean(),
     "failure.max_fallback_fraction": real(0.0, 1.0),
-    "plant.method": one_of(*SCIPY_METHODS),
-    "plant.rtol": positive(),
-    "plant.atol": positive(),
-    "plant.chatter_flips": optional(integer(1)),
-    "plant.stick_slip_tighten": real(1.0),
-    "plant.friction_scale": real(0.0),
-    "plant.mass_scale": positive(),
+    **PLANT,
     "reference.path": optional(text()),
     "reference.name": text(),
     # the keys every controller kind shares; the rest is each controller's own to check
@@ -341,9 +346,7 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
     "scaling.step_batch_sizes": listof(integer(1)),
     "scaling.step_repeats": integer(1),
     "scaling.step_warmup": integer(0),
-    "plant.method": one_of(*SCIPY_METHODS),
-    "plant.friction_scale": real(0.0),
-    "plant.mass_scale": positive(),
+    **PLANT,
 }
 BENCH_SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical")
 
