@@ -52,9 +52,12 @@ def fit_one_step(
     minutes: float,
     max_steps: int | None,
     report: Any = None,
+    lbfgs: tuple[int, int] = (50, 50),
+    give_up_after: int = 3,
 ) -> dict[str, Any]:
-    """Full-batch L-BFGS on the squared error of x(tau) in output units, for `minutes` (or `max_steps` optimiser
-    calls of 50 iterations); the history of the validation RMSE and the best state's errors."""
+    """Full-batch L-BFGS (lbfgs: iterations per call, history) on the squared error of x(tau) in output units, for
+    `minutes` (or `max_steps` optimiser calls), stopping after `give_up_after` calls in a row without decrease; the
+    history of the validation RMSE and the best state's errors."""
     from pinnmpc.training.module import lbfgs_evals, stalled  # the training's stall test; Lightning loads here
 
     dtype = model.out_scale.dtype
@@ -62,7 +65,7 @@ def fit_one_step(
     t = torch.full((len(x0), 1), tau, dtype=dtype)
     unit = model.out_scale
     optimiser = torch.optim.LBFGS(
-        model.parameters(), lr=1.0, max_iter=50, history_size=50, line_search_fn="strong_wolfe",
+        model.parameters(), lr=1.0, max_iter=lbfgs[0], history_size=lbfgs[1], line_search_fn="strong_wolfe",
         tolerance_grad=0.0, tolerance_change=0.0,
     )  # fmt: skip  # zero tolerances: the loss sits near 1e-6 in output units, below torch's absolute defaults
 
@@ -96,7 +99,7 @@ def fit_one_step(
             # a line search that finds no decrease returns at once, and would again every call: forget the history
             optimiser.state.clear()
             resets, stuck = resets + 1, stuck + 1
-            if stuck >= 3:  # no decrease from a fresh history either: converged at this precision
+            if stuck >= give_up_after:  # no decrease from a fresh history either: converged at this precision
                 break
         else:
             stuck = 0
@@ -113,7 +116,7 @@ def fit_one_step(
         "train_rmse": _rmse(model, tau, *train).tolist(),
         "steps": steps,
         "resets": resets,
-        "stopped": "no decrease" if stuck >= 3 else "budget",
+        "stopped": "no decrease" if stuck >= give_up_after else "budget",
         "seconds": time.perf_counter() - start,
         "history": history,
     }
@@ -139,7 +142,8 @@ def run_capacity(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnm
             worst = ", ".join(f"{n} {v:.2e}" for n, v in zip(system.state_names, entry["val_rmse"]))
             say(f"{entry['seconds']:5.0f} s, step {step}: validation RMSE {worst}", run_dir, "pinnmpc.capacity")
 
-    fit = fit_one_step(model, train, val, tau, float(cfg.minutes), cfg.max_steps, report)
+    lbfgs = (int(cfg.lbfgs.max_iter), int(cfg.lbfgs.history))
+    fit = fit_one_step(model, train, val, tau, float(cfg.minutes), cfg.max_steps, report, lbfgs, int(cfg.give_up_after))
     targets = cfg.system.get("targets", {}).get("one_step_rmse")
     result = {
         "system": system.name,
