@@ -91,12 +91,13 @@ def test_plant_settings_reach_the_plant():
             "atol": 1e-6,
             "chatter_flips": None,
             "stick_slip_tighten": 10.0,
+            "max_switches": 7,
             "friction_scale": 1.0,
             "mass_scale": 1.0,
         }
     )
     plant = make_plant(ARM, cfg, TAU)
-    assert plant.chatter_flips is None and plant.stick_slip_tighten == 10.0
+    assert plant.chatter_flips is None and plant.stick_slip_tighten == 10.0 and plant.max_switches == 7
     with pytest.raises(ValueError, match="chatter_flips must be >= 1 or null, got 0"):
         ScipyPlant(ARM, TAU, chatter_flips=0)
     with pytest.raises(ValueError, match="stick_slip_tighten must be >= 1, got 0.5"):
