@@ -388,6 +388,46 @@ def _config_dirs(argv: list[str]) -> list[Path] | None:
     return dirs
 
 
+KEY = re.compile(r"^([A-Za-z_][A-Za-z0-9_-]*)(?:\.[^=]*)?=")  # a `key=...` or `key.sub=...` override
+
+
+def _top_keys(name: str) -> set[str] | None:
+    """The top-level keys conf/<name>.yaml composes to: its own, its groups' and those of the configs it extends
+    (None where the files do not tell, so that nothing is refused that Hydra might accept)."""
+    from omegaconf import OmegaConf
+
+    path = CONF / f"{name}.yaml"
+    if not path.is_file():
+        return None
+    raw = OmegaConf.load(path)
+    keys = {str(k) for k in raw if k != "defaults"} | {"hydra"}
+    for entry in raw.get("defaults") or []:
+        if isinstance(entry, str):
+            sub = set() if entry == "_self_" else _top_keys(entry)
+            if sub is None:
+                return None
+            keys |= sub
+            continue
+        for k in entry:  # {group: option}, {"optional group@package": option}, {"override hydra/help": option}
+            group, _, package = str(k).removeprefix("optional ").removeprefix("override ").strip().partition("@")
+            keys.add((package or group).replace("/", ".").split(".")[0])
+    return keys
+
+
+def check_keys(prog: str, args: list[str]) -> None:
+    """A misspelt setting (`controler=casadi`) ends in one line naming it and the settings there are (Hydra's own
+    message suggests `+controler=...`, which would run, silently ignoring it)."""
+    keys = _top_keys(prog.rsplit(".", 1)[-1])
+    if keys is None:
+        return
+    for arg in args:
+        match = None if arg.startswith(("+", "~", "-")) else KEY.match(arg)
+        if match is not None and match[1] not in keys:
+            have = sorted(keys - {"hydra"})
+            print(f"{prog}: error: unknown setting {match[1]!r} ({arg}); expected one of {have}", file=sys.stderr)
+            sys.exit(EXIT_BAD_INPUT)
+
+
 def check_choices(prog: str, argv: list[str] | None = None) -> None:
     """Before Hydra composes: a `group=option` override whose group/option.yaml exists in no config dir (conf/,
     --config-dir, hydra.searchpath) ends the process with one line naming it and the options there (Hydra's own
@@ -396,6 +436,8 @@ def check_choices(prog: str, argv: list[str] | None = None) -> None:
     dirs = _config_dirs(args)
     if dirs is None:
         return
+    if len(dirs) == 1:  # a user's config dir may hold another primary config: its keys are not known here
+        check_keys(prog, args)
     for arg in args:
         match = CHOICE.match(arg)
         if match is None or not any((d / match[1]).is_dir() for d in dirs):

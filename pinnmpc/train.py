@@ -205,7 +205,8 @@ def check_fits(ckpt: dict[str, Any], label: str, module: L.LightningModule) -> N
         hint = " (other network inputs: see system.network.periodic and angle_sums)" if inputs else ""
         raise ValueError(
             f"{label} holds another network ({diff}: {have.get(diff)} in the file, {want.get(diff)} here{hint}); "
-            "expected a checkpoint of this configuration (same system, model and stage settings)"
+            "expected a checkpoint of this configuration (same system, model and stage settings: repeat the run's "
+            "overrides, as its train_metrics.json `trained_with` names them)"
         )
     stored = ckpt.get("pinnmpc", {}).get("model", {})
     have_prior, want_prior = stored.get("prior"), getattr(module.model, "config", {}).get("prior")

@@ -104,3 +104,16 @@ def test_a_resume_command_keeps_the_config_dir(tmp_path, monkeypatch) -> None:
     monkeypatch.chdir(tmp_path)
     args = ["-cd", "arms", "system=mine", "hydra.searchpath=[file:///x]", "seed=1"]
     assert config_dir_args(args) == ["--config-dir", str(tmp_path / "arms"), "hydra.searchpath=[file:///x]"]
+
+
+@pytest.mark.parametrize("module", sorted(COMMANDS))
+def test_a_misspelt_setting_is_named_in_one_line(module: str, capsys) -> None:
+    from pinnmpc.cli import check_choices
+
+    with pytest.raises(SystemExit) as stop:
+        check_choices(f"pinnmpc.{module}", ["controler=casadi"])
+    assert stop.value.code == 2
+    assert f"pinnmpc.{module}: error: unknown setting 'controler' (controler=casadi); expected one of [" in (
+        capsys.readouterr().err
+    )
+    check_choices(f"pinnmpc.{module}", ["threads=1", "hydra.run.dir=x", "+new_key=1", "system.tau=0.1"])  # all fine
