@@ -1,0 +1,105 @@
+"""The command line before Hydra composes: unknown group options and misspelt settings end in one line, and the
+config dirs a command line adds travel into printed resume commands."""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+EXIT_BAD_INPUT = 2  # exit code for bad input
+CONF = Path(__file__).resolve().parents[1] / "conf"  # the Hydra config tree the entry points compose from
+CHOICE = re.compile(r"^\+{0,2}([a-z_]+)=([A-Za-z0-9_.-]+)$")  # a plain `group=option` override (no sweeps)
+
+
+def config_dir_args(argv: list[str] | None = None) -> list[str]:
+    """The command line's config-dir arguments (--config-dir as an absolute path, hydra.searchpath as given), so a
+    printed resume command finds the same configs."""
+    out, it = [], iter(sys.argv[1:] if argv is None else argv)
+    for arg in it:
+        if arg in ("--config-dir", "-cd"):
+            out += ["--config-dir", str(Path(next(it, "")).resolve())]
+        elif arg.startswith(("--config-dir=", "-cd=")):
+            out += ["--config-dir", str(Path(arg.split("=", 1)[1]).resolve())]
+        elif arg.lstrip("+").startswith("hydra.searchpath="):
+            out.append(arg)
+    return out
+
+
+def _config_dirs(argv: list[str]) -> list[Path] | None:
+    """conf/ and the dirs a command line adds (--config-dir, -cd, hydra.searchpath); None where one is not a plain
+    folder (e.g. pkg://), so that no option is refused that Hydra might still find."""
+    dirs, it = [CONF], iter(config_dir_args(argv))
+    for arg in it:
+        if arg == "--config-dir":
+            dirs.append(Path(next(it)))
+            continue
+        for entry in arg.split("=", 1)[1].strip("[]").split(","):  # hydra.searchpath=[...]
+            entry = entry.strip().strip("'\"")
+            if entry.startswith("pkg://"):
+                return None
+            dirs.append(Path(entry.removeprefix("file://")))
+    return dirs
+
+
+KEY = re.compile(r"^([A-Za-z_][A-Za-z0-9_-]*)(?:\.[^=]*)?=")  # a `key=...` or `key.sub=...` override
+
+
+def _top_keys(name: str) -> set[str] | None:
+    """The top-level keys conf/<name>.yaml composes to: its own, its groups' and those of the configs it extends
+    (None where the files do not tell, so that nothing is refused that Hydra might accept)."""
+    from omegaconf import OmegaConf
+
+    path = CONF / f"{name}.yaml"
+    if not path.is_file():
+        return None
+    raw = OmegaConf.load(path)
+    keys = {str(k) for k in raw if k != "defaults"} | {"hydra"}
+    for entry in raw.get("defaults") or []:
+        if isinstance(entry, str):
+            sub = set() if entry == "_self_" else _top_keys(entry)
+            if sub is None:
+                return None
+            keys |= sub
+            continue
+        for k in entry:  # {group: option}, {"optional group@package": option}, {"override hydra/help": option}
+            group, _, package = str(k).removeprefix("optional ").removeprefix("override ").strip().partition("@")
+            keys.add((package or group).replace("/", ".").split(".")[0])
+    return keys
+
+
+def check_keys(prog: str, args: list[str]) -> None:
+    """A misspelt setting (`controler=casadi`) ends in one line naming it and the settings there are (Hydra's own
+    message suggests `+controler=...`, which would run, silently ignoring it)."""
+    keys = _top_keys(prog.rsplit(".", 1)[-1])
+    if keys is None:
+        return
+    for arg in args:
+        match = None if arg.startswith(("+", "~", "-")) else KEY.match(arg)
+        if match is not None and match[1] not in keys:
+            have = sorted(keys - {"hydra"})
+            print(f"{prog}: error: unknown setting {match[1]!r} ({arg}); expected one of {have}", file=sys.stderr)
+            sys.exit(EXIT_BAD_INPUT)
+
+
+def check_choices(prog: str, argv: list[str] | None = None) -> None:
+    """Before Hydra composes: a `group=option` override whose group/option.yaml exists in no config dir (conf/,
+    --config-dir, hydra.searchpath) ends the process with one line naming it and the options there (Hydra's own
+    message is a multi-line search-path dump)."""
+    args = sys.argv[1:] if argv is None else argv
+    dirs = _config_dirs(args)
+    if dirs is None:
+        return
+    if len(dirs) == 1:  # a user's config dir may hold another primary config: its keys are not known here
+        check_keys(prog, args)
+    for arg in args:
+        match = CHOICE.match(arg)
+        if match is None or not any((d / match[1]).is_dir() for d in dirs):
+            continue
+        group, option = match[1], match[2]
+        if not any((d / group / f"{option}.yaml").is_file() for d in dirs):
+            have = sorted({f.stem for d in dirs for f in (d / group).glob("*.yaml")})
+            where = "conf" if len(dirs) == 1 else "any config dir"
+            print(f"{prog}: error: {group}={option!r}: no {group}/{option}.yaml in {where}; expected one of {have}",
+                  file=sys.stderr)  # fmt: skip
+            sys.exit(EXIT_BAD_INPUT)
