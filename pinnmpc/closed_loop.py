@@ -19,7 +19,7 @@ from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
 from pinnmpc.io import save_json, save_npz
 from pinnmpc.plant import PlantError, ScipyPlant
-from pinnmpc.references import Reference, excursions, load_reference, out_of_box, resolve_reference_path
+from pinnmpc.references import Reference, load_reference, out_of_box, resolve_reference_path
 from pinnmpc.settings import SettingError, validate_closed_loop
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems.base import Box, System
@@ -78,13 +78,6 @@ def build_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box |
         cfg.checkpoint, system=system.name if cfg.checkpoint is None else None, state_names=system.state_names
     )
     check_input_bounds(cfg, surrogate.input_box)
-    differs = arm_differences(surrogate.meta, cfg)
-    if differs:
-        log.warning(
-            "WARNING: the network was trained for another description of this arm (system.dynamics %s differ): "
-            "it predicts a different arm from the one the plant simulates",
-            ", ".join(differs),
-        )
     return build_nmpc(cfg.controller, surrogate, system), surrogate.domain, surrogate.tau
 
 
@@ -252,12 +245,17 @@ def diverged(x: np.ndarray, box: Box | None) -> str:
         return f"the state became non-finite ({x.tolist()})"
     if box is None:
         return ""
-    low, high = np.asarray(box.low, dtype=float), np.asarray(box.high, dtype=float)
-    beyond = np.flatnonzero((x < low - (high - low)) | (x > high + (high - low)))
+    beyond = np.flatnonzero(far_outside(x, box))
     if not beyond.size:
         return ""
-    j = int(beyond[0])
+    j, low, high = int(beyond[0]), box.low, box.high
     return f"state {j} = {x[j]:.3g}, beyond the state box [{low[j]:.3g}, {high[j]:.3g}] by more than its width"
+
+
+def far_outside(x: np.ndarray, box: Box) -> np.ndarray:
+    """Which entries of states x (..., n) lie beyond the box by more than its width: no arm of the system goes there."""
+    low, high = np.asarray(box.low, dtype=float), np.asarray(box.high, dtype=float)
+    return (x < low - (high - low)) | (x > high + (high - low))
 
 
 def limits_and_saturation(run: dict[str, Any], controller: Controller, system: System) -> dict[str, Any]:
@@ -310,7 +308,7 @@ def system_reference(cfg: DictConfig, system: System, tau: float) -> Reference:
         needed,
     )
     far = divergence_box(system)
-    beyond = excursions(ref, far.low, far.high) > (np.asarray(far.high) - np.asarray(far.low))
+    beyond = far_outside(ref.x, far)
     if beyond.any():
         i, j = (int(v) for v in np.argwhere(beyond)[0])
         raise ValueError(
@@ -377,6 +375,13 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
     system: System = job_system(cfg, validate_closed_loop)
     start = checked_start(cfg, system)
     controller, domain, tau = build_controller(cfg, system)
+    differs = arm_differences(getattr(getattr(controller, "surrogate", None), "meta", None), cfg)
+    if differs:  # before the run: a network of another arm tracks whatever it tracks
+        log.warning(
+            "WARNING: the network was trained for another description of this arm (system.dynamics %s differ): "
+            "it predicts a different arm from the one the plant simulates",
+            ", ".join(differs),
+        )
     if cfg.tau is not None and abs(cfg.tau - tau) > 1e-12:
         raise ValueError(
             f"tau={cfg.tau} differs from the controller model's tau={tau} (a PINN predicts one period of its tau)"
@@ -417,8 +422,7 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
     result["tracking_bound"] = float(cfg.system.get("robustness", {}).get("bound", math.inf))
     # how far a user's start x0 lies off the reference's first state (0: it starts on it)
     result["start_off_reference"] = 0.0 if start is None else float(np.abs(np.asarray(start) - ref.x[0]).max())
-    model = getattr(controller, "surrogate", None)
-    result["network_arm_differs"] = arm_differences(getattr(model, "meta", None), cfg)  # system.dynamics keys
+    result["network_arm_differs"] = differs  # system.dynamics keys
     st = controller.stats
     n = len(run["x"])
     save_npz(
