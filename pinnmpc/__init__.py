@@ -8,7 +8,7 @@ import os
 # must be set before torch loads OpenMP, so here; it is only a default: set GOMP_SPINCOUNT yourself to override.
 os.environ.setdefault("GOMP_SPINCOUNT", "10000")
 
-from pinnmpc.surrogate import CheckpointError, Surrogate, load_surrogate  # noqa: E402 (after the OpenMP default)
+from pinnmpc.surrogate.checkpoint import CheckpointError, Surrogate, load_surrogate  # noqa: E402 (after the OpenMP default)
 from pinnmpc.systems import load_system  # noqa: E402
 
 __version__ = "0.1.0"

@@ -22,11 +22,11 @@ from omegaconf import DictConfig
 from torch import Tensor
 
 from pinnmpc.cli import check_choices, job_system, run_job, say
-from pinnmpc.io import save_json
-from pinnmpc.pinn import PINN
-from pinnmpc.settings import validate_capacity
+from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import random_pairs, reference_flow
+from pinnmpc.util.io import save_json
+from pinnmpc.util.settings import validate_capacity
 
 
 def one_step_data(system: System, tau: float, n: int, h: float, seed: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -166,7 +166,7 @@ def run_capacity(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnm
 def _save_network(model: PINN, system: System, tau: float, result: dict[str, Any], run_dir: Path) -> None:
     """surrogate.pt: the fitted network, for a closed loop (it is right at t = tau only, all the controller uses) or
     as init_from of a training."""
-    from pinnmpc.surrogate import Surrogate  # it converts the network it is given: a copy
+    from pinnmpc.surrogate.checkpoint import Surrogate  # it converts the network it is given: a copy
 
     meta = {
         "trained_with": result["trained_with"],
@@ -180,7 +180,7 @@ def _save_network(model: PINN, system: System, tau: float, result: dict[str, Any
 
 def _draw(result: dict[str, Any], run_dir: Path) -> None:
     """capacity.png: validation and training RMSE per state against the targets."""
-    from pinnmpc.plots import basis_figure, save_figure
+    from pinnmpc.util.plots import basis_figure, save_figure
 
     m = result["model"]
     title = (

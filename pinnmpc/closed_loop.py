@@ -17,12 +17,12 @@ from tqdm.auto import tqdm
 from pinnmpc.cli import StopSignal, check_choices, job_system, run_cli, say
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
-from pinnmpc.io import save_json, save_npz
-from pinnmpc.plant import PlantError, ScipyPlant
-from pinnmpc.references import Reference, load_reference, out_of_box, resolve_reference_path
-from pinnmpc.settings import SettingError, validate_closed_loop
-from pinnmpc.surrogate import load_surrogate
+from pinnmpc.plant.scipy_plant import PlantError, ScipyPlant
+from pinnmpc.references.files import Reference, load_reference, out_of_box, resolve_reference_path
+from pinnmpc.surrogate.checkpoint import load_surrogate
 from pinnmpc.systems.base import Box, System
+from pinnmpc.util.io import save_json, save_npz
+from pinnmpc.util.settings import SettingError, validate_closed_loop
 
 log = logging.getLogger(__name__)
 SATURATED_NOTE = 0.05  # the headline notes inputs at their bounds from this share of the steps on (display only)
@@ -452,7 +452,7 @@ def write_plots(
     cfg: DictConfig, system: System, ref: Reference, run: dict[str, Any], controller: Controller, run_dir: Path
 ) -> None:
     """closed_loop.png, and with animate=true closed_loop.gif of the arm (stick drawing from its kinematics)."""
-    from pinnmpc import plots
+    from pinnmpc.util import plots
 
     n = len(run["x"])
     title = f"{system.name}: closed loop on {ref.name} ({controller.describe()['solver']})"

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pinnmpc.io import atomic_write
+from pinnmpc.util.io import atomic_write
 
 POSITION, VELOCITY = "val/rmse_position", "val/rmse_velocity"
 CLOCK = "time/train_s"  # training time at each validation, logged by pinnmpc.training.progress.TrainingClock
@@ -76,7 +76,7 @@ def plot_curves(curves: list[Curve], out: Path, title: str = "") -> None:
     """Two log-scale panels (positions, velocities) against training minutes, one line per run."""
     from matplotlib.figure import Figure
 
-    from pinnmpc.plots import save_figure
+    from pinnmpc.util.plots import save_figure
 
     fig = Figure(figsize=(11, 4), layout="constrained")
     axes = fig.subplots(1, 2, sharex=True)

@@ -18,12 +18,12 @@ from omegaconf import DictConfig
 from torch import Tensor
 
 from pinnmpc.cli import check_choices, job_system, run_job
-from pinnmpc.io import save_json
-from pinnmpc.pinn import PINN
-from pinnmpc.settings import validate_residuals
-from pinnmpc.surrogate import load_surrogate
+from pinnmpc.surrogate.checkpoint import load_surrogate
+from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import collocation_box, lhs_box
+from pinnmpc.util.io import save_json
+from pinnmpc.util.settings import validate_residuals
 
 
 def scaled_residual(system: System, model: PINN, n: int, seed: int) -> tuple[Tensor, Tensor]:
@@ -73,7 +73,7 @@ def run_residuals(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     result = residual_table(system, surrogate.model, int(cfg.points), int(cfg.bins), int(cfg.seed))
     save_json(run_dir / "residuals.json", result)
     if cfg.plots:  # matplotlib only when a figure is wanted
-        from pinnmpc.plots import residual_figure, save_figure
+        from pinnmpc.util.plots import residual_figure, save_figure
 
         edges, rms = np.asarray(result["t_edges_s"]), np.asarray(result["rms_by_bin"])
         title = f"{system.name}: RMS scaled ODE residual by time in the step ({cfg.points} LHS points)"

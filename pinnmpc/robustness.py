@@ -12,10 +12,10 @@ from omegaconf import DictConfig
 
 from pinnmpc.cli import check_choices, run_job
 from pinnmpc.closed_loop import run_closed_loop
-from pinnmpc.io import atomic_write, save_json
-from pinnmpc.report import md_table
-from pinnmpc.settings import validate_robustness
 from pinnmpc.systems.registry import build_system
+from pinnmpc.util.io import atomic_write, save_json
+from pinnmpc.util.settings import validate_robustness
+from pinnmpc.util.tables import md_table
 
 
 def grid_runs(cfg: DictConfig, run_dir: Path, positions: list[str]) -> list[dict[str, Any]]:

@@ -12,11 +12,11 @@ import torch
 from omegaconf import DictConfig
 
 from pinnmpc.cli import check_choices, job_system, run_job
-from pinnmpc.io import save_json, save_npz
-from pinnmpc.plant import ScipyPlant
-from pinnmpc.settings import validate_self_loop
-from pinnmpc.surrogate import Surrogate, load_surrogate
+from pinnmpc.plant.scipy_plant import ScipyPlant
+from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
+from pinnmpc.util.io import save_json, save_npz
+from pinnmpc.util.settings import validate_self_loop
 
 
 def sine_inputs(steps: int, amplitude: Sequence[float]) -> np.ndarray:
@@ -67,7 +67,7 @@ def run_self_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     save_npz(run_dir / "self_loop.npz", t=t, x_plant=x_plant, x_pinn=x_pinn, u=u)
     save_json(run_dir / "metrics.json", result)
     if cfg.plots:
-        from pinnmpc import plots
+        from pinnmpc.util import plots
 
         fig = plots.self_loop_figure(
             t,

@@ -23,12 +23,12 @@ from omegaconf import DictConfig
 from torch import Tensor
 
 from pinnmpc.cli import check_choices, job_system, run_job
-from pinnmpc.integrators import n_steps, rk4_fixed
-from pinnmpc.io import save_json
-from pinnmpc.pinn import time_gates
-from pinnmpc.settings import validate_time_basis
+from pinnmpc.plant.integrators import n_steps, rk4_fixed
+from pinnmpc.surrogate.network import time_gates
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import random_pairs
+from pinnmpc.util.io import save_json
+from pinnmpc.util.settings import validate_time_basis
 
 
 def flow_increments(
@@ -172,7 +172,7 @@ def run_time_basis(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
 def _draw(result: dict[str, Any], title: str, targets: Sequence[float | None] | None, run_dir: Path) -> None:
     """time_basis.png: the basis and its greedy extensions (matplotlib imported only when a figure is wanted)."""
-    from pinnmpc.plots import basis_figure, save_figure
+    from pinnmpc.util.plots import basis_figure, save_figure
 
     rows = [result["basis"], *result["greedy"]]
     labels = [str(r["time_basis"]) for r in rows]

@@ -20,21 +20,21 @@ from lightning.pytorch.callbacks import Timer
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.cli import StopSignal, check_choices, config_dir_args, run_cli, say
-from pinnmpc.io import save_json
-from pinnmpc.pinn import PINN
-from pinnmpc.prior import FrozenArmPrior
-from pinnmpc.settings import validate_train
-from pinnmpc.staged import StagedPINN
-from pinnmpc.surrogate import FORMAT, load_surrogate
+from pinnmpc.surrogate.checkpoint import FORMAT, load_surrogate
+from pinnmpc.surrogate.network import PINN
+from pinnmpc.surrogate.prior import FrozenArmPrior
+from pinnmpc.surrogate.staged import StagedPINN
 from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import build_system
-from pinnmpc.threads import use_threads
 from pinnmpc.training.callbacks import AtomicCheckpoint, GracefulStop, SelfLoopFigure, SurrogateFacts
 from pinnmpc.training.data import CollocationDataModule, flow_scale
 from pinnmpc.training.grow import grown_model
 from pinnmpc.training.pipeline import base_training_time, seconds, train_in_stages
 from pinnmpc.training.progress import BudgetBar, EpochLog, TrainingClock, quiet_lightning, timer_of
 from pinnmpc.training.stage import staged_model
+from pinnmpc.util.io import save_json
+from pinnmpc.util.settings import validate_train
+from pinnmpc.util.threads import use_threads
 
 
 def build_model(cfg: DictConfig, system: System) -> PINN | StagedPINN:

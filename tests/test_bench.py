@@ -18,9 +18,9 @@ from pinnmpc.bench import run_bench, run_controller
 from pinnmpc.bench.common import bench_reference
 from pinnmpc.bench.report import md_targets
 from pinnmpc.bench.targets import _per_state
-from pinnmpc.flowmap import RK4Model
-from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import Surrogate, load_surrogate
+from pinnmpc.surrogate.flowmap import RK4Model
+from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems import PowerCube, load_system
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -444,7 +444,7 @@ def test_planar3_bench_is_generic(planar3: tuple[dict[str, Any], Path]) -> None:
     ],
 )
 def test_bad_sizes_are_refused_before_any_work(tmp_path: Path, override: str, message: str) -> None:
-    from pinnmpc.settings import SettingError
+    from pinnmpc.util.settings import SettingError
 
     with pytest.raises(SettingError) as e:
         run_bench(_cfg([*TINY, *override.split()]), tmp_path)

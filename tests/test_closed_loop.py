@@ -19,8 +19,8 @@ from pinnmpc.closed_loop import (
     warn_limit_margin,
 )
 from pinnmpc.references import Reference
-from pinnmpc.settings import SettingError
 from pinnmpc.systems import load_system
+from pinnmpc.util.settings import SettingError
 from tests.conftest import ROOT
 
 KEYS = {

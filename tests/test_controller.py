@@ -31,8 +31,8 @@ from pinnmpc.controller import (
 from pinnmpc.controller.build import build_nmpc, prediction_model
 from pinnmpc.controller.ocp import psd_sqrt
 from pinnmpc.controller.shooting import chain_solve, linearise
-from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import Surrogate, load_surrogate
+from pinnmpc.surrogate.network import PINN
 
 torch.set_num_threads(1)  # a training job shares this 2-core machine
 

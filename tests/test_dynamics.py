@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from pinnmpc.dynamics import rhs
-from pinnmpc.integrators import euler_step, rk4_step
 from pinnmpc.plant import PlantError, ScipyPlant
+from pinnmpc.plant.integrators import euler_step, rk4_step
 from pinnmpc.systems import Box, PowerCube, PowerCubeParams, load_system
 from pinnmpc.systems.powercube import mass_matrix, mass_residual
+
+rhs = load_system("powercube").rhs  # the nominal PowerCube, as users load it
 
 
 def test_rhs_matches_golden(golden):
@@ -77,7 +78,7 @@ def test_mismatch_scales_change_the_plant_only_when_asked():
 
 
 def test_bad_shapes_are_named():
-    with pytest.raises(ValueError, match=r"x \(\.\.\., 4\)"):
+    with pytest.raises(ValueError, match="expected 4"):
         rhs(torch.zeros(3), torch.zeros(2))
     with pytest.raises(ValueError, match="expected 2"):
         PowerCube().rhs(torch.zeros(4), torch.zeros(3))

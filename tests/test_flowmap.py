@@ -1,5 +1,6 @@
-"""One contract for every flow map (pinnmpc.flowmap.FlowMap): the surrogate, its numpy fast path and the true model
-by RK4 in torch and as compiled C, on the PowerCube and on the planar 3-link arm, each put through the same checks."""
+"""One contract for every flow map (pinnmpc.surrogate.flowmap.FlowMap): the surrogate, its numpy fast path and the
+true model by RK4 in torch and as compiled C, on the PowerCube and on the planar 3-link arm, each put through the
+same checks."""
 
 from __future__ import annotations
 
@@ -12,10 +13,10 @@ import pytest
 import torch
 
 from pinnmpc.controller.ocp import HorizonOCP
-from pinnmpc.flow_numpy import NumpyFlow
-from pinnmpc.flowmap import CompiledRK4, ExactValues, FlowMap, RK4Model, check_flow_map, numpy_path
-from pinnmpc.pinn import PINN
 from pinnmpc.surrogate import Surrogate, load_surrogate
+from pinnmpc.surrogate.flowmap import CompiledRK4, ExactValues, FlowMap, RK4Model, check_flow_map, numpy_path
+from pinnmpc.surrogate.network import PINN
+from pinnmpc.surrogate.numpy_flow import NumpyFlow
 from pinnmpc.systems import load_system
 from pinnmpc.systems.base import System
 from pinnmpc.systems.compiled import BatchedFunction

@@ -6,13 +6,13 @@ import pytest
 import torch
 
 from pinnmpc.curves import read_curve
-from pinnmpc.pinn import PINN
-from pinnmpc.settings import SettingError, validate_train
 from pinnmpc.surrogate import load_surrogate, shipped
+from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems import PowerCube, load_system
 from pinnmpc.train import build_model, train
 from pinnmpc.training.grow import widened
 from pinnmpc.training.pipeline import base_training_time
+from pinnmpc.util.settings import SettingError, validate_train
 from tests.conftest import TINY_TRAIN
 
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from pinnmpc.flow_numpy import BlockDiagonal, NumpyFlow
-from pinnmpc.pinn import ACTIVATIONS, PINN
-from pinnmpc.staged import StagedPINN
+from pinnmpc.surrogate.network import ACTIVATIONS, PINN
+from pinnmpc.surrogate.numpy_flow import BlockDiagonal, NumpyFlow
+from pinnmpc.surrogate.staged import StagedPINN
 from pinnmpc.systems import PowerCube
 
 BOX = dict(

@@ -6,10 +6,10 @@ import json
 
 import pytest
 
-from pinnmpc.settings import SettingError
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.train import train_command
 from pinnmpc.training.pipeline import duration, seconds
+from pinnmpc.util.settings import SettingError
 from tests.conftest import TINY_TRAIN
 
 

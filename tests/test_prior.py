@@ -1,4 +1,5 @@
-"""model.prior=frozen_arm: the arm held at q0 solved exactly, the network learning the rest (pinnmpc.prior)."""
+"""model.prior=frozen_arm: the arm held at q0 solved exactly, the network learning the rest
+(pinnmpc.surrogate.prior)."""
 
 from __future__ import annotations
 
@@ -9,14 +10,14 @@ import torch
 
 from pinnmpc import load_surrogate, load_system
 from pinnmpc.capacity import one_step_data, run_capacity
-from pinnmpc.pinn import PINN
-from pinnmpc.prior import EIGEN_FROM_JOINTS, MEMO_SIZE, FrozenArmPrior
-from pinnmpc.prior_eigen import EigenPriorJacobian, divided_differences
-from pinnmpc.settings import SettingError
 from pinnmpc.surrogate import Surrogate
+from pinnmpc.surrogate.network import PINN
+from pinnmpc.surrogate.prior import EIGEN_FROM_JOINTS, MEMO_SIZE, FrozenArmPrior
+from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian, divided_differences
 from pinnmpc.train import train
 from pinnmpc.training.data import CollocationDataModule
 from pinnmpc.training.module import PINNModule
+from pinnmpc.util.settings import SettingError
 from tests.conftest import TINY_TRAIN
 
 TAU = 0.1

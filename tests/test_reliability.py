@@ -20,10 +20,10 @@ from pinnmpc.cli import LOCK_NAME, USER_ERRORS, StopSignal, acquire, clean, disc
 from pinnmpc.closed_loop import run_closed_loop, verdict
 from pinnmpc.robustness import run_robustness
 from pinnmpc.self_loop import run_self_loop
-from pinnmpc.settings import SettingError, validate_train
 from pinnmpc.surrogate import SHIPPED, load_surrogate
 from pinnmpc.systems import load_system
 from pinnmpc.train import train
+from pinnmpc.util.settings import SettingError, validate_train
 from tests.conftest import ROOT, TINY_TRAIN
 
 TINY = [*TINY_TRAIN, "self_loop_figure.every_n_epochs=0"]

@@ -6,7 +6,7 @@ import lightning as L
 import pytest
 import torch
 
-from pinnmpc.pinn import PINN
+from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems import PowerCube
 from pinnmpc.train import train
 from pinnmpc.training.data import CollocationDataModule

@@ -10,10 +10,10 @@ import pytest
 import torch
 from torch.func import jacrev, vmap
 
-from pinnmpc.flow_numpy import BlockDiagonal, NumpyFlow
-from pinnmpc.integrators import rk4_step
-from pinnmpc.pinn import PINN
+from pinnmpc.plant.integrators import rk4_step
 from pinnmpc.surrogate import FORMAT, FORMAT_VERSION, SHIPPED, CheckpointError, Surrogate, load_surrogate, shipped
+from pinnmpc.surrogate.network import PINN
+from pinnmpc.surrogate.numpy_flow import BlockDiagonal, NumpyFlow
 from pinnmpc.systems import PowerCube
 
 torch.set_num_threads(1)  # a training job shares this 2-core machine

@@ -13,9 +13,8 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from pinnmpc import load_surrogate, load_system
-from pinnmpc.dynamics import rhs as powercube_rhs
-from pinnmpc.integrators import rk4_step
-from pinnmpc.systems import Box, RigidArm, available, build_system
+from pinnmpc.plant.integrators import rk4_step
+from pinnmpc.systems import Box, PowerCube, RigidArm, available, build_system
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -62,10 +61,10 @@ def test_powercube_system_is_the_stable_rhs() -> None:
     cube = load_system("powercube")
     g = torch.Generator().manual_seed(0)
     x, u = torch.randn(16, 4, generator=g, dtype=torch.float64), torch.randn(16, 2, generator=g, dtype=torch.float64)
-    assert torch.equal(cube.rhs(x, u), powercube_rhs(x, u))
+    assert torch.equal(cube.rhs(x, u), PowerCube().rhs(x, u))
     f = cube.casadi_rhs()
     got = np.stack([f(xi, ui).full().ravel() for xi, ui in zip(x.numpy(), u.numpy())])
-    np.testing.assert_allclose(got, powercube_rhs(x, u).numpy(), rtol=1e-13, atol=1e-12)
+    np.testing.assert_allclose(got, PowerCube().rhs(x, u).numpy(), rtol=1e-13, atol=1e-12)
     path = SHARED / "powercube" / "golden.npz"
     if path.is_file():
         d = np.load(path)

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from pinnmpc.settings import SettingError
 from pinnmpc.systems.registry import build_system
 from pinnmpc.time_basis import _summary, basis_report, run_time_basis
+from pinnmpc.util.settings import SettingError
 
 
 def test_the_servo_fast_mode_is_what_the_panda_gates_miss(make_cfg) -> None:

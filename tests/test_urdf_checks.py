@@ -12,8 +12,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from pinnmpc.prior import FrozenArmPrior
 from pinnmpc.surrogate import CheckpointError, Surrogate, load_surrogate
+from pinnmpc.surrogate.prior import FrozenArmPrior
 from pinnmpc.systems import Box, RigidArm, build_system, load_system
 from pinnmpc.systems.urdf import URDF_DIR
 from pinnmpc.train import fresh_model

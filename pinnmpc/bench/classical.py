@@ -10,8 +10,8 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.bench.loops import loop_row, run_controller
-from pinnmpc.references import Reference
-from pinnmpc.surrogate import Surrogate
+from pinnmpc.references.files import Reference
+from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.systems.base import System
 
 log = logging.getLogger(__name__)
@@ -81,7 +81,7 @@ def pinn_variants(cfg: DictConfig, solver: str, rti: bool) -> list[tuple[str, st
 
 def classical_plot(cl: dict[str, Any], system: System, path: Path) -> Path:
     """classical.png: every row of section 6 as (OCP median, worst joint-angle MAE), log-log."""
-    from pinnmpc import plots
+    from pinnmpc.util import plots
 
     angles = list(system.state_names[: system.nq])
     points = {

@@ -9,8 +9,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.closed_loop import make_plant as closed_loop_plant
 from pinnmpc.closed_loop import system_reference
-from pinnmpc.plant import ScipyPlant
-from pinnmpc.references import Reference
+from pinnmpc.plant.scipy_plant import ScipyPlant
+from pinnmpc.references.files import Reference
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import random_pairs
 

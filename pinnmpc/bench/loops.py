@@ -27,9 +27,9 @@ from pinnmpc.controller.arrays import Array
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
 from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
-from pinnmpc.flowmap import CompiledRK4, FlowMap, RK4Model
-from pinnmpc.references import Reference
-from pinnmpc.surrogate import Surrogate
+from pinnmpc.references.files import Reference
+from pinnmpc.surrogate.checkpoint import Surrogate
+from pinnmpc.surrogate.flowmap import CompiledRK4, FlowMap, RK4Model
 from pinnmpc.systems.base import Box, System
 
 log = logging.getLogger(__name__)

@@ -16,7 +16,7 @@ from pinnmpc.bench.loops import OCPProblem
 from pinnmpc.bench.timing import PERCENTILE
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.ocp import HorizonOCP
-from pinnmpc.surrogate import Surrogate
+from pinnmpc.surrogate.checkpoint import Surrogate
 
 
 def lbfgsb_solve(

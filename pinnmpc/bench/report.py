@@ -8,7 +8,7 @@ from typing import Any
 
 from pinnmpc.bench.common import status_suffix
 from pinnmpc.bench.loops import mode
-from pinnmpc.report import fmt, md_table
+from pinnmpc.util.tables import fmt, md_table
 
 TRUE_MODEL_JACOBIANS = {"torch": "by autodiff through RK4 in torch", "compiled": "by CasADi AD, compiled C"}
 

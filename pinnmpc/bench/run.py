@@ -20,13 +20,13 @@ from pinnmpc.bench.scaling import bench_scaling
 from pinnmpc.bench.step import bench_step
 from pinnmpc.bench.targets import check_targets
 from pinnmpc.bench.timing import machine_info
-from pinnmpc.io import atomic_write, save_json
-from pinnmpc.references import Reference
-from pinnmpc.settings import validate_bench
-from pinnmpc.surrogate import Surrogate, load_surrogate
+from pinnmpc.references.files import Reference
+from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import build_system
-from pinnmpc.threads import use_threads
+from pinnmpc.util.io import atomic_write, save_json
+from pinnmpc.util.settings import validate_bench
+from pinnmpc.util.threads import use_threads
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")

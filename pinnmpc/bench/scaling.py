@@ -15,8 +15,8 @@ from pinnmpc.bench.common import controller_cfg, integrator_h, random_states
 from pinnmpc.bench.step import torch_inputs
 from pinnmpc.bench.timing import time_calls, timing_stats
 from pinnmpc.controller.build import build_nmpc
-from pinnmpc.integrators import rk4_step
-from pinnmpc.surrogate import Surrogate
+from pinnmpc.plant.integrators import rk4_step
+from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import uniform_box
 
@@ -99,7 +99,7 @@ def write_plots(
     base_h: int,
 ) -> list[str]:
     """scaling_horizon.png, scaling_batch.png and scaling_step.png; the names written."""
-    from pinnmpc import plots
+    from pinnmpc.util import plots
 
     solver = str(cfg.controller.solver)
     figures = {

@@ -16,10 +16,10 @@ from torch import Tensor
 
 from pinnmpc.bench.common import integrator_h, make_plant, random_states
 from pinnmpc.bench.timing import as_numpy, time_calls, timing_stats
-from pinnmpc.flowmap import CompiledRK4
-from pinnmpc.integrators import euler_step, rk4_step
-from pinnmpc.plant import ScipyPlant
-from pinnmpc.surrogate import Surrogate
+from pinnmpc.plant.integrators import euler_step, rk4_step
+from pinnmpc.plant.scipy_plant import ScipyPlant
+from pinnmpc.surrogate.checkpoint import Surrogate
+from pinnmpc.surrogate.flowmap import CompiledRK4
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import reference_flow
 

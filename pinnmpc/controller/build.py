@@ -9,8 +9,8 @@ from omegaconf import DictConfig, OmegaConf
 from pinnmpc.controller.nmpc import NMPC
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers import make_solver
-from pinnmpc.flowmap import CompiledRK4, ExactValues, FlowMap
-from pinnmpc.surrogate import Surrogate
+from pinnmpc.surrogate.checkpoint import Surrogate
+from pinnmpc.surrogate.flowmap import CompiledRK4, ExactValues, FlowMap
 from pinnmpc.systems.base import System
 
 MODELS = ("surrogate", "exact_values")  # controller.model: what the OCP predicts with

@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.controller.casadi_ocp import CasadiOCP, NlpSolver, Solution
 from pinnmpc.controller.nmpc import StepStats, disturbance_bound, filtered_disturbance
-from pinnmpc.stick_slip import coulomb_joints
+from pinnmpc.plant.stick_slip import coulomb_joints
 
 RTI_STATUSES = {"Solve_Succeeded", "Maximum_Iterations_Exceeded"}  # what one SQP step may end with and be used
 

@@ -23,7 +23,7 @@ import casadi as ca
 import numpy as np
 
 from pinnmpc.controller.ocp import JointLimits, psd_sqrt
-from pinnmpc.integrators import rk4_fixed
+from pinnmpc.plant.integrators import rk4_fixed
 from pinnmpc.systems.compiled import compile_functions
 
 SOLVERS = ("ipopt", "sqpmethod", "fatrop")  # nlpsol plugins this controller knows how to configure

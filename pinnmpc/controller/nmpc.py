@@ -13,7 +13,7 @@ from torch import Tensor
 
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
-from pinnmpc.surrogate import Surrogate
+from pinnmpc.surrogate.checkpoint import Surrogate
 
 
 @dataclass

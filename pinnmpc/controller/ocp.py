@@ -4,7 +4,7 @@ The problem: weights, cost, residuals, joint limits, and the one Jacobian path t
 sensitivities of pinnmpc.controller.shooting into the residuals' Jacobian (the box-constrained step is in
 pinnmpc.controller.box_step). Everything here works on torch tensors (autograd, for the torch.optim
 solvers) and on numpy arrays (the fast Gauss-Newton path), with the same formulas. The model is any
-pinnmpc.flowmap.FlowMap: the surrogate, its numpy fast path or the true model by RK4.
+pinnmpc.surrogate.flowmap.FlowMap: the surrogate, its numpy fast path or the true model by RK4.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from torch import Tensor
 
 from pinnmpc.controller import shooting
 from pinnmpc.controller.arrays import Array, cat, xp_of
-from pinnmpc.flowmap import FlowMap, check_flow_map, numpy_path
+from pinnmpc.surrogate.flowmap import FlowMap, check_flow_map, numpy_path
 
 __all__ = ["LIMIT_KEYS", "Array", "HorizonOCP", "JointLimits", "cat", "psd_sqrt", "xp_of"]
 

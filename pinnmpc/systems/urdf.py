@@ -321,7 +321,7 @@ class RigidArm:
         g = kd.gravity_term(base, q).reshape(b, n + 6)[:, 6:] if self.actuation == "velocity_servo" else 0 * h
         return self.mass_scale * m, h, g
 
-    # -- the arm frozen at q0: the linear part a learned flow map builds on (pinnmpc.prior) -----------------------
+    # -- the arm frozen at q0: the linear part a learned flow map builds on (pinnmpc.surrogate.prior) -----------------
     @property
     def linear_gain(self) -> tuple[float, ...]:
         """kv of the frozen model: the actuation's torque per unit joint velocity (D, or K of a servo), scaled."""

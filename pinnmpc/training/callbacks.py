@@ -13,9 +13,9 @@ import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from pinnmpc.cli import StopSignal
-from pinnmpc.io import atomic_write
-from pinnmpc.plant import ScipyPlant
+from pinnmpc.plant.scipy_plant import ScipyPlant
 from pinnmpc.training.ssbfgs import SSBFGS
+from pinnmpc.util.io import atomic_write
 
 
 class AtomicCheckpoint(ModelCheckpoint):
@@ -77,7 +77,7 @@ class SelfLoopFigure(L.Callback):
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Roll the current network out and log the figure."""
-        from pinnmpc import plots
+        from pinnmpc.util import plots
 
         if self.every_n_epochs <= 0 or (trainer.current_epoch + 1) % self.every_n_epochs or trainer.logger is None:
             return

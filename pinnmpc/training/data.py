@@ -13,7 +13,7 @@ from scipy.stats import qmc
 from torch import Tensor
 from torch.utils.data import DataLoader
 
-from pinnmpc.integrators import n_steps, rk4_fixed, rk4_step
+from pinnmpc.plant.integrators import n_steps, rk4_fixed, rk4_step
 from pinnmpc.systems.base import System
 
 Scorer = Callable[[Tensor, Tensor, Tensor], Tensor]  # (t, x0, u) -> residual per point, as PINNModule provides

@@ -17,8 +17,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from pinnmpc.pinn import PINN
-from pinnmpc.surrogate import load_surrogate
+from pinnmpc.surrogate.checkpoint import load_surrogate
+from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems.base import System
 
 

@@ -15,8 +15,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from pinnmpc.io import save_json
-from pinnmpc.settings import SettingError
+from pinnmpc.util.io import save_json
+from pinnmpc.util.settings import SettingError
 
 Trainer = Callable[[DictConfig, Path], dict[str, Any]]  # train(cfg, run_dir) with the CLI's other arguments bound
 
@@ -110,6 +110,6 @@ def base_training_time(base: str | None) -> float:
         timer = (ckpt.get("callbacks") or {}).get("Timer") or {}
         before = (ckpt.get("pinnmpc") or {}).get("base_training_time_s") or 0.0  # its own base (checkpoints since s18)
         return float(timer.get("time_elapsed", {}).get("train") or 0.0) + float(before)
-    from pinnmpc.surrogate import load_surrogate
+    from pinnmpc.surrogate.checkpoint import load_surrogate
 
     return float(load_surrogate(base).meta.get("training_time_s") or 0.0)

@@ -7,10 +7,10 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from pinnmpc.pinn import PINN
 from pinnmpc.residuals import scaled_residual
-from pinnmpc.staged import StagedPINN
-from pinnmpc.surrogate import load_surrogate
+from pinnmpc.surrogate.checkpoint import load_surrogate
+from pinnmpc.surrogate.network import PINN
+from pinnmpc.surrogate.staged import StagedPINN
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import random_pairs, reference_flow
 

@@ -1,7 +1,7 @@
 """The frozen-arm prior's Jacobian through an eigendecomposition, for arms where AD through its exponential is costly.
 
 With Kh = kv^1/2 the prior's matrices are functions of one symmetric positive definite matrix S = Kh M(q0)^-1 Kh
-(pinnmpc.prior has the prior itself):
+(pinnmpc.surrogate.prior has the prior itself):
 
     E = exp(-M^-1 kv tau) = Kh^-1 f0(S) Kh,   kv^-1 M (I - E) = Kh^-1 f1(S) Kh,
     f0(l) = exp(-l tau),   f1(l) = (1 - exp(-l tau)) / l.

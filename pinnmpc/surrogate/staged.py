@@ -7,7 +7,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from pinnmpc.pinn import PINN
+from pinnmpc.surrogate.network import PINN
 
 STAGE_BOX = ("state_low", "state_high", "input_low", "input_high", "t_max")  # where the network is trained
 STAGE_FORM = ("activation", "ic", "time_basis", "second_order", "periodic", "angle_sums", "prior")  # in/out form

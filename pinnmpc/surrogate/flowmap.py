@@ -12,8 +12,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pinnmpc.integrators import n_steps, rk4_step
-from pinnmpc.surrogate import Dimensions
+from pinnmpc.plant.integrators import n_steps, rk4_step
+from pinnmpc.surrogate.checkpoint import Dimensions
 from pinnmpc.systems.base import Box, System
 from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
@@ -70,7 +70,9 @@ def check_flow_map(model: Any) -> None:
     missing = [a for a in ("tau", "state_names", "input_names", "state_box", "input_box") if not hasattr(model, a)]
     missing += [m for m in ("step", "step_with_jacobian") if not callable(getattr(model, m, None))]
     if missing:
-        raise TypeError(f"{type(model).__name__} is not a flow map: it lacks {missing} (see pinnmpc.flowmap.FlowMap)")
+        raise TypeError(
+            f"{type(model).__name__} is not a flow map: it lacks {missing} (see pinnmpc.surrogate.flowmap.FlowMap)"
+        )
     api = getattr(model, "array_api", "torch")
     if api not in ARRAY_APIS:
         raise TypeError(f"{type(model).__name__}.array_api={api!r}; expected one of {ARRAY_APIS}")

@@ -11,8 +11,8 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.io import atomic_write
-from pinnmpc.report import fmt, md_table
+from pinnmpc.util.io import atomic_write
+from pinnmpc.util.tables import fmt, md_table
 
 METRICS = ("best_val_rmse_position", "wall_time_s", "epochs")  # train_metrics.json keys in the table
 

@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from pinnmpc.prior import FrozenArmPrior, check_prior
+from pinnmpc.surrogate.prior import FrozenArmPrior, check_prior
 
 
 def _tanh(a: Tensor) -> tuple[Tensor, Tensor]:

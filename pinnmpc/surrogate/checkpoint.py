@@ -9,16 +9,16 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
-from pinnmpc.flow_numpy import NumpyFlow
-from pinnmpc.io import save_torch
-from pinnmpc.pinn import PINN
-from pinnmpc.staged import pinn_from_state
+from pinnmpc.surrogate.network import PINN
+from pinnmpc.surrogate.numpy_flow import NumpyFlow
+from pinnmpc.surrogate.staged import pinn_from_state
 from pinnmpc.systems.base import Box
+from pinnmpc.util.io import save_torch
 
 FORMAT = "pinnmpc-surrogate"
 FORMAT_VERSION = 1
 REQUIRED_FACTS = ("tau", "state_names", "input_names", "model")  # what load_surrogate needs besides the weights
-CHECKPOINTS = Path(__file__).resolve().parent / "checkpoints"  # shipped networks, one default per system
+CHECKPOINTS = Path(__file__).resolve().parents[1] / "checkpoints"  # shipped networks, one default per system
 DEFAULT_SYSTEM = "powercube"  # load_surrogate() without a system
 SHIPPED = CHECKPOINTS / f"{DEFAULT_SYSTEM}.pt"
 
@@ -60,7 +60,7 @@ class Dimensions:
 class Surrogate(Dimensions):
     """x(t) = flow from x0 under zero-hold u, batched over leading dimensions, float64 by default."""
 
-    array_api: ClassVar[str] = "torch"  # a FlowMap (pinnmpc.flowmap) on torch tensors, differentiable
+    array_api: ClassVar[str] = "torch"  # a FlowMap (pinnmpc.surrogate.flowmap) on torch tensors, differentiable
 
     def __init__(
         self,

@@ -10,7 +10,7 @@ the arm is the linear system M(q0) dv/dt = c0 - kv v, dq/dt = v (kv diagonal), w
 A network that learns only what this misses (configuration change, Coriolis, Coulomb friction) fits the flow
 several times closer on the same budget (docs/training.md). No parameters: torch for training (memoised, since
 full-batch training evaluates it on the same points every step) and CasADi compiled to C, with its exact Jacobian
-(by AD, or by eigendecomposition on larger arms: pinnmpc.prior_eigen), for the controller's numpy path.
+(by AD, or by eigendecomposition on larger arms: pinnmpc.surrogate.prior_eigen), for the controller's numpy path.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ SQUARING_NORM = 0.5  # the largest 1-norm of X / 2^s the Taylor series is truste
 MEMO_SIZE = 8  # input sets kept, least recently used out first (collocation, anchors, validation, and the data
 #   loss's t = 0, new at every step): each holds its inputs alive
 EIGEN_FROM_JOINTS = 5  # arms with this many joints or more differentiate the prior by eigendecomposition
-#   (pinnmpc/prior_eigen.py), smaller ones by CasADi's AD through the series: the cheaper of the two (docs/design.md)
+#   (pinnmpc/surrogate/prior_eigen.py), smaller ones by CasADi's AD through the series: the cheaper of the two
+#   (docs/design.md)
 
 
 def tensor_key(*tensors: Tensor) -> tuple[Any, ...]:
@@ -157,7 +158,7 @@ class FrozenArmPrior(nn.Module):
     def compiled(self, tau: float) -> CompiledPrior:
         """x_p(tau), and with its Jacobian, for numpy rows: the value as a fixed Taylor-and-squaring exponential
         compiled to C by CasADi, the Jacobian by CasADi's exact AD through it or, on larger arms, exactly by
-        eigendecomposition (pinnmpc.prior_eigen); built once per tau and checked against the torch form."""
+        eigendecomposition (pinnmpc.surrogate.prior_eigen); built once per tau and checked against the torch form."""
         if tau in self._compiled:
             return self._compiled[tau]
         from pinnmpc.systems.compiled import BatchedFunction, compile_functions
@@ -174,7 +175,7 @@ class FrozenArmPrior(nn.Module):
         tag = f"{self.arm.name}_frozen_prior"
         value = ca.Function(f"{tag}_value", [x, u], [xp], {"cse": True})
         if n >= EIGEN_FROM_JOINTS:
-            from pinnmpc.prior_eigen import EigenPriorJacobian
+            from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
 
             lib = compile_functions(tag, [value], opt="-O2")
             fast = CompiledPrior(BatchedFunction(lib[value.name()]), EigenPriorJacobian(self.arm, tau, self.kv.numpy()))

@@ -11,8 +11,8 @@ import numpy as np
 import torch
 from scipy.special import expit
 
-from pinnmpc.pinn import PINN
-from pinnmpc.prior import CompiledPrior
+from pinnmpc.surrogate.network import PINN
+from pinnmpc.surrogate.prior import CompiledPrior
 from pinnmpc.systems.base import Box
 
 
@@ -209,12 +209,12 @@ class NumpyFlow:
     sums: np.ndarray | None = None  # (n_sums, nx): angle sums entering as (sin, cos) too (None: none)
     w_sin: np.ndarray | None = None  # (n_periodic + n_sums, width): first layer acting on sin of the angles, sums
     w_cos: np.ndarray | None = None  # (n_periodic + n_sums, width): ... and on their cosines
-    tau: float = 0.0  # the period folded in, s: the FlowMap facts (pinnmpc.flowmap) from here on
+    tau: float = 0.0  # the period folded in, s: the FlowMap facts (pinnmpc.surrogate.flowmap) from here on
     state_names: tuple[str, ...] = ()  # empty: x0, x1, ...
     input_names: tuple[str, ...] = ()  # empty: u0, u1, ...
     state_box: Box | None = None  # the network's training box (None: unbounded)
     input_box: Box | None = None
-    start: CompiledPrior | None = None  # the prior at tau (pinnmpc.prior): the output adds to x_p, not to x0
+    start: CompiledPrior | None = None  # the prior at tau (pinnmpc.surrogate.prior): the output adds to x_p, not to x0
 
     array_api: ClassVar[str] = "numpy"
 

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from pinnmpc.reference_data import Reference, ReferenceError
+from pinnmpc.references.data import Reference, ReferenceError
 
 BUILTIN_DT = 0.01  # s, sampling of the built-in references; fine enough to resample to any controller step
 
@@ -22,7 +22,8 @@ BUILTIN_DT = 0.01  # s, sampling of the built-in references; fine enough to resa
 #   {kind: random, moves: n, duration: s, fraction: f}: quintic moves between random waypoints in the middle
 #       fraction f of the state box (name it `random-<seed>` to pick the seed, default 0);
 #   {kind: driven, moves, duration, fraction, bandwidth: rad/s, damping}: the true system driven around such a
-#       random path by a loose feedback (pinnmpc/driven.py): a motion the true model makes with in-box inputs.
+#       random path by a loose feedback (pinnmpc/references/driven.py): a motion the true model makes with in-box
+#       inputs.
 
 
 @dataclass(frozen=True)
@@ -96,8 +97,8 @@ def random_reference(
 def driven_reference(
     name: str, system: Any, joints: Sequence[Waypoints], bandwidth: object, damping: object
 ) -> Reference:
-    """The true system driven around the waypoint path by a loose feedback (pinnmpc/driven.py), sampled."""
-    from pinnmpc.driven import check_gains, drive
+    """The true system driven around the waypoint path by a loose feedback (pinnmpc/references/driven.py), sampled."""
+    from pinnmpc.references.driven import check_gains, drive
 
     gains = check_gains(name, bandwidth, damping)
     duration = max(sum(w.durations) for w in joints)

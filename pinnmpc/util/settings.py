@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.prior import KINDS as PRIOR_KINDS
+from pinnmpc.surrogate.prior import KINDS as PRIOR_KINDS
 
 Dims = Mapping[str, int]  # {"nx": ..., "nu": ...} of the system the run is for
 Check = Callable[[Any, Dims], str | None]  # None when the value is allowed, else what is allowed

@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import NullFormatter
 from tqdm.auto import tqdm
 
-from pinnmpc.io import atomic_write
+from pinnmpc.util.io import atomic_write
 
 # Display defaults only: nothing here is a model parameter.
 DPI = 120  # PNG resolution: legible on screen, small on disk

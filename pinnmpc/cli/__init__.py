@@ -22,11 +22,11 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 
-from pinnmpc.cli_args import CONF as CONF  # re-exported: the entry points take all of their CLI from here
-from pinnmpc.cli_args import EXIT_BAD_INPUT as EXIT_BAD_INPUT
-from pinnmpc.cli_args import check_choices as check_choices
-from pinnmpc.cli_args import config_dir_args as config_dir_args
-from pinnmpc.io import atomic_write
+from pinnmpc.cli.args import CONF as CONF  # re-exported: the entry points take all of their CLI from here
+from pinnmpc.cli.args import EXIT_BAD_INPUT as EXIT_BAD_INPUT
+from pinnmpc.cli.args import check_choices as check_choices
+from pinnmpc.cli.args import config_dir_args as config_dir_args
+from pinnmpc.util.io import atomic_write
 
 T = TypeVar("T")
 
@@ -37,7 +37,7 @@ EXIT_RUN_FAILED = 1  # exit code for a run that started and failed
 LOCK_NAME = ".pinnmpc.lock"  # in a run dir while a run holds it: the PID of that run
 BOOKKEEPING = (".hydra", LOCK_NAME)  # what Hydra and the guard put in every run dir, besides the job's log
 STARTED = time.time()  # before Hydra writes into the run dir: files older than this are not this process's
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def verbose() -> bool:
@@ -386,9 +386,9 @@ def hydra_run_dir() -> Path:
 
 def job_system(cfg: DictConfig, validate: Callable[[DictConfig, Any], None]) -> Any:
     """The job's System from cfg.system, its settings checked against it and the CPU threads set: how jobs start."""
-    from pinnmpc.settings import validate_system
     from pinnmpc.systems.registry import build_system  # torch and the arms load only when a job runs
-    from pinnmpc.threads import use_threads
+    from pinnmpc.util.settings import validate_system
+    from pinnmpc.util.threads import use_threads
 
     system = build_system(cfg.system)
     validate_system(cfg, system)

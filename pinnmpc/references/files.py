@@ -15,14 +15,14 @@ import numpy as np
 import scipy.io
 from scipy.interpolate import CubicHermiteSpline
 
-from pinnmpc.builtin_references import BUILTIN_DT as BUILTIN_DT  # re-exported: where references live for users
-from pinnmpc.builtin_references import builtin_reference
-from pinnmpc.reference_data import Reference as Reference
-from pinnmpc.reference_data import ReferenceError as ReferenceError
+from pinnmpc.references.builtin import BUILTIN_DT as BUILTIN_DT  # re-exported: where references live for users
+from pinnmpc.references.builtin import builtin_reference
+from pinnmpc.references.data import Reference as Reference
+from pinnmpc.references.data import ReferenceError as ReferenceError
 
 MAT_FILES = ("y_soll", "Dy_soll", "t_soll")  # paper's layout: positions (nq, N), velocities (nq, N), times (1, N)
 KINDS = "a folder with y_soll.mat, Dy_soll.mat and t_soll.mat, a .npz (t, x) or a .csv (t and the state names)"
-PROJECT_ROOT = Path(__file__).resolve().parents[1]  # a system's paper_reference is relative to it
+PROJECT_ROOT = Path(__file__).resolve().parents[2]  # a system's paper_reference is relative to it
 RESAMPLE_SLACK = 1e-9  # s, a grid point this close past the last sample still counts as inside
 MILLISECONDS = (300.0, 3000.0)  # velocities this many times the positions' rate of change: t was given in ms
 CONSISTENT = (0.5, 2.0)  # ... and this many times: velocities that belong to the positions (else a warning)

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 EXIT_BAD_INPUT = 2  # exit code for bad input
-CONF = Path(__file__).resolve().parents[1] / "conf"  # the Hydra config tree the entry points compose from
+CONF = Path(__file__).resolve().parents[2] / "conf"  # the Hydra config tree the entry points compose from
 CHOICE = re.compile(r"^\+{0,2}([a-z_]+)=([A-Za-z0-9_.-]+)$")  # a plain `group=option` override (no sweeps)
 
 

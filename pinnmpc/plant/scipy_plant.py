@@ -1,6 +1,7 @@
 """The simulated robot: scipy RK45 over one zero-hold period, as in the paper.
 
-A step whose sign(v) friction chatters (a joint at rest) is redone with the switches located (pinnmpc.stick_slip)."""
+A step whose sign(v) friction chatters (a joint at rest) is redone with the switches located
+(pinnmpc.plant.stick_slip)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from pinnmpc.stick_slip import ChatterError, coulomb_joints, flip_counter, stick_slip_step
+from pinnmpc.plant.stick_slip import ChatterError, coulomb_joints, flip_counter, stick_slip_step
 from pinnmpc.systems.base import System
 
 

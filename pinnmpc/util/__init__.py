@@ -1,0 +1,1 @@
+"""Shared plumbing of library and tasks: atomic files, thread counts, settings checks, tables and figures."""
