@@ -21,12 +21,12 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from pinnmpc.cli import check_choices, job_system, run_job, say
+from pinnmpc.cli import check_choices, run_job, say
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import random_pairs, reference_flow
 from pinnmpc.util.io import save_json
-from pinnmpc.util.settings import validate_capacity
+from pinnmpc.util.settings import job_system, validate_capacity
 
 
 def one_step_data(system: System, tau: float, n: int, h: float, seed: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -125,7 +125,7 @@ def fit_one_step(
 def run_capacity(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnmpc.capacity") -> dict[str, Any]:
     """capacity.json, capacity.png and surrogate.pt: the network's one-step error after a direct fit, against the
     targets, and the fitted network (`command` goes into its provenance)."""
-    from pinnmpc.train import fresh_model  # Lightning loads only when the check runs
+    from pinnmpc.training.models import fresh_model  # Lightning loads only when the check runs
 
     system = job_system(cfg, validate_capacity)
     torch.manual_seed(int(cfg.seed))

@@ -11,7 +11,7 @@ import hydra
 from omegaconf import DictConfig
 
 from pinnmpc.cli import check_choices, run_job
-from pinnmpc.closed_loop import run_closed_loop
+from pinnmpc.simulation.run import run_closed_loop
 from pinnmpc.systems.registry import build_system
 from pinnmpc.util.io import atomic_write, save_json
 from pinnmpc.util.settings import validate_robustness

@@ -2,46 +2,20 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import hydra
 import numpy as np
-import torch
 from omegaconf import DictConfig
 
-from pinnmpc.cli import check_choices, job_system, run_job
+from pinnmpc.cli import check_choices, run_job
 from pinnmpc.plant.scipy_plant import ScipyPlant
-from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
+from pinnmpc.simulation.open_loop import rollout_plant, rollout_surrogate, sine_inputs
+from pinnmpc.surrogate.checkpoint import load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.util.io import save_json, save_npz
-from pinnmpc.util.settings import validate_self_loop
-
-
-def sine_inputs(steps: int, amplitude: Sequence[float]) -> np.ndarray:
-    """The paper's excitation, one amplitude per input: u_k = a sin(2 pi k / (steps - 1)) (paper: a = (0.5, -0.5))."""
-    a = np.asarray(amplitude, dtype=np.float64)
-    if a.ndim != 1 or not np.all(np.isfinite(a)):
-        raise ValueError(f"amplitude={list(np.atleast_1d(a))}; expected one finite number per input")
-    return np.sin(np.linspace(0.0, 2 * np.pi, int(steps)))[:, None] * a[None, :]
-
-
-def rollout_surrogate(surrogate: Surrogate, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Self-loop: each prediction at tau becomes the next x0."""
-    xs = [torch.as_tensor(x0, dtype=torch.float64)]
-    with torch.no_grad():
-        for uk in torch.as_tensor(u, dtype=torch.float64):
-            xs.append(surrogate.step(xs[-1], uk))
-    return torch.stack(xs).numpy()
-
-
-def rollout_plant(plant: ScipyPlant, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """The same inputs applied to the plant."""
-    xs = [np.asarray(x0, dtype=np.float64)]
-    for uk in u:
-        xs.append(plant.step(xs[-1], uk))
-    return np.array(xs)
+from pinnmpc.util.settings import job_system, validate_self_loop
 
 
 def run_self_loop(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:

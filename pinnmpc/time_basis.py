@@ -22,13 +22,13 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from pinnmpc.cli import check_choices, job_system, run_job
+from pinnmpc.cli import check_choices, run_job
 from pinnmpc.plant.integrators import n_steps, rk4_fixed
 from pinnmpc.surrogate.network import time_gates
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import random_pairs
 from pinnmpc.util.io import save_json
-from pinnmpc.util.settings import validate_time_basis
+from pinnmpc.util.settings import job_system, validate_time_basis
 
 
 def flow_increments(

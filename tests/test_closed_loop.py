@@ -9,16 +9,11 @@ import sys
 import numpy as np
 import pytest
 
-from pinnmpc.closed_loop import (
-    build_controller,
-    diverged,
-    divergence_box,
-    headline,
-    limits_and_saturation,
-    run_closed_loop,
-    warn_limit_margin,
-)
 from pinnmpc.references import Reference
+from pinnmpc.simulation.loop import LoopResult, diverged, divergence_box
+from pinnmpc.simulation.metrics import headline, limits_and_saturation
+from pinnmpc.simulation.run import run_closed_loop
+from pinnmpc.simulation.setup import build_controller, warn_limit_margin
 from pinnmpc.systems import load_system
 from pinnmpc.util.settings import SettingError
 from tests.conftest import ROOT
@@ -240,7 +235,7 @@ def test_metrics_say_when_the_arm_saturates_or_passes_a_joint_limit(make_cfg, tm
     x = np.zeros((3, 14))
     x[:, 3] = -1.0  # joint 4's range is [-3.07, -0.07]
     x[1, 3] = system.joint_limits.high[3] + 0.002  # joint 4 2 mrad past its upper limit at one sample
-    run = {"x": x, "u": np.zeros((2, 7))}
+    run = LoopResult(x, np.zeros((2, 7)), "ok", 0)
     assert limits_and_saturation(run, controller, system) == {
         "joint_limit_samples": 1, "joint_limit_excess_max": pytest.approx(0.002), "saturated_fraction": 0.0,
     }  # fmt: skip

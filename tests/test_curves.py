@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from pinnmpc.curves import main, read_curve
-from pinnmpc.train import train
+from pinnmpc.curves import main
+from pinnmpc.training.curves import read_curve
+from pinnmpc.training.run import train
 from tests.conftest import TINY_TRAIN
 
 

@@ -5,13 +5,14 @@ from __future__ import annotations
 import pytest
 import torch
 
-from pinnmpc.curves import read_curve
 from pinnmpc.surrogate import load_surrogate, shipped
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems import PowerCube, load_system
-from pinnmpc.train import build_model, train
+from pinnmpc.training.curves import read_curve
 from pinnmpc.training.grow import widened
+from pinnmpc.training.models import build_model
 from pinnmpc.training.pipeline import base_training_time
+from pinnmpc.training.run import train
 from pinnmpc.util.settings import SettingError, validate_train
 from tests.conftest import TINY_TRAIN
 

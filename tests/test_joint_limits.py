@@ -13,11 +13,11 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from pinnmpc.closed_loop import system_reference
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.casadi_ocp import CasadiOCP
 from pinnmpc.controller.ocp import HorizonOCP, JointLimits
 from pinnmpc.references import ReferenceError, load_reference
+from pinnmpc.simulation.setup import system_reference
 from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.systems import load_system
 
@@ -291,7 +291,7 @@ def test_real_time_exact_values_stay_inside_the_limits(panda: Any, tmp_path: Pat
     the limit penalty switching on, and plans held at the limits crossed them on the plant. Such samples are now
     solved fully: on a reference that drives every joint onto its upper limit in 4 s and holds it there, the arm
     stays inside (before: 18 of 155 steps past a limit, by up to 7.6 mrad)."""
-    from pinnmpc.closed_loop import run_closed_loop
+    from pinnmpc.simulation.run import run_closed_loop
 
     t = np.arange(0.0, 8.0 + 1e-9, panda.tau)
     s = np.clip(t / 4.0, 0.0, 1.0)

@@ -7,8 +7,8 @@ import json
 import pytest
 
 from pinnmpc.surrogate import load_surrogate
-from pinnmpc.train import train_command
 from pinnmpc.training.pipeline import duration, seconds
+from pinnmpc.training.run import train_command
 from pinnmpc.util.settings import SettingError
 from tests.conftest import TINY_TRAIN
 

@@ -14,9 +14,9 @@ from pinnmpc.surrogate import Surrogate
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.surrogate.prior import EIGEN_FROM_JOINTS, MEMO_SIZE, FrozenArmPrior
 from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian, divided_differences
-from pinnmpc.train import train
 from pinnmpc.training.data import CollocationDataModule
 from pinnmpc.training.module import PINNModule
+from pinnmpc.training.run import train
 from pinnmpc.util.settings import SettingError
 from tests.conftest import TINY_TRAIN
 

@@ -17,12 +17,13 @@ import pytest
 import torch
 
 from pinnmpc.cli import LOCK_NAME, USER_ERRORS, StopSignal, acquire, clean, discard_own_files, guard, release
-from pinnmpc.closed_loop import run_closed_loop, verdict
 from pinnmpc.robustness import run_robustness
 from pinnmpc.self_loop import run_self_loop
+from pinnmpc.simulation.metrics import verdict
+from pinnmpc.simulation.run import run_closed_loop
 from pinnmpc.surrogate import SHIPPED, load_surrogate
 from pinnmpc.systems import load_system
-from pinnmpc.train import train
+from pinnmpc.training.run import train
 from pinnmpc.util.settings import SettingError, validate_train
 from tests.conftest import ROOT, TINY_TRAIN
 

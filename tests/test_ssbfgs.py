@@ -8,9 +8,9 @@ import torch
 
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems import PowerCube
-from pinnmpc.train import train
 from pinnmpc.training.data import CollocationDataModule
 from pinnmpc.training.module import PINNModule
+from pinnmpc.training.run import train
 from pinnmpc.training.ssbfgs import SSBFGS, InverseHessian, Step
 from tests.conftest import TINY_TRAIN
 

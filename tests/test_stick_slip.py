@@ -7,8 +7,8 @@ import pytest
 from omegaconf import OmegaConf
 from scipy.integrate import solve_ivp
 
-from pinnmpc.closed_loop import make_plant
 from pinnmpc.plant import PlantError, ScipyPlant
+from pinnmpc.plant.build import make_plant
 from pinnmpc.systems import PowerCube
 from pinnmpc.systems.powercube import GRAVITY
 

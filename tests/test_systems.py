@@ -203,8 +203,8 @@ def test_each_arms_experiment_is_its_shipped_networks_recipe(system: str) -> Non
 
 
 def test_planar3_trains_and_tracks(make_cfg, tmp_path: Path) -> None:
-    from pinnmpc.closed_loop import run_closed_loop
-    from pinnmpc.train import train
+    from pinnmpc.simulation.run import run_closed_loop
+    from pinnmpc.training.run import train
 
     overrides = [
         "system=planar3",
@@ -234,7 +234,7 @@ def test_planar3_trains_and_tracks(make_cfg, tmp_path: Path) -> None:
 
 
 def test_shipped_planar3_network_tracks_its_reference(make_cfg, tmp_path: Path) -> None:
-    from pinnmpc.closed_loop import run_closed_loop
+    from pinnmpc.simulation.run import run_closed_loop
 
     m = run_closed_loop(make_cfg("closed_loop", ["system=planar3", "max_steps=40", "progress=false"]), tmp_path)
     assert m["status"] == "ok" and m["fallbacks"] == 0

@@ -20,10 +20,11 @@ from pinnmpc.cli import LOCK_NAME, discard_own_files, guard, launched_rank, rele
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.systems import PowerCube
 from pinnmpc.systems.registry import build_system
-from pinnmpc.train import build_datamodule, build_model, sha256, train
 from pinnmpc.training.callbacks import AtomicCheckpoint
 from pinnmpc.training.data import CollocationDataModule, lhs_box, reference_flow
+from pinnmpc.training.models import build_model
 from pinnmpc.training.module import PINNModule
+from pinnmpc.training.run import build_datamodule, sha256, train
 from tests.conftest import ROOT, TINY_TRAIN
 
 TINY = [*TINY_TRAIN, "self_loop_figure.every_n_epochs=1", "self_loop_figure.steps=3"]

@@ -16,7 +16,7 @@ from pinnmpc.surrogate import CheckpointError, Surrogate, load_surrogate
 from pinnmpc.surrogate.prior import FrozenArmPrior
 from pinnmpc.systems import Box, RigidArm, build_system, load_system
 from pinnmpc.systems.urdf import URDF_DIR
-from pinnmpc.train import fresh_model
+from pinnmpc.training.models import fresh_model
 
 LIMIT = '<limit lower="-3" upper="3" effort="50" velocity="3"/>'
 LINK = '<link name="{0}"><inertial><origin xyz="{1} 0 0"/><mass value="{2}"/><inertia ixx="0.001" ixy="0" ixz="0" iyy="{3}" iyz="0" izz="{3}"/></inertial></link>'  # noqa: E501

@@ -7,10 +7,10 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.closed_loop import make_plant as closed_loop_plant
-from pinnmpc.closed_loop import system_reference
+from pinnmpc.plant.build import make_plant as closed_loop_plant
 from pinnmpc.plant.scipy_plant import ScipyPlant
 from pinnmpc.references.files import Reference
+from pinnmpc.simulation.setup import system_reference
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import random_pairs
 

@@ -22,12 +22,13 @@ from pinnmpc.bench.common import (
     optimality_solvers,
 )
 from pinnmpc.bench.timing import as_numpy
-from pinnmpc.closed_loop import divergence_box, metrics, simulate, verdict
 from pinnmpc.controller.arrays import Array
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
 from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
 from pinnmpc.references.files import Reference
+from pinnmpc.simulation.loop import divergence_box, run_loop
+from pinnmpc.simulation.metrics import metrics, verdict
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.surrogate.flowmap import CompiledRK4, FlowMap, RK4Model
 from pinnmpc.systems.base import Box, System
@@ -81,7 +82,16 @@ def loop_row(
     plant = make_plant(cfg, system, tau)
     start = time.perf_counter()
     steps, box = cfg.closed_loop.max_steps, divergence_box(system)  # a diverged loop stops, as in pinnmpc.closed_loop
-    run = simulate(controller, plant, ref, domain, 0.0, int(cfg.seed), steps, bool(cfg.progress), state_box=box)
+    run = run_loop(
+        controller,
+        plant,
+        ref,
+        max_steps=steps,
+        domain=domain,
+        state_box=box,
+        seed=int(cfg.seed),
+        progress=bool(cfg.progress),
+    )
     wall = time.perf_counter() - start
     m = metrics(ref, run, controller, plant, system.state_names)
     m["status"] = verdict(m, float(cfg.failure.max_fallback_fraction))  # too many fallbacks: failed

@@ -8,14 +8,11 @@ import errno
 import fcntl
 import os
 import shutil
-import signal
 import sys
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
 from typing import Any, TypeVar
 
 from hydra.experimental.callback import Callback
@@ -26,7 +23,9 @@ from pinnmpc.cli.args import CONF as CONF  # re-exported: the entry points take 
 from pinnmpc.cli.args import EXIT_BAD_INPUT as EXIT_BAD_INPUT
 from pinnmpc.cli.args import check_choices as check_choices
 from pinnmpc.cli.args import config_dir_args as config_dir_args
+from pinnmpc.util.io import append_log as append_log  # re-exported for the tasks
 from pinnmpc.util.io import atomic_write
+from pinnmpc.util.signals import StopSignal as StopSignal  # re-exported for the tasks
 
 T = TypeVar("T")
 
@@ -274,64 +273,6 @@ def _discard_unguarded(run_dir: Path) -> None:
         run_dir.rmdir()
 
 
-# ---------------------------------------------------------------------------------------------- signals
-
-
-class StopSignal:
-    """SIGTERM/SIGINT ask a long run to stop at its next safe point (a closed-loop step, a training epoch, cut
-    short); a second one stops at once. Use as a context manager around the run; exit_code is 128 + the signal."""
-
-    SIGNALS = (signal.SIGTERM, signal.SIGINT)
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self.hooks: list[Callable[[], None]] = []  # called on the first signal, e.g. to set trainer.should_stop
-        self._previous: dict[int, Any] = {}
-
-    def __enter__(self) -> StopSignal:
-        self.install()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-        self._previous = {}
-
-    def install(self) -> None:
-        """Take over both signals (again, e.g. after Lightning registered its own SIGTERM handler)."""
-        if threading.current_thread() is not threading.main_thread():
-            return  # signals reach the main thread only
-        for signum in self.SIGNALS:
-            previous = signal.signal(signum, self._handle)
-            self._previous.setdefault(signum, previous)
-
-    def _handle(self, signum: int, _frame: FrameType | None) -> None:
-        """First signal: note it and run the hooks; second: stop now."""
-        if self.signum is not None:
-            raise KeyboardInterrupt
-        self.signum = signum
-        print(
-            f"\nreceived {self.name}: stopping at the next safe point (send it again to stop at once)", file=sys.stderr
-        )
-        for hook in self.hooks:
-            hook()
-
-    @property
-    def requested(self) -> bool:
-        """Whether a stop was asked for."""
-        return self.signum is not None
-
-    @property
-    def name(self) -> str:
-        """SIGTERM / SIGINT."""
-        return signal.Signals(self.signum).name if self.signum is not None else ""
-
-    @property
-    def exit_code(self) -> int:
-        """What a shell reports for a process ended by that signal."""
-        return 128 + (self.signum or 0)
-
-
 # ---------------------------------------------------------------------------------------------- the body
 
 
@@ -348,12 +289,6 @@ def say(message: str, run_dir: Path | None, prog: str, err: bool = False) -> Non
     print(message, file=sys.stderr if err else sys.stdout)
     if run_dir is not None and run_dir.is_dir():
         append_log(job_log(run_dir, prog), message)
-
-
-def append_log(path: Path, message: str) -> None:
-    """One timestamped line at the end of a run's log file."""
-    with path.open("a", encoding="utf-8") as f:
-        f.write(f"[{time.strftime('%Y-%m-%d %H:%M:%S')}] {message}\n")
 
 
 def run_cli(body: Callable[[], T], prog: str, run_dir: Path | None = None) -> T:
@@ -382,19 +317,6 @@ def hydra_run_dir() -> Path:
     from hydra.core.hydra_config import HydraConfig
 
     return Path(HydraConfig.get().runtime.output_dir)
-
-
-def job_system(cfg: DictConfig, validate: Callable[[DictConfig, Any], None]) -> Any:
-    """The job's System from cfg.system, its settings checked against it and the CPU threads set: how jobs start."""
-    from pinnmpc.systems.registry import build_system  # torch and the arms load only when a job runs
-    from pinnmpc.util.settings import validate_system
-    from pinnmpc.util.threads import use_threads
-
-    system = build_system(cfg.system)
-    validate_system(cfg, system)
-    validate(cfg, system)
-    use_threads(cfg.threads)
-    return system
 
 
 def run_job(body: Callable[[Path], T], prog: str, summary: Callable[[T, Path], str]) -> T:

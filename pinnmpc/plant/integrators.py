@@ -1,7 +1,7 @@
 """Fixed-step integrators over one zero-hold period: baselines and accurate reference solutions.
 
 Written once over plain arithmetic, so the same code integrates torch tensors (differentiable), numpy arrays
-and CasADi symbols (the compiled true-model step of pinnmpc.flowmap)."""
+and CasADi symbols (the compiled true-model step of pinnmpc.surrogate.flowmap)."""
 
 from __future__ import annotations
 

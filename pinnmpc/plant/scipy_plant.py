@@ -11,12 +11,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from pinnmpc.plant.base import Plant as Plant  # re-exported: the protocol beside its first plant
+from pinnmpc.plant.base import PlantError as PlantError
 from pinnmpc.plant.stick_slip import ChatterError, coulomb_joints, flip_counter, stick_slip_step
 from pinnmpc.systems.base import System
-
-
-class PlantError(RuntimeError):
-    """The plant integration failed: the closed loop must stop, not continue with garbage."""
 
 
 @dataclass

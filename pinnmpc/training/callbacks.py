@@ -12,10 +12,10 @@ import numpy as np
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
-from pinnmpc.cli import StopSignal
 from pinnmpc.plant.scipy_plant import ScipyPlant
 from pinnmpc.training.ssbfgs import SSBFGS
 from pinnmpc.util.io import atomic_write
+from pinnmpc.util.signals import StopSignal
 
 
 class AtomicCheckpoint(ModelCheckpoint):
@@ -66,7 +66,7 @@ class SelfLoopFigure(L.Callback):
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """The plant side of the test is fixed: compute it once (on the process that logs)."""
-        from pinnmpc.self_loop import rollout_plant, sine_inputs
+        from pinnmpc.simulation.open_loop import rollout_plant, sine_inputs
 
         if self.every_n_epochs <= 0 or not trainer.is_global_zero:
             return

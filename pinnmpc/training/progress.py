@@ -17,9 +17,9 @@ import lightning as L
 from lightning.pytorch.callbacks import Timer
 from tqdm.auto import tqdm
 
-from pinnmpc.cli import append_log
-from pinnmpc.curves import CLOCK
+from pinnmpc.training.curves import CLOCK
 from pinnmpc.training.pipeline import duration
+from pinnmpc.util.io import append_log
 
 NOISE = ("💡 Tip", "GPU available", "TPU available", "HPU available")  # Lightning start-up lines with no news
 

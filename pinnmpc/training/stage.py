@@ -7,12 +7,12 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from pinnmpc.residuals import scaled_residual
 from pinnmpc.surrogate.checkpoint import load_surrogate
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.surrogate.staged import StagedPINN
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import random_pairs, reference_flow
+from pinnmpc.training.residuals import scaled_residual
 
 
 def one_step_rmse(system: System, model: PINN, tau: float, n: int, h: float, seed: int) -> Tensor:

@@ -454,3 +454,15 @@ def validate_bench(cfg: DictConfig, system: Any) -> None:
     if not any(OmegaConf.select(cfg, f"{name}.enabled", default=False) for name in BENCH_SECTIONS):
         keys = ", ".join(f"{name}.enabled" for name in BENCH_SECTIONS)
         raise SettingError(f"every bench section is off ({keys} all false); expected at least one enabled")
+
+
+def job_system(cfg: DictConfig, validate: Callable[[DictConfig, Any], None]) -> Any:
+    """The job's System from cfg.system, its settings checked against it and the CPU threads set: how jobs start."""
+    from pinnmpc.systems.registry import build_system  # torch and the arms load only when a job runs
+    from pinnmpc.util.threads import use_threads
+
+    system = build_system(cfg.system)
+    validate_system(cfg, system)
+    validate(cfg, system)
+    use_threads(cfg.threads)
+    return system

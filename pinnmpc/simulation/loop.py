@@ -1,0 +1,121 @@
+"""The receding-horizon loop itself: controller, plant and reference in, the trajectory out (no config, no files)."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from pinnmpc.controller.nmpc import Controller
+from pinnmpc.plant.base import Plant, PlantError
+from pinnmpc.references.data import Reference
+from pinnmpc.systems.base import Box, System
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LoopResult:
+    """What one closed loop reached: states (steps + 1, nx), the inputs applied (steps, nu) and how it ended."""
+
+    x: np.ndarray
+    u: np.ndarray
+    status: str  # "ok", "interrupted", "plant_failure: ..." or "failed: ..."
+    out_of_box_steps: int  # measured states outside the model's training box
+
+
+def run_loop(
+    controller: Controller,
+    plant: Plant,
+    ref: Reference,
+    *,
+    x0: Sequence[float] | None = None,
+    max_steps: int | None = None,
+    domain: Box | None = None,
+    state_box: Box | None = None,
+    noise_sigma: float = 0.0,
+    seed: int = 0,
+    progress: bool = True,
+    stop: Callable[[], bool] | None = None,
+) -> LoopResult:
+    """Receding-horizon loop from x0 (None: the reference's first sample); stops cleanly on a plant failure, when the
+    state leaves state_box by more than its width (a diverged simulation or controller) or when stop() turns true
+    (a signal), and returns what was reached."""
+    horizon, nx = controller.horizon, ref.x.shape[1]
+    steps = len(ref) - horizon - 1
+    if steps < 1:
+        raise ValueError(
+            f"reference {ref.name} has {len(ref)} samples at tau; horizon {horizon} needs at least {horizon + 2}"
+        )
+    if max_steps is not None:
+        steps = min(steps, int(max_steps))
+    rng = np.random.default_rng(seed)
+    lo = np.full(nx, -np.inf) if domain is None else np.array(domain.low)
+    hi = np.full(nx, np.inf) if domain is None else np.array(domain.high)
+    controller.reset()
+    x = np.array(ref.x[0] if x0 is None else x0, dtype=np.float64)
+    xs, us, status, out_of_box_steps, warned = [x], [], "ok", 0, False
+    for k in tqdm(range(steps), desc="closed loop", unit="step", disable=not progress, file=sys.stderr):
+        if stop is not None and stop():
+            status = "interrupted"
+            log.warning("interrupted after %d of %d steps; writing what was reached", k, steps)
+            break
+        measured = x + noise_sigma * rng.standard_normal(nx)
+        if np.any(measured < lo) or np.any(measured > hi):
+            out_of_box_steps += 1
+            if not warned:
+                log.warning(
+                    "state %s at step %d is outside the surrogate's training box; predictions may be poor",
+                    measured.round(3).tolist(),
+                    k,
+                )
+                warned = True
+        u = controller.make_step(measured, ref.x[k + 1 : k + 1 + horizon])
+        try:
+            x = plant.step(x, u)
+        except PlantError as e:
+            status = f"plant_failure: {e}"
+            log.error("%s; stopping after %d steps", status, k)
+            us.append(u)
+            break
+        xs.append(x)
+        us.append(u)
+        far = diverged(x, state_box)
+        if far:
+            status = f"failed: {far} after step {k}: the simulation or the controller diverged"
+            log.error("%s; stopping", status)
+            break
+    return LoopResult(
+        np.array(xs), np.array(us, dtype=np.float64).reshape(-1, len(controller.low)), status, out_of_box_steps
+    )
+
+
+def divergence_box(system: System) -> Box:
+    """The state box, with unbounded positions on arms whose joints turn all the way round (no joint limits)."""
+    low, high = np.array(system.state_box.low, dtype=float), np.array(system.state_box.high, dtype=float)
+    if system.joint_limits is None:
+        low[: system.nq], high[: system.nq] = -np.inf, np.inf
+    return Box(low.tolist(), high.tolist())
+
+
+def diverged(x: np.ndarray, box: Box | None) -> str:
+    """What is wrong with a state that is not finite or lies beyond box by more than the box's width ('' if none)."""
+    if not np.all(np.isfinite(x)):
+        return f"the state became non-finite ({x.tolist()})"
+    if box is None:
+        return ""
+    beyond = np.flatnonzero(far_outside(x, box))
+    if not beyond.size:
+        return ""
+    j, low, high = int(beyond[0]), box.low, box.high
+    return f"state {j} = {x[j]:.3g}, beyond the state box [{low[j]:.3g}, {high[j]:.3g}] by more than its width"
+
+
+def far_outside(x: np.ndarray, box: Box) -> np.ndarray:
+    """Which entries of states x (..., n) lie beyond the box by more than its width: no arm of the system goes there."""
+    low, high = np.asarray(box.low, dtype=float), np.asarray(box.high, dtype=float)
+    return (x < low - (high - low)) | (x > high + (high - low))

@@ -1,0 +1,143 @@
+"""What a closed loop is judged by: metrics.json, its verdict and the one-line headline."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pinnmpc.controller.nmpc import Controller
+from pinnmpc.plant.base import Plant
+from pinnmpc.references.data import Reference
+from pinnmpc.simulation.loop import LoopResult
+from pinnmpc.systems.base import System
+
+SATURATED_NOTE = 0.05  # the headline notes inputs at their bounds from this share of the steps on (display only)
+FINAL_SAMPLES = 10  # the last samples whose worst joint-angle error says where a run ended up
+
+
+def _stats(values: np.ndarray) -> dict[str, float]:
+    """Summary of a timing series in seconds."""
+    if values.size == 0:
+        return {"mean": float("nan"), "median": float("nan"), "p95": float("nan"), "max": float("nan")}
+    return {
+        "mean": float(values.mean()),
+        "median": float(np.median(values)),
+        "p95": float(np.percentile(values, 95)),
+        "max": float(values.max()),
+    }
+
+
+def metrics(
+    ref: Reference,
+    run: LoopResult,
+    controller: Controller,
+    plant: Plant,
+    names: tuple[str, ...],
+    units: tuple[str, ...] = (),
+) -> dict[str, Any]:
+    """metrics.json: tracking error per state (SI units), OCP and plant timings, solver statistics."""
+    x = run.x
+    err = np.abs(x - ref.x[: len(x)])
+    st = controller.stats
+    return {
+        "reference": ref.name,
+        "status": run.status,
+        "steps": len(st),
+        "tau": plant.tau,
+        "horizon": controller.horizon,
+        **controller.describe(),
+        "mae": {n: float(v) for n, v in zip(names, err.mean(0))},
+        "rmse": {n: float(v) for n, v in zip(names, np.sqrt((err**2).mean(0)))},
+        "max_abs_error": {n: float(v) for n, v in zip(names, err.max(0))},
+        # where the run ends: the worst joint-angle error over its last FINAL_SAMPLES samples (did it follow?)
+        "final_position_error_max": float(err[-FINAL_SAMPLES:, : len(names) // 2].max()) if len(err) else 0.0,
+        "ocp_time_s": _stats(np.array([s.time_s for s in st])),
+        "plant_step_time_s": {
+            k: v for k, v in _stats(np.array(plant.step_times)).items() if k in ("mean", "median", "p95", "max")
+        },
+        "plant_stick_slip_steps": plant.stick_slip_steps,
+        "iterations": {
+            "mean": float(np.mean([s.iterations for s in st])) if st else 0.0,
+            "max": max((s.iterations for s in st), default=0),
+        },
+        "converged_fraction": float(np.mean([s.converged for s in st])) if st else 0.0,
+        "fallbacks": sum(s.fallback for s in st),
+        "not_converged": sum(not s.converged for s in st),
+        "out_of_box_steps": run.out_of_box_steps,
+        "u_abs_max": float(np.abs(run.u).max()) if len(run.u) else 0.0,
+        "state_units": dict(zip(names, units)),  # for readers of the file (and the headline)
+        "fallback_fraction": sum(s.fallback for s in st) / len(st) if st else 0.0,
+    }
+
+
+def limits_and_saturation(run: LoopResult, controller: Controller, system: System) -> dict[str, Any]:
+    """What a tracking error alone does not say: samples past the arm's joint limits (and how far), and the share of
+    steps with an input at its bound (a reference asking more than the arm can give)."""
+    q, u = run.x[:, : system.nq], run.u
+    excess = np.zeros(len(q))
+    if system.joint_limits is not None:
+        low, high = np.asarray(system.joint_limits.low), np.asarray(system.joint_limits.high)
+        excess = np.maximum(q - high, low - q).max(axis=1).clip(min=0.0)
+    low_u, high_u = np.asarray(controller.low, dtype=float), np.asarray(controller.high, dtype=float)
+    span = high_u - low_u
+    tol = 1e-9 * np.where(np.isfinite(span), span, 0.0)
+    at_bound = (u <= low_u + tol) | (u >= high_u - tol)
+    return {
+        "joint_limit_samples": int((excess > 0).sum()),  # samples with a joint past its limit (system.joint_limits)
+        "joint_limit_excess_max": float(excess.max(initial=0.0)),  # rad
+        "saturated_fraction": float(at_bound.any(axis=1).mean()) if len(u) else 0.0,  # steps with an input at a bound
+    }
+
+
+def verdict(m: dict[str, Any], max_fallback_fraction: float) -> str:
+    """The run's status: a run that mostly applied fallback inputs did not control anything, whatever it tracked."""
+    if m["status"] != "ok" or not m["steps"]:
+        return m["status"]
+    n, k = m["steps"], m["fallbacks"]
+    if k == n:
+        return f"failed: every one of the {n} steps fell back (no OCP solve succeeded; inputs were not the NMPC's)"
+    if k / n > max_fallback_fraction:
+        limit = f"failure.max_fallback_fraction={max_fallback_fraction:g}"
+        return f"failed: {k} of {n} steps fell back ({k / n:.0%} > {limit})"
+    return "ok"
+
+
+def headline(m: dict[str, Any], run_dir: Path) -> str:
+    """One line from metrics.json: status, tracking of every joint angle, OCP vs plant time, what went wrong."""
+    names = list(m["mae"])
+    units = m.get("state_units", {})
+    mae = ", ".join(f"{n} {m['mae'][n]:.2e} {units.get(n, '')}".rstrip() for n in names[: len(names) // 2])
+    real_time = bool(m.get("real_time"))  # a real-time iteration stops after its step(s) by design: not news
+    trouble = [
+        f"{m[k]} {label}"
+        for k, label in (
+            ("fallbacks", "fallbacks"),
+            ("not_converged", "not converged"),
+            ("out_of_box_steps", "out of box"),
+        )
+        if m[k] and not (real_time and k == "not_converged")
+    ] + (["input bounds beyond the training box"] if m.get("input_bounds_outside_box") else [])
+    if m.get("final_position_error_max", 0.0) > m.get("tracking_bound", math.inf):
+        trouble.append(f"did not follow: it ends {m['final_position_error_max']:.2g} rad off the reference")
+    if m.get("joint_limit_samples"):
+        past = f"{m['joint_limit_samples']} samples past a joint limit"
+        trouble.append(f"{past} (by up to {m['joint_limit_excess_max']:.1e} rad)")
+    if m.get("saturated_fraction", 0.0) >= SATURATED_NOTE:
+        off = {k: v for k, v in (m.get("plant_mismatch") or {}).items() if v != 1.0}
+        why = f"the plant differs from the model: {', '.join(f'{k} {v:g}' for k, v in off.items())}" if off else ""
+        if not why and m.get("start_off_reference", 0.0) > 0.0:
+            why = "it starts off the reference, x0"
+        why = why or "the reference may ask too much"
+        trouble.append(f"inputs at a bound in {m['saturated_fraction']:.0%} of steps ({why})")
+    return (
+        f"{m['status']}: {m['steps']} steps on {m['reference']} with {m['solver']}"
+        + (" as a real-time iteration" if real_time else "")
+        + (f" (offset-free, gain {m['disturbance_gain']:g})" if m["disturbance_gain"] > 0 else "")
+        + f"; MAE {mae}; OCP median {1e3 * m['ocp_time_s']['median']:.2f} ms "
+        f"(plant step {1e3 * m['plant_step_time_s']['median']:.2f} ms)"
+        + (f"; {', '.join(trouble)}" if trouble else "")
+        + f"; outputs in {run_dir}"
+    )
