@@ -85,6 +85,6 @@ format: install
 contract: install  ## the outside contract checks in ../shared
 	$(PY) ../shared/tools/check_contract.py --closed-loop --arms --casadi
 
-clean:  ## delete outputs/ (sweeps too: outputs/sweeps/) and caches; keeps run dirs of live runs and shipped checkpoints
+clean:  ## delete outputs/ (sweeps too: outputs/train_multirun/) and caches; keeps run dirs of live runs and shipped checkpoints
 	$(PY) -m pinnmpc.cli clean outputs multirun lightning_logs
 	rm -rf .pytest_cache .ruff_cache

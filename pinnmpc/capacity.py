@@ -130,7 +130,7 @@ def run_capacity(cfg: DictConfig, run_dir: Path, command: str = "python -m pinnm
     system = job_system(cfg, validate_capacity)
     torch.manual_seed(int(cfg.seed))
     model = fresh_model(cfg, system).to(getattr(torch, cfg.dtype))
-    tau, h = float(cfg.tau), float(cfg.h)
+    tau, h = float(system.tau), float(cfg.h)
     train = one_step_data(system, tau, int(cfg.points), h, int(cfg.seed))
     val = one_step_data(system, tau, int(cfg.val_points), h, int(cfg.seed) + 1)
     every = max(1.0, 60.0 * float(cfg.minutes) / 10)  # about ten progress lines per run

@@ -154,7 +154,7 @@ def run_time_basis(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         list(cfg.candidates),
         int(cfg.greedy),
         int(cfg.degree),
-        float(cfg.tau),
+        float(system.tau),
         float(cfg.t_max),
         int(cfg.points),
         float(cfg.dt),

@@ -9,7 +9,8 @@ import pytest
 from matplotlib.figure import Figure
 from PIL import Image
 
-from pinnmpc import load_system, plots
+from pinnmpc import load_system
+from pinnmpc.util import plots
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 CUBE = load_system("powercube")

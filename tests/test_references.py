@@ -11,20 +11,11 @@ from omegaconf import OmegaConf
 
 from pinnmpc import load_system
 from pinnmpc.cli import USER_ERRORS
-from pinnmpc.references import (
-    BUILTIN_DT,
-    Reference,
-    ReferenceError,
-    check_states,
-    out_of_box,
-    resample,
-    resolve_reference_path,
-    velocity_scale,
-    warn_velocities,
-)
+from pinnmpc.references import BUILTIN_DT, Reference, ReferenceError, resample
 from pinnmpc.references import builtin_reference as _builtin
 from pinnmpc.references import load_reference as _load
 from pinnmpc.references import read_reference as _read
+from pinnmpc.references.files import check_states, out_of_box, resolve_reference_path, velocity_scale, warn_velocities
 from pinnmpc.systems import system_config
 
 CUBE = load_system("powercube")

@@ -27,7 +27,7 @@ def build_model(cfg: DictConfig, system: System) -> PINN | StagedPINN:
             for k in keys
             if (v := cfg.model.get(k)) is not None
         }
-        return grown_model(system, cfg.init_from, cfg.tau, cfg.t_max, hidden, cfg.seed, basis, sums, prior, form)
+        return grown_model(system, cfg.init_from, system.tau, cfg.t_max, hidden, cfg.seed, basis, sums, prior, form)
     return fresh_model(cfg, system)
 
 
@@ -75,7 +75,7 @@ def build_staged(cfg: DictConfig, system: System) -> StagedPINN:
     """stage.base frozen plus a correction network of stage.hidden; the base fixes box, t_max and form."""
     st = cfg.stage
     model = staged_model(
-        system, st.base, cfg.tau, list(st.hidden), st.error_scale, st.first_layer_gain, st.last_layer_gain,
+        system, st.base, system.tau, list(st.hidden), st.error_scale, st.first_layer_gain, st.last_layer_gain,
         st.samples, st.h, cfg.seed,
     )  # fmt: skip
     if abs(model.t_max - cfg.t_max) > 1e-12:

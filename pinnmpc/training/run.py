@@ -110,7 +110,7 @@ def build_datamodule(cfg: DictConfig, system: System) -> CollocationDataModule:
     on a term the loss ignores."""
     n_anchor = 0 if cfg.module.get("weight_anchor") == 0 else cfg.data.get("n_anchor", 0)
     return instantiate(cfg.data, _partial_=True, _convert_="all")(
-        system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed, n_anchor=n_anchor
+        system=system, tau=system.tau, t_max=cfg.t_max, seed=cfg.seed, n_anchor=n_anchor
     )
 
 
@@ -146,7 +146,7 @@ def train(
     # _convert_="all": plain lists, not OmegaConf ones, reach the hyper-parameters stored in checkpoints,
     # which load_surrogate reads with torch.load(weights_only=True)
     datamodule = build_datamodule(cfg, system)
-    module = instantiate(cfg.module, _partial_=True, _convert_="all")(system=system, model=model, tau=cfg.tau)
+    module = instantiate(cfg.module, _partial_=True, _convert_="all")(system=system, model=model, tau=system.tau)
     recorded = None
     if ckpt is not None:
         check_fits(ckpt, label, module)
@@ -165,7 +165,7 @@ def train(
     base_time = (
         recorded_base if recorded_base is not None else base_training_time(cfg.stage.base or cfg.get("init_from"))
     )
-    callbacks: list[L.Callback] = [best, last, SurrogateFacts(cfg.tau, base_time), figure, BudgetBar(cfg.progress)]
+    callbacks: list[L.Callback] = [best, last, SurrogateFacts(system.tau, base_time), figure, BudgetBar(cfg.progress)]
     callbacks += [EpochLog(run_dir / "train.log", system.state_names), TrainingClock()]
     if cfg.trainer.get("max_time") is None:  # with max_time Lightning adds this Timer itself
         callbacks.append(Timer())  # counts training time across resumes (its state is in every checkpoint)

@@ -257,7 +257,6 @@ RESIDUALS: dict[str, Check] = {
 }
 
 TIME_BASIS: dict[str, Check] = {
-    "tau": positive(),
     "t_max": positive(),
     "time_basis": listof(positive(), empty=True),
     "candidates": listof(positive(), empty=True),
@@ -273,7 +272,6 @@ TIME_BASIS: dict[str, Check] = {
 }
 
 CAPACITY: dict[str, Check] = {
-    "tau": positive(),
     "t_max": positive(),
     "points": integer(1),
     "val_points": integer(1),
@@ -293,7 +291,6 @@ CAPACITY: dict[str, Check] = {
 }
 
 TRAIN: dict[str, Check] = {
-    "tau": positive(),
     "t_max": positive(),
     "seed": SEED,
     "threads": integer(1),
@@ -417,15 +414,15 @@ def validate_residuals(cfg: DictConfig, system: Any) -> None:
 def validate_time_basis(cfg: DictConfig, system: Any) -> None:
     """time_basis settings."""
     validate(cfg, TIME_BASIS, system_dims(system))
-    if cfg.t_max < cfg.tau:
-        raise SettingError(f"t_max={cfg.t_max} is below tau={cfg.tau}: expected t_max >= tau (the misfit is at tau)")
+    if cfg.t_max < system.tau:
+        raise SettingError(f"t_max={cfg.t_max} is below the system's tau={system.tau}: expected t_max >= tau (the misfit is at tau)")
 
 
 def validate_capacity(cfg: DictConfig, system: Any) -> None:
     """capacity settings."""
     validate(cfg, CAPACITY, system_dims(system))
-    if cfg.t_max < cfg.tau:
-        raise SettingError(f"t_max={cfg.t_max} is below tau={cfg.tau}: expected t_max >= tau (the fit is at tau)")
+    if cfg.t_max < system.tau:
+        raise SettingError(f"t_max={cfg.t_max} is below the system's tau={system.tau}: expected t_max >= tau (the fit is at tau)")
 
 
 def validate_train(cfg: DictConfig, system: Any) -> None:
@@ -442,9 +439,9 @@ def validate_train(cfg: DictConfig, system: Any) -> None:
             f"stage.split/stage.base with model.prior={cfg.model.prior}: a correction stage does not support a "
             "prior; expected system.network.prior=null with it"
         )
-    if cfg.t_max < cfg.tau:
+    if cfg.t_max < system.tau:
         raise SettingError(
-            f"t_max={cfg.t_max} is below tau={cfg.tau}: expected t_max >= tau (the network predicts x(tau))"
+            f"t_max={cfg.t_max} is below the system's tau={system.tau}: expected t_max >= tau (the network predicts x(tau))"
         )
 
 
