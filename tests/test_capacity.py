@@ -36,7 +36,7 @@ def test_bad_settings_are_refused_in_one_line(make_cfg, tmp_path) -> None:
         run_capacity(make_cfg("capacity", ["points=0"]), tmp_path / "a")
     with pytest.raises(SettingError, match="dtype='float16': expected one of float32, float64"):
         run_capacity(make_cfg("capacity", ["dtype=float16"]), tmp_path / "d")
-    with pytest.raises(SettingError, match="t_max=0.1 is below tau=0.2"):
+    with pytest.raises(SettingError, match="t_max=0.1 is below the system's tau=0.2"):
         run_capacity(make_cfg("capacity", ["t_max=0.1"]), tmp_path / "b")
     with pytest.raises(ValueError, match="angle_sums must list sums of two or more distinct periodic"):
         run_capacity(make_cfg("capacity", ["system=panda", "system.network.angle_sums=[[0,1]]", *TINY]), tmp_path / "c")

@@ -48,5 +48,5 @@ def test_entry_point_writes_json_and_figure_and_refuses_bad_input(make_cfg, tmp_
     assert no_targets["targets"] is None and "one-step target" not in _summary(no_targets, tmp_path)
     with pytest.raises(SettingError, match=r"time_basis=\[-0.01\]"):
         run_time_basis(make_cfg("time_basis", ["time_basis=[-0.01]"]), tmp_path / "bad")
-    with pytest.raises(SettingError, match="t_max=0.1 is below tau=0.2"):
+    with pytest.raises(SettingError, match="t_max=0.1 is below the system's tau=0.2"):
         run_time_basis(make_cfg("time_basis", ["t_max=0.1"]), tmp_path / "bad2")

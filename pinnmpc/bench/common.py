@@ -7,8 +7,8 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from pinnmpc.plant.base import Plant
 from pinnmpc.plant.build import make_plant as closed_loop_plant
-from pinnmpc.plant.scipy_plant import ScipyPlant
 from pinnmpc.references.files import Reference
 from pinnmpc.simulation.setup import system_reference
 from pinnmpc.systems.base import System
@@ -18,9 +18,9 @@ STATUS_CHARS = 40  # a failed loop's status is cut to this many characters in it
 NO_DISTURBANCE = {"gain": 0.0}  # controller.disturbance override: the paper's controller, no offset-free MPC
 
 
-def make_plant(cfg: DictConfig, system: System, tau: float) -> ScipyPlant:
+def make_plant(cfg: DictConfig, system: System, tau: float) -> Plant:
     """The simulated robot of every closed loop and of the RK45 row, as pinnmpc.closed_loop builds it."""
-    return closed_loop_plant(system, cfg.plant, tau)
+    return closed_loop_plant(system, cfg.plant, tau, cfg.system.get("robots"))
 
 
 def bench_reference(cfg: DictConfig, system: System, tau: float, name: str | None = None) -> Reference:

@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
-from omegaconf import DictConfig
+from collections.abc import Mapping
+from typing import Any
 
+from omegaconf import DictConfig, OmegaConf
+
+from pinnmpc.plant.base import Plant
 from pinnmpc.plant.scipy_plant import ScipyPlant
 from pinnmpc.systems.base import System
+
+KINDS = ("scipy", "mujoco")  # conf/plant/<kind>.yaml
 
 
 def plant_system(system: System, cfg: DictConfig) -> System:
@@ -15,8 +21,26 @@ def plant_system(system: System, cfg: DictConfig) -> System:
     return system.with_mismatch(friction_scale=cfg.friction_scale, mass_scale=cfg.mass_scale)
 
 
-def make_plant(system: System, cfg: DictConfig, tau: float) -> ScipyPlant:
-    """The simulated robot of every closed loop (and of the bench's RK45 row) from the plant settings."""
+def make_plant(system: System, cfg: DictConfig, tau: float, robots: Mapping[str, Any] | None = None) -> Plant:
+    """The simulated robot of every closed loop (and of the bench's plant rows) from the plant settings: scipy's
+    solve_ivp on the model, or MuJoCo on the arm's URDF as one of the system's `robots` (read here alone)."""
+    kind = cfg.get("kind", "scipy")
+    if kind == "mujoco":
+        from pinnmpc.plant.mujoco_robot import make_mujoco_plant  # MuJoCo loads only for its plant
+
+        if isinstance(robots, DictConfig):
+            robots = OmegaConf.to_container(robots, resolve=True)
+        return make_mujoco_plant(
+            system,
+            tau,
+            robots,
+            cfg.get("robot"),
+            friction_scale=cfg.friction_scale,
+            mass_scale=cfg.mass_scale,
+            substeps=int(cfg.substeps),
+        )
+    if kind != "scipy":
+        raise ValueError(f"plant.kind={kind!r}; expected one of {list(KINDS)} (conf/plant/)")
     return ScipyPlant(
         plant_system(system, cfg),
         tau,

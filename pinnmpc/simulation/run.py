@@ -59,7 +59,7 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
     if dist > 0:
         what = "the surrogate's training box" if domain is not None else "the system's state box"
         log.warning("reference leaves %s by up to %.3g; tracking there is extrapolation", what, dist)
-    plant = make_plant(system, cfg.plant, tau)
+    plant = make_plant(system, cfg.plant, tau, cfg.system.get("robots"))
     run = run_loop(
         controller,
         plant,
@@ -82,6 +82,7 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
         "friction_scale": float(cfg.plant.friction_scale),
         "mass_scale": float(cfg.plant.mass_scale),
     }
+    result["plant"] = {"kind": str(cfg.plant.get("kind", "scipy")), "robot": cfg.plant.get("robot")}
     # the headline says "did not follow" past this final error (the robustness grid's bound of a bounded run)
     result["tracking_bound"] = float(cfg.system.get("robustness", {}).get("bound", math.inf))
     # how far a user's start x0 lies off the reference's first state (0: it starts on it)

@@ -195,7 +195,10 @@ SYSTEM: dict[str, Check] = {  # the per-joint lists of conf/system/<name>.yaml t
     "system.self_loop.amplitude": vector("nu"),
 }
 
-PLANT: dict[str, Check] = {  # conf/plant/scipy.yaml, in every job that simulates the robot
+PLANT: dict[str, Check] = {  # conf/plant/<kind>.yaml, in every job that simulates the robot
+    "plant.kind": one_of("scipy", "mujoco"),
+    "plant.robot": optional(text()),
+    "plant.substeps": integer(1),
     "plant.method": one_of(*SCIPY_METHODS),
     "plant.rtol": positive(),
     "plant.atol": positive(),
@@ -411,18 +414,22 @@ def validate_residuals(cfg: DictConfig, system: Any) -> None:
         )
 
 
+def _t_max_covers_tau(cfg: DictConfig, system: Any, why: str) -> None:
+    """t_max below the control period would leave the one time the controller asks for outside the fitted range."""
+    if cfg.t_max < system.tau:
+        raise SettingError(f"t_max={cfg.t_max} is below the system's tau={system.tau}: expected t_max >= tau ({why})")
+
+
 def validate_time_basis(cfg: DictConfig, system: Any) -> None:
     """time_basis settings."""
     validate(cfg, TIME_BASIS, system_dims(system))
-    if cfg.t_max < system.tau:
-        raise SettingError(f"t_max={cfg.t_max} is below the system's tau={system.tau}: expected t_max >= tau (the misfit is at tau)")
+    _t_max_covers_tau(cfg, system, "the misfit is at tau")
 
 
 def validate_capacity(cfg: DictConfig, system: Any) -> None:
     """capacity settings."""
     validate(cfg, CAPACITY, system_dims(system))
-    if cfg.t_max < system.tau:
-        raise SettingError(f"t_max={cfg.t_max} is below the system's tau={system.tau}: expected t_max >= tau (the fit is at tau)")
+    _t_max_covers_tau(cfg, system, "the fit is at tau")
 
 
 def validate_train(cfg: DictConfig, system: Any) -> None:
@@ -439,10 +446,7 @@ def validate_train(cfg: DictConfig, system: Any) -> None:
             f"stage.split/stage.base with model.prior={cfg.model.prior}: a correction stage does not support a "
             "prior; expected system.network.prior=null with it"
         )
-    if cfg.t_max < system.tau:
-        raise SettingError(
-            f"t_max={cfg.t_max} is below the system's tau={system.tau}: expected t_max >= tau (the network predicts x(tau))"
-        )
+    _t_max_covers_tau(cfg, system, "the network predicts x(tau)")
 
 
 def validate_bench(cfg: DictConfig, system: Any) -> None:
