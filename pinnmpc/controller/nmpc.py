@@ -245,6 +245,11 @@ class NMPC:
         )
         return U[0].copy()
 
+    def prediction_error(self, x_prev: np.ndarray, u_prev: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """What the controller's model missed over the last period, x - F(x_prev, u_prev): the closed loop's model
+        monitor (no disturbance estimate added)."""
+        return self.ocp.prediction_error(x_prev, u_prev, x)
+
     @property
     def disturbance(self) -> np.ndarray | None:
         """The disturbance the last solve predicted with (None: off or not estimated yet)."""

@@ -26,6 +26,8 @@ class LoopResult:
     u: np.ndarray
     status: str  # "ok", "interrupted", "plant_failure: ..." or "failed: ..."
     out_of_box_steps: int  # measured states outside the model's training box
+    prediction_error: np.ndarray | None = None  # (steps - 1, nx): measured next state less the controller model's
+    #   one-step prediction from the measured state and the applied input (the model monitor; None: no model)
 
 
 def run_loop(
@@ -59,6 +61,8 @@ def run_loop(
     controller.reset()
     x = np.array(ref.x[0] if x0 is None else x0, dtype=np.float64)
     xs, us, status, out_of_box_steps, warned = [x], [], "ok", 0, False
+    monitor = getattr(controller, "prediction_error", None)  # the controller's model, one step (None: it has none)
+    errors, last = [], None
     for k in tqdm(range(steps), desc="closed loop", unit="step", disable=not progress, file=sys.stderr):
         if stop is not None and stop():
             status = "interrupted"
@@ -74,7 +78,10 @@ def run_loop(
                     k,
                 )
                 warned = True
+        if monitor is not None and last is not None:
+            errors.append(monitor(*last, measured))
         u = controller.make_step(measured, ref.x[k + 1 : k + 1 + horizon])
+        last = (measured, np.asarray(u, dtype=np.float64))
         try:
             x = plant.step(x, u)
         except PlantError as e:
@@ -89,9 +96,9 @@ def run_loop(
             status = f"failed: {far} after step {k}: the simulation or the controller diverged"
             log.error("%s; stopping", status)
             break
-    return LoopResult(
-        np.array(xs), np.array(us, dtype=np.float64).reshape(-1, len(controller.low)), status, out_of_box_steps
-    )
+    U = np.array(us, dtype=np.float64).reshape(-1, len(controller.low))
+    E = None if monitor is None else np.array(errors, dtype=np.float64).reshape(-1, nx)
+    return LoopResult(np.array(xs), U, status, out_of_box_steps, E)
 
 
 def divergence_box(system: System) -> Box:

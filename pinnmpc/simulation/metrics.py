@@ -70,6 +70,21 @@ def metrics(
         "u_abs_max": float(np.abs(run.u).max()) if len(run.u) else 0.0,
         "state_units": dict(zip(names, units)),  # for readers of the file (and the headline)
         "fallback_fraction": sum(s.fallback for s in st) / len(st) if st else 0.0,
+        "model_monitor": model_monitor(run, names),  # the model's one-step miss on the measured states
+    }
+
+
+def model_monitor(run: LoopResult, names: tuple[str, ...]) -> dict[str, Any] | None:
+    """How far the controller's model misses the measured next state (median and p95 of |error| per state, SI
+    units): the figure that says the model no longer matches the robot (None: the controller has no model step)."""
+    e = run.prediction_error
+    if e is None or not len(e):
+        return None
+    a = np.abs(e)
+    return {
+        "median": {n: float(v) for n, v in zip(names, np.median(a, axis=0))},
+        "p95": {n: float(v) for n, v in zip(names, np.percentile(a, 95, axis=0))},
+        "samples": len(e),
     }
 
 
@@ -105,6 +120,17 @@ def verdict(m: dict[str, Any], max_fallback_fraction: float) -> str:
     return "ok"
 
 
+def monitor_note(m: dict[str, Any]) -> str:
+    """The headline's model monitor: the worst joint angle's p95 one-step miss of the model on the robot."""
+    mon = m.get("model_monitor")
+    if not mon:
+        return ""
+    names = list(mon["p95"])[: len(mon["p95"]) // 2]
+    worst = max(names, key=lambda n: mon["p95"][n])
+    unit = (m.get("state_units") or {}).get(worst, "")
+    return f"; model one-step miss p95 {mon['p95'][worst]:.1e} {unit} ({worst})".replace("  ", " ")
+
+
 def headline(m: dict[str, Any], run_dir: Path) -> str:
     """One line from metrics.json: status, tracking of every joint angle, OCP vs plant time, what went wrong."""
     names = list(m["mae"])
@@ -138,6 +164,7 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
         + (f" (offset-free, gain {m['disturbance_gain']:g})" if m["disturbance_gain"] > 0 else "")
         + f"; MAE {mae}; OCP median {1e3 * m['ocp_time_s']['median']:.2f} ms "
         f"(plant step {1e3 * m['plant_step_time_s']['median']:.2f} ms)"
+        + monitor_note(m)
         + (f"; {', '.join(trouble)}" if trouble else "")
         + f"; outputs in {run_dir}"
     )
