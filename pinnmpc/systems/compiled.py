@@ -7,11 +7,6 @@ same algorithm as many small torch operations; training uses it through `CasadiR
 
 from __future__ import annotations
 
-import hashlib
-import os
-import shutil
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -21,50 +16,33 @@ import numpy as np
 import torch
 from torch import Tensor
 
-CACHE_ENV = "PINNMPC_CACHE"  # where compiled functions are kept (default: ~/.cache/pinnmpc)
-CFLAGS = ("-fPIC", "-shared")  # a shared library that ca.external can load
-
-
-def cache_dir() -> Path:
-    """Folder of compiled libraries, keyed by the hash of their C source."""
-    return Path(os.environ.get(CACHE_ENV) or Path.home() / ".cache" / "pinnmpc")
+from pinnmpc.systems.cache import CACHE_ENV as CACHE_ENV  # re-exported: where compiled functions are kept
+from pinnmpc.systems.cache import CompileError, library
+from pinnmpc.systems.cache import cache_dir as cache_dir
 
 
 def compile_functions(name: str, functions: list[ca.Function], opt: str = "-O1") -> dict[str, ca.Function]:
-    """Generate C for the functions, compile it once (cached by source hash) and load each as an external.
+    """Generate C for the functions, compile it once (cached by source hash, checked before it is loaded, rebuilt
+    when bad: pinnmpc.systems.cache) and load each as an external.
 
     opt: the C compiler's optimisation flag; lower levels compile large generated files (a 7-joint arm) sooner
     and run a little slower (docs/results.md, panda)."""
     gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
     for f in functions:
         gen.add(f)
-    with tempfile.TemporaryDirectory() as tmp:
-        cwd = os.getcwd()
-        try:
-            os.chdir(tmp)
-            gen.generate()
-        finally:
-            os.chdir(cwd)
-        source = (Path(tmp) / f"{name}.c").read_text()
-    digest = hashlib.sha256((source + opt).encode()).hexdigest()[:16]
-    lib = cache_dir() / f"{name}_{digest}.so"
-    if not lib.is_file():
-        compiler = shutil.which(os.environ.get("CC", "cc")) or shutil.which("gcc")
-        if compiler is None:
-            raise RuntimeError(f"no C compiler found (CC={os.environ.get('CC', 'cc')}); install gcc to compile {name}")
-        lib.parent.mkdir(parents=True, exist_ok=True)
-        # a large arm's generated code is slow to compile: say what the wait is (once; the library is cached)
-        print(f"compiling {name} ({len(source) // 1024} kB of C, {opt}) into {lib.parent}", file=sys.stderr)
-        with tempfile.TemporaryDirectory(dir=lib.parent) as tmp:
-            src = Path(tmp) / f"{name}.c"
-            src.write_text(source)
-            out = Path(tmp) / lib.name
-            cmd = [compiler, opt, *CFLAGS, str(src), "-o", str(out), "-lm"]
-            done = subprocess.run(cmd, capture_output=True, text=True)
-            if done.returncode != 0:
-                raise RuntimeError(f"compiling {name} failed: {done.stderr.strip()[:500]}")
-            os.replace(out, lib)  # atomic: a concurrent process sees the whole library or none
-    return {f.name(): ca.external(f.name(), str(lib)) for f in functions}
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            gen.generate(f"{tmp}/")
+            source = (Path(tmp) / f"{name}.c").read_text()
+    except (OSError, RuntimeError) as e:
+        said = str(e).strip().splitlines()
+        raise CompileError(f"generating C for {name} failed: {said[-1] if said else type(e).__name__}") from None
+    lib = library(name, source, opt)
+    try:
+        return {f.name(): ca.external(f.name(), str(lib)) for f in functions}
+    except RuntimeError as e:
+        said = str(e).strip().splitlines()
+        raise CompileError(f"loading {lib} failed: {said[-1] if said else type(e).__name__}") from None
 
 
 class BatchedFunction:
