@@ -8,6 +8,7 @@ from typing import Any
 
 from pinnmpc.bench.common import status_suffix
 from pinnmpc.bench.loops import mode
+from pinnmpc.bench.robot import md_robot
 from pinnmpc.util.tables import fmt, md_table
 
 TRUE_MODEL_JACOBIANS = {"torch": "by autodiff through RK4 in torch", "compiled": "by CasADi AD, compiled C"}
@@ -358,11 +359,18 @@ def md_classical(cl: dict[str, Any], system: dict[str, Any], plant: str) -> str:
     )
 
 
+def plant_label(plant: dict[str, Any]) -> str:
+    """How the tables name the simulated robot: the scipy method, or MuJoCo and the robot it simulates."""
+    if plant.get("kind", "scipy") == "mujoco":
+        return f"MuJoCo ({plant.get('robot') or 'nominal'} robot)"
+    return str(plant["method"])
+
+
 def render_markdown(result: dict[str, Any]) -> str:
     """bench.md: readable tables with the paper's numbers side by side where the system has them."""
     system, paper = result["system"], result.get("paper")
     names = system["state_names"]
-    plant = result["config"]["plant"]["method"]
+    plant = plant_label(result["config"]["plant"])
     parts = [f"# pinnmpc benchmark: {system['name']}", "", machine_line(result["machine"]), "", units_line(system), ""]
     if "step" in result:
         parts.append(md_step(result["step"], paper, names))
@@ -380,6 +388,8 @@ def render_markdown(result: dict[str, Any]) -> str:
         parts.append(md_targets(result["targets"], network))
     if "classical" in result:
         parts.append(md_classical(result["classical"], system, plant))
+    if "robot" in result:
+        parts.append(md_robot(result["robot"], system))
     elapsed = ", ".join(f"{k} {v:.1f} s" for k, v in result["elapsed_s"].items())
     parts += [f"Wall time per section: {elapsed}.", ""]
     return "\n".join(parts)

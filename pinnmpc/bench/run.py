@@ -16,6 +16,7 @@ from pinnmpc.bench.common import bench_reference, optimality_solvers
 from pinnmpc.bench.loops import OCPProblem, bench_closed_loop, run_controller
 from pinnmpc.bench.optimality import bench_optimality
 from pinnmpc.bench.report import render_markdown
+from pinnmpc.bench.robot import bench_robot
 from pinnmpc.bench.scaling import bench_scaling
 from pinnmpc.bench.step import bench_step
 from pinnmpc.bench.targets import check_targets
@@ -100,6 +101,8 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         result["classical"] = timed("classical", lambda: bench_classical(cfg, system, pinn64, ref, rows))
         if cfg.plots:
             classical_plot(result["classical"], system, run_dir / "classical.png")
+    if cfg.get("robot") is not None and cfg.robot.enabled:
+        result["robot"] = timed("robot", lambda: bench_robot(cfg, system, pinn64))
     result["targets"] = check_targets(cfg, result, names)
     result["elapsed_s"] = {k: float(v) for k, v in elapsed.items()}
     save_json(run_dir / "bench.json", result)

@@ -17,6 +17,8 @@ from pinnmpc.plant.integrators import n_steps, rk4_fixed, rk4_step
 from pinnmpc.systems.base import System
 
 Scorer = Callable[[Tensor, Tensor, Tensor], Tensor]  # (t, x0, u) -> residual per point, as PINNModule provides
+MIN_ROBOT_TRANSITIONS = 2000  # logged transitions below which a fine-tuning fits noise, not the robot
+MIN_ROBOT_VALIDATION = 50  # held-out one-period transitions below which the validation RMSE says little
 
 
 def lhs_box(n: int, low: Sequence[float], high: Sequence[float], seed: int) -> Tensor:
@@ -93,6 +95,9 @@ class CollocationDataModule(L.LightningDataModule):
         t_high: float | None = None,
         n_anchor: int = 0,
         anchor_h: float = 1e-4,
+        logs: Sequence[str] = (),
+        n_robot: int = 0,
+        val_episodes: float = 0.2,
     ) -> None:
         super().__init__()
         if n_collocation < 1 or n_data < 0 or n_val < 1 or n_anchor < 0:
@@ -120,6 +125,14 @@ class CollocationDataModule(L.LightningDataModule):
         self.n_val, self.val_h, self.seed = int(n_val), float(val_h), int(seed)
         self.n_anchor, self.anchor_h = int(n_anchor), float(anchor_h)
         self.adaptive_pool, self.adaptive_k, self.adaptive_c = int(adaptive_pool), float(adaptive_k), float(adaptive_c)
+        self.logs, self.n_robot, self.val_episodes = [str(p) for p in logs], int(n_robot), float(val_episodes)
+        if self.n_robot < 0 or not 0 < self.val_episodes < 1:
+            raise ValueError(
+                f"need data.n_robot >= 0 (0: every logged transition) and 0 < data.val_episodes < 1; "
+                f"got {n_robot}, {val_episodes}"
+            )
+        self.robot: dict[str, Tensor] = {}  # the logs' training transitions (t, x0, u, dx), read once
+        self.robot_meta: list[dict[str, Any]] = []  # each log's meta, for the network's provenance
         self.draws = 0
         self.batch: dict[str, Tensor] = {}
         self.val: dict[str, Tensor] = {}
@@ -187,6 +200,8 @@ class CollocationDataModule(L.LightningDataModule):
             batch.update(data_x0=data[:, :nx], data_u=data[:, nx:])
         if self.n_anchor:
             batch.update(self._anchors(low, high, seed + 2))
+        if self.robot:
+            batch.update(self._robot_rows(seed + 3))
         self.batch = batch
         self.draws += 1
 
@@ -216,8 +231,35 @@ class CollocationDataModule(L.LightningDataModule):
             out["anchor_share"] = share
         return out
 
+    def _robot_rows(self, seed: int) -> dict[str, Tensor]:
+        """The robot-data loss's rows: every logged transition, or n_robot of them drawn afresh with each draw."""
+        r = self.robot
+        if self.n_robot and self.n_robot < len(r["t"]):
+            rows = torch.randperm(len(r["t"]), generator=torch.Generator().manual_seed(seed))[: self.n_robot]
+            r = {k: v[rows] for k, v in r.items()}
+        return {f"robot_{k}": v for k, v in r.items()}
+
+    def _read_logs(self) -> None:
+        """The robot's logs: whole episodes held out for validation (the one-step error at tau on the robot), every
+        pair of samples within one hold period of the others for the robot-data loss."""
+        from pinnmpc.robot_data.logs import check_enough, read_log, split_episodes, transitions
+
+        logs = [read_log(path, self.system) for path in self.logs]
+        parts = [split_episodes(log, self.val_episodes, self.seed) for log in logs]
+        t, x0, u, xt = transitions([train for train, _ in parts], self.t_max)
+        check_enough(len(t), MIN_ROBOT_TRANSITIONS, "data.logs")
+        self.robot = {"t": t, "x0": x0, "u": u, "dx": xt - x0}
+        vt, vx0, vu, vx1 = transitions([val for _, val in parts], self.tau)
+        at_tau = (vt[:, 0] - self.tau).abs() <= 1e-9 * self.tau  # one control period: what the controller asks for
+        check_enough(int(at_tau.sum()), MIN_ROBOT_VALIDATION, "the held-out episodes of data.logs")
+        self.val = {"x0": vx0[at_tau], "u": vu[at_tau], "x1": vx1[at_tau]}
+        self.robot_meta = [log.meta for log in logs]
+
     def setup(self, stage: str | None = None) -> None:
-        """Initial draw and the held-out validation rollouts (computed once)."""
+        """Initial draw and the held-out validation rollouts (computed once): the model's flow at tau, or with
+        logs the robot's next states in held-out episodes."""
+        if self.logs and not self.robot:
+            self._read_logs()
         if not self.batch:
             self.draw()
         if not self.val:

@@ -56,6 +56,7 @@ class PINNModule(L.LightningModule):
         weight_physics: float = 1.0,
         weight_data: float = 1.0,
         weight_anchor: float = 1.0,
+        weight_robot: float = 1.0,
         anchor_state_weight: Sequence[float] | None = None,
         dtype: str = "float32",
         adam_epochs: int = 0,
@@ -196,6 +197,10 @@ class PINNModule(L.LightningModule):
             if "anchor_share" in b:  # a DDP shard, weighted as the physics loss is
                 out["anchor"] = out["anchor"] * b["anchor_share"]
             total = total + self.hparams.weight_anchor * out["anchor"]
+        if "robot_t" in b and self.hparams.weight_robot > 0:  # the robot's logs: what the model misses
+            dx = self.model(b["robot_t"], b["robot_x0"], b["robot_u"]) - b["robot_x0"]
+            out["robot"] = (((dx - b["robot_dx"]) / self.model.out_scale).square() * self.anchor_w).mean()
+            total = total + self.hparams.weight_robot * out["robot"]
         out["total"] = total
         return out
 

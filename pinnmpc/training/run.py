@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import shlex
 import sys
 import time
 from pathlib import Path
@@ -29,6 +28,7 @@ from pinnmpc.training.models import build_model
 from pinnmpc.training.pipeline import base_training_time, train_in_stages
 from pinnmpc.training.progress import BudgetBar, EpochLog, TrainingClock, quiet_lightning, timer_of
 from pinnmpc.training.resume import check_continuable, check_fits, read_ckpt, recorded_best, resolve_ckpt
+from pinnmpc.util.commands import command_line, override
 from pinnmpc.util.io import save_json
 from pinnmpc.util.settings import validate_train
 from pinnmpc.util.signals import StopSignal
@@ -99,10 +99,12 @@ def ddp_record(trainer: L.Trainer, module: L.LightningModule, datamodule: L.Ligh
 
 
 def resume_command(cfg_overrides: list[str], run_dir: Path) -> str:
-    """The command that continues this run from its last.ckpt."""
+    """The command that continues this run from its last.ckpt, to paste into a shell as printed: the overrides as
+    Hydra got them, the run dir quoted for Hydra's grammar, the whole line for the shell."""
     skip = ("resume=", "ckpt_path=", "hydra.run.dir=", "+resume=", "+ckpt_path=")
     kept = [o for o in cfg_overrides if not o.startswith(skip)]
-    return shlex.join(["python", "-m", "pinnmpc.train", *kept, "resume=true", f"hydra.run.dir={run_dir}"])
+    words = ["python", "-m", "pinnmpc.train", *kept, "resume=true", override("hydra.run.dir", str(run_dir))]
+    return command_line(words)
 
 
 def build_datamodule(cfg: DictConfig, system: System) -> CollocationDataModule:
@@ -209,6 +211,8 @@ def train(
         "resumed_best_val_rmse_position": recorded,  # what the checkpoint resumed from had reached (None: fresh)
         "final_metrics": {k: float(v) for k, v in trainer.callback_metrics.items()},
     }
+    if datamodule.robot_meta:  # a fine-tuned network: what it learnt from (system, robot, seed, noise, command)
+        meta["robot_logs"] = datamodule.robot_meta
     if interrupted and stop is not None:
         meta["signal"] = stop.name
     if distributed is not None:

@@ -317,6 +317,10 @@ TRAIN: dict[str, Check] = {
     "module.weight_physics": real(0.0),
     "module.weight_data": real(0.0),
     "module.weight_anchor": real(0.0),
+    "module.weight_robot": real(0.0),
+    "data.logs": listof(text(), empty=True),
+    "data.n_robot": integer(0),
+    "data.val_episodes": real(0.0, 1.0, lo_open=True),
     "module.adam_epochs": integer(0),
     "module.adam_lr": positive(),
     "module.lbfgs_lr": positive(),
@@ -338,6 +342,9 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
     "step.warmup": integer(0),
     "step.rk45_loop_repeats": integer(1),
     "closed_loop.max_steps": optional(integer(1)),
+    "robot.references": listof(text()),
+    "robot.adapted": optional(text()),
+    "robot.identified": optional(text()),
     "optimality.n_states": integer(1),
     "optimality.random_starts": integer(0),
     "scaling.horizons": listof(integer(1)),
@@ -352,6 +359,50 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
     **PLANT,
 }
 BENCH_SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical")
+
+COLLECT: dict[str, Check] = {  # conf/collect.yaml
+    "robot_time": positive(),
+    "fine": integer(1),
+    "noise_sigma": real(0.0),
+    "seed": integer(0, 2**31 // 1000 - 1),  # episode seeds are seed * 1000 + episode
+    "checkpoint": optional(text()),
+    "allow_inputs_outside_box": boolean(),
+    "threads": integer(1),
+    "progress": boolean(),
+    "out": text(),
+    "episodes.kinds": listof(one_of("random", "driven", "excitation")),
+    "excitation.duration": positive(),
+    "excitation.fraction": real(0.0, 1.0),
+    "excitation.bandwidth": positive(),
+    "excitation.damping": real(0.0),
+    "excitation.amplitude": real(0.0, 1.0),
+    "excitation.hold": integer(1),
+    "excitation.target_every": positive(),
+    **PLANT,
+    "controller.horizon": integer(1),
+    "controller.Q": weight("nx"),
+    "controller.R": weight("nu"),
+    "controller.u_low": optional(vector("nu")),
+    "controller.u_high": optional(vector("nu")),
+}
+
+IDENTIFY: dict[str, Check] = {  # conf/identify.yaml
+    "logs": listof(text()),
+    "out": optional(text()),
+    "name": optional(text()),
+    "fit.viscous": boolean(),
+    "fit.coulomb": boolean(),
+    "fit.servo_gain": boolean(),
+    "fit.payload": boolean(),
+    "fit.armature": boolean(),
+    "payload.pos": optional(vector(3)),
+    "payload.link": optional(text()),
+    "max_samples": optional(integer(1)),
+    "validation_periods": integer(0),
+    "rk4_steps": integer(1),
+    "seed": SEED,
+    "threads": integer(1),
+}
 
 
 def _plain(value: Any) -> Any:
@@ -455,6 +506,24 @@ def validate_bench(cfg: DictConfig, system: Any) -> None:
     if not any(OmegaConf.select(cfg, f"{name}.enabled", default=False) for name in BENCH_SECTIONS):
         keys = ", ".join(f"{name}.enabled" for name in BENCH_SECTIONS)
         raise SettingError(f"every bench section is off ({keys} all false); expected at least one enabled")
+
+
+def validate_collect(cfg: DictConfig, system: Any) -> None:
+    """collect settings, before the robot or the controller is built."""
+    validate(cfg, COLLECT, system_dims(system))
+    _pair(cfg, "controller.u_low", "controller.u_high")
+    if cfg.plant.get("kind") == "mujoco" and int(cfg.plant.substeps) % int(cfg.fine):
+        raise SettingError(
+            f"plant.substeps={cfg.plant.substeps} is not a multiple of fine={cfg.fine}: expected a multiple, so the "
+            "fine plant keeps the control-rate plant's RK4 step"
+        )
+
+
+def validate_identify(cfg: DictConfig, system: Any) -> None:
+    """identify settings, before any log is read."""
+    validate(cfg, IDENTIFY, system_dims(system))
+    if not cfg.logs:
+        raise SettingError("logs=[]: expected at least one robot log (.npz or .csv from pinnmpc.collect)")
 
 
 def job_system(cfg: DictConfig, validate: Callable[[DictConfig, Any], None]) -> Any:

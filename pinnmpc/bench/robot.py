@@ -1,0 +1,117 @@
+"""Section 7: a robot that is not the model (plant=mujoco plant.robot=<name>). The nominal classical NMPC, the
+classical NMPC on a model identified from the robot's logs, the shipped network and the network fine-tuned on those
+logs, each in one closed loop per reference on the same robot and protocol; the references should be ones the logs
+did not hold."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from pinnmpc.bench.classical import classical_cfg, classical_solvers
+from pinnmpc.bench.common import bench_reference, controller_cfg
+from pinnmpc.bench.loops import loop_row
+from pinnmpc.controller.build import build_nmpc
+from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
+from pinnmpc.systems.base import System
+from pinnmpc.systems.registry import load_system
+from pinnmpc.util.tables import fmt, md_table
+
+log = logging.getLogger(__name__)
+NOMINAL_PLANT = Path(__file__).resolve().parents[2] / "conf" / "plant" / "scipy.yaml"  # the model as the plant
+
+
+def robot_controllers(cfg: DictConfig, system: System, shipped: Surrogate) -> list[tuple[str, str, Any, Any]]:
+    """(key, label, controller, training box) of every row: the classical NMPC on the nominal and (robot.identified)
+    the identified model, the shipped and (robot.adapted) the fine-tuned network; all with the same OCP."""
+    from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc
+
+    r = cfg.robot
+    shared = {"disturbance": cfg.controller.disturbance} if r.offset_free else {"disturbance": {"gain": 0.0}}
+    classical = OmegaConf.merge(classical_cfg(cfg, classical_solvers(cfg)[0]), shared)
+    pinn = OmegaConf.merge(controller_cfg(cfg), shared)
+    rows = [("classical_nominal", "classical NMPC, nominal model", build_casadi_nmpc(classical, system), None)]
+    if r.identified is not None:
+        fitted = load_system(str(r.identified))
+        if fitted.state_names != system.state_names:
+            raise ValueError(f"robot.identified={r.identified} is another arm: states {fitted.state_names}")
+        rows.append(
+            ("classical_identified", "classical NMPC, identified model", build_casadi_nmpc(classical, fitted), None)
+        )
+    rows.append(("pinn_shipped", "PINN-MPC, shipped network", build_nmpc(pinn, shipped, system), shipped.domain))
+    if r.adapted is not None:
+        adapted = load_surrogate(str(r.adapted), state_names=system.state_names)
+        rows.append(("pinn_adapted", "PINN-MPC, fine-tuned network", build_nmpc(pinn, adapted, system), adapted.domain))
+    return rows
+
+
+def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str, Any]:
+    """Every controller of robot_controllers on every reference of robot.references, on the robot; then the
+    shipped network on the nominal model as the plant (what fine-tuning should come back to)."""
+    if cfg.plant.get("kind", "scipy") != "mujoco" or cfg.plant.get("robot") is None:
+        raise ValueError(
+            f"robot.enabled=true with plant.kind={cfg.plant.get('kind', 'scipy')}, plant.robot="
+            f"{cfg.plant.get('robot')}; expected plant=mujoco plant.robot=<name> (a robot that is not the model)"
+        )
+    refs = [bench_reference(cfg, system, system.tau, str(name)) for name in cfg.robot.references]
+    rows: dict[str, dict[str, Any]] = {}
+    for key, label, controller, box in robot_controllers(cfg, system, shipped):
+        for ref in refs:
+            row = loop_row(cfg, system, controller, box, system.tau, ref)
+            rows[f"{key}@{ref.name}"] = {**row, "label": label, "controller": key, "reference": ref.name}
+            log.info("robot: %s on %s done in %.1f s", label, ref.name, row["wall_s"])
+    nominal = OmegaConf.merge(cfg, {"plant": OmegaConf.load(NOMINAL_PLANT)})
+    pinn = build_nmpc(controller_cfg(cfg), shipped, system)
+    for ref in refs:
+        row = loop_row(nominal, system, pinn, shipped.domain, system.tau, ref)
+        label = "PINN-MPC, shipped network, nominal plant"
+        rows[f"pinn_shipped_nominal@{ref.name}"] = {**row, "label": label, "controller": "pinn_shipped_nominal"}
+        rows[f"pinn_shipped_nominal@{ref.name}"]["reference"] = ref.name
+    return {
+        "robot": str(cfg.plant.robot),
+        "references": [ref.name for ref in refs],
+        "offset_free": bool(cfg.robot.offset_free),
+        "adapted": None if cfg.robot.adapted is None else str(cfg.robot.adapted),
+        "identified": None if cfg.robot.identified is None else str(cfg.robot.identified),
+        "rows": rows,
+    }
+
+
+def worst_angle_mae(row: dict[str, Any], angles: list[str]) -> float:
+    """The worst joint angle's MAE of a row: one number per closed loop."""
+    return max(row["mae"][n] for n in angles)
+
+
+def md_robot(section: dict[str, Any], system: dict[str, Any]) -> str:
+    """Section 7: worst joint-angle MAE per controller and reference, OCP median, and each against the nominal
+    classical NMPC on the same reference."""
+    angles = system["state_names"][: system["nq"]]
+    rows = section["rows"]
+    refs = section["references"]
+    keys = list(dict.fromkeys(r["controller"] for r in rows.values()))
+    head = ["controller", *(f"{ref} MAE [rad]" for ref in refs), "÷ nominal classical (worst)", "OCP median [ms]"]
+    table = []
+    for key in keys:
+        mine = [rows[f"{key}@{ref}"] for ref in refs]
+        maes = [worst_angle_mae(r, angles) for r in mine]
+        base = [worst_angle_mae(rows[f"classical_nominal@{ref}"], angles) for ref in refs]
+        ratio = max(m / b for m, b in zip(maes, base))
+        ocp = max(r["ocp_time_s"]["median"] for r in mine)
+        table.append([mine[0]["label"], *(fmt(m) for m in maes), fmt(ratio), fmt(1e3 * ocp)])
+    estimator = "with" if section["offset_free"] else "without"
+    return "\n".join(
+        [
+            f"## 7. On the robot `{section['robot']}` (a robot the model is not)",
+            "",
+            f"Worst joint-angle MAE per reference, every controller {estimator} the offset-free estimator; the last "
+            "rows run the shipped network on the nominal model as the plant (where a fine-tuned network should come "
+            "back to). Adapted network: "
+            f"{section['adapted'] or '—'}; identified model: {section['identified'] or '—'}.",
+            "",
+            md_table(head, table),
+            "",
+        ]
+    )

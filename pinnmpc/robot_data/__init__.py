@@ -1,0 +1,26 @@
+"""Data from a robot: the log format (logs.py), collecting logs from a simulated robot (collect.py) and fitting the
+model's physical coefficients to them (identify.py)."""
+
+from pinnmpc.robot_data.logs import (
+    RobotLog,
+    check_enough,
+    read_log,
+    read_logs,
+    select_episodes,
+    split_episodes,
+    transitions,
+    transitions_per_second,
+    write_log,
+)
+
+__all__ = [
+    "RobotLog",
+    "check_enough",
+    "read_log",
+    "read_logs",
+    "select_episodes",
+    "split_episodes",
+    "transitions",
+    "transitions_per_second",
+    "write_log",
+]

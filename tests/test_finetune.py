@@ -1,0 +1,111 @@
+"""Fine-tuning on a robot's logs: real MuJoCo robot, real closed loops to log, real Lightning training on them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from pinnmpc import load_surrogate, load_system
+from pinnmpc.controller.build import build_nmpc
+from pinnmpc.plant.mujoco_robot import make_mujoco_plant
+from pinnmpc.references import Reference
+from pinnmpc.robot_data.logs import RobotLog, write_log
+from pinnmpc.systems import system_config
+from pinnmpc.training.run import train
+from tests.conftest import TINY_TRAIN
+
+FINE = 5  # samples per control period in the test log
+TINY = [*TINY_TRAIN, "system=planar3", "model.auto_scale.h=1e-3", "progress=false"]  # RK4 at 1e-2 diverges here
+
+
+def _episode(system, controller, plant, ref: Reference, t0: float, ep: int) -> tuple[list, list]:
+    """One closed loop on the robot, recorded at the control rate and FINE times per period."""
+    coarse, fine = [], []
+    x = ref.x[0].copy()
+    controller.reset()
+    for k in range(len(ref) - 6):
+        u = np.clip(controller.make_step(x, ref.x[k + 1 : k + 6]), system.input_box.low, system.input_box.high)
+        coarse.append((t0 + k * system.tau, x.copy(), u, ep))
+        for j in range(FINE):
+            fine.append((t0 + (k + j / FINE) * system.tau, x.copy(), ep))
+            x = plant.step(x, u)
+    coarse.append((t0 + (len(ref) - 6) * system.tau, x.copy(), coarse[-1][2], ep))
+    fine.append((coarse[-1][0], x.copy(), ep))
+    return coarse, fine
+
+
+@pytest.fixture(scope="module")
+def lab_log(tmp_path_factory) -> str:
+    """Four 8-s episodes of planar3's lab robot under the shipped controller, as `pinnmpc.collect` writes them."""
+    system = load_system("planar3")
+    robots = OmegaConf.to_container(system_config("planar3").robots, resolve=True)
+    plant = make_mujoco_plant(system, system.tau / FINE, robots, "lab")
+    flow = load_surrogate(system="planar3")
+    controller = build_nmpc({"horizon": 5, "Q": [1, 1, 1, 0, 0, 0], "R": [1e-8, 1e-7, 1e-6]}, flow, system)
+    coarse, fine = [], []
+    t = np.arange(0.0, 8.0, system.tau)
+    for ep, (amp, freq) in enumerate([(0.3, 0.5), (0.4, 0.7), (0.25, 0.9), (0.35, 0.6)]):
+        q = amp * np.sin(np.outer(t, [freq, 1.3 * freq, 1.7 * freq]))
+        ref = Reference(t, np.hstack([q, np.gradient(q, t, axis=0)]), f"sine-{ep}")
+        c, f = _episode(system, controller, plant, ref, 10.0 * ep, ep)
+        coarse += c
+        fine += f
+    meta = {
+        "system": "planar3", "tau": system.tau, "robot": "lab", "seed": 0, "noise_sigma": 0.0, "fine": FINE,
+        "state_names": list(system.state_names), "input_names": list(system.input_names), "robot_time_s": 32.0,
+    }  # fmt: skip
+    log = RobotLog(
+        np.array([c[0] for c in coarse]), np.array([c[1] for c in coarse]), np.array([c[2] for c in coarse]),
+        np.array([c[3] for c in coarse]), np.array([f[0] for f in fine]), np.array([f[1] for f in fine]),
+        np.array([f[2] for f in fine]), meta,
+    )  # fmt: skip
+    stem = tmp_path_factory.mktemp("logs") / "lab"
+    write_log(stem, log)
+    return str(stem) + ".npz"
+
+
+def test_training_on_logs_fits_the_robot_and_records_them(make_cfg, tmp_path, lab_log):
+    overrides = [*TINY, "trainer.max_epochs=3", f"data.logs=[{lab_log}]"]
+    cfg = make_cfg("train", overrides)
+    summary = train(cfg, tmp_path)
+    net = load_surrogate(tmp_path / "surrogate.pt")
+    assert net.meta["robot_logs"][0]["robot"] == "lab" and net.meta["robot_logs"][0]["system"] == "planar3"
+    metrics = summary["final_metrics"]
+    assert "train/loss_robot" in metrics and np.isfinite(metrics["train/loss_robot"])
+    # the validation set is the held-out episode's one-period transitions on the robot, not the model's flow
+    dm_val = summary["best_val_rmse_position"]
+    assert dm_val is not None and np.isfinite(dm_val)
+
+
+def test_the_robot_loss_pulls_the_network_towards_the_logs(make_cfg, tmp_path, lab_log):
+    # the same tiny training with and without the logs: with them, the network predicts the robot's steps closer
+    from pinnmpc.robot_data.logs import read_log, transitions
+
+    system = load_system("planar3")
+    t, x0, u, xt = transitions([read_log(lab_log, system)], system.tau)
+    at_tau = (t[:, 0] - system.tau).abs() < 1e-9
+    errors = []
+    for extra in ([], [f"data.logs=[{lab_log}]", "module.weight_robot=1e4"]):
+        cfg = make_cfg("train", [*TINY, "trainer.max_epochs=6", *extra])
+        train(cfg, tmp_path / str(len(extra)))
+        net = load_surrogate(tmp_path / str(len(extra)) / "surrogate.pt")
+        with torch.no_grad():
+            pred = net.step(x0[at_tau], u[at_tau])
+        errors.append(float((pred - xt[at_tau])[:, :3].square().mean().sqrt()))
+    assert errors[1] < 0.7 * errors[0], errors
+
+
+@pytest.mark.parametrize(
+    ("override", "says"),
+    [
+        ("data.val_episodes=1.5", "data.val_episodes=1.5"),
+        ("data.n_robot=-1", "data.n_robot=-1"),
+        ("data.logs=[/nonexistent/log.npz]", "/nonexistent/log.npz"),
+    ],
+)
+def test_bad_fine_tuning_settings_are_named(make_cfg, tmp_path, override, says):
+    cfg = make_cfg("train", [*TINY, "trainer.max_epochs=1", override])
+    with pytest.raises((ValueError, FileNotFoundError), match=says.replace("[", r"\[").replace(".", r"\.")):
+        train(cfg, tmp_path)
