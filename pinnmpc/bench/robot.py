@@ -9,7 +9,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pinnmpc.bench.classical import classical_cfg, classical_solvers
 from pinnmpc.bench.common import bench_reference, controller_cfg
@@ -63,7 +63,9 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
             row = loop_row(cfg, system, controller, box, system.tau, ref)
             rows[f"{key}@{ref.name}"] = {**row, "label": label, "controller": key, "reference": ref.name}
             log.info("robot: %s on %s done in %.1f s", label, ref.name, row["wall_s"])
-    nominal = OmegaConf.merge(cfg, {"plant": OmegaConf.load(NOMINAL_PLANT)})
+    nominal = cfg.copy()
+    with open_dict(nominal):
+        nominal.plant = OmegaConf.load(NOMINAL_PLANT)
     pinn = build_nmpc(controller_cfg(cfg), shipped, system)
     for ref in refs:
         row = loop_row(nominal, system, pinn, shipped.domain, system.tau, ref)

@@ -358,7 +358,7 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
     "scaling.step_warmup": integer(0),
     **PLANT,
 }
-BENCH_SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical")
+BENCH_SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "robot")
 
 COLLECT: dict[str, Check] = {  # conf/collect.yaml
     "robot_time": positive(),
@@ -378,6 +378,7 @@ COLLECT: dict[str, Check] = {  # conf/collect.yaml
     "excitation.amplitude": real(0.0, 1.0),
     "excitation.hold": integer(1),
     "excitation.target_every": positive(),
+    "excitation.speed": real(0.0, 1.0),
     **PLANT,
     "controller.horizon": integer(1),
     "controller.Q": weight("nx"),
@@ -398,6 +399,7 @@ IDENTIFY: dict[str, Check] = {  # conf/identify.yaml
     "payload.pos": optional(vector(3)),
     "payload.link": optional(text()),
     "max_samples": optional(integer(1)),
+    "min_speed": real(0.0),
     "validation_periods": integer(0),
     "rk4_steps": integer(1),
     "seed": SEED,
