@@ -9,6 +9,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pinnmpc.bench.classical import classical_cfg, classical_solvers
@@ -72,7 +73,15 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
         label = "PINN-MPC, shipped network, nominal plant"
         rows[f"pinn_shipped_nominal@{ref.name}"] = {**row, "label": label, "controller": "pinn_shipped_nominal"}
         rows[f"pinn_shipped_nominal@{ref.name}"]["reference"] = ref.name
+    one_step = {}
+    if cfg.robot.logs:
+        networks = {"pinn_shipped": shipped}
+        if cfg.robot.adapted is not None:
+            networks["pinn_adapted"] = load_surrogate(str(cfg.robot.adapted), state_names=system.state_names)
+        one_step = held_out_rmse(system, networks, [str(p) for p in cfg.robot.logs])
     return {
+        "one_step_rmse": one_step,
+        "logs": [str(p) for p in cfg.robot.logs or []],
         "robot": str(cfg.plant.robot),
         "references": [ref.name for ref in refs],
         "offset_free": bool(cfg.robot.offset_free),
@@ -80,6 +89,23 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
         "identified": None if cfg.robot.identified is None else str(cfg.robot.identified),
         "rows": rows,
     }
+
+
+def held_out_rmse(system: System, networks: dict[str, Surrogate], logs: list[str]) -> dict[str, dict[str, float]]:
+    """Each network's one-step RMSE per state on every one-period transition of the given logs (logs the fine-tuning
+    did not see: another collect run): how well it predicts the robot, the model monitor's figure offline."""
+    from pinnmpc.robot_data.logs import read_log, transitions
+
+    t, x0, u, x1 = transitions([read_log(path, system) for path in logs], system.tau)
+    at_tau = (t[:, 0] - system.tau).abs() <= 1e-9 * system.tau
+    x0, u, x1 = x0[at_tau], u[at_tau], x1[at_tau]
+    out = {}
+    for key, net in networks.items():
+        with torch.no_grad():
+            err = net.step(x0, u) - x1
+        out[key] = {n: float(v) for n, v in zip(system.state_names, err.square().mean(dim=0).sqrt())}
+    out["transitions"] = {"count": float(len(x0))}
+    return out
 
 
 def worst_angle_mae(row: dict[str, Any], angles: list[str]) -> float:
@@ -104,6 +130,19 @@ def md_robot(section: dict[str, Any], system: dict[str, Any]) -> str:
         ocp = max(r["ocp_time_s"]["median"] for r in mine)
         table.append([mine[0]["label"], *(fmt(m) for m in maes), fmt(ratio), fmt(1e3 * ocp)])
     estimator = "with" if section["offset_free"] else "without"
+    one_step, names = section.get("one_step_rmse") or {}, system["state_names"]
+    nets = [k for k in ("pinn_shipped", "pinn_adapted") if k in one_step]
+    rmse = (
+        [
+            "",
+            f"One-step RMSE on {int(one_step['transitions']['count'])} held-out robot transitions "
+            f"({', '.join(section['logs'])}):",
+            "",
+            md_table(["network", *names], [[k, *(fmt(one_step[k][n]) for n in names)] for k in nets]),
+        ]
+        if nets
+        else []
+    )
     return "\n".join(
         [
             f"## 7. On the robot `{section['robot']}` (a robot the model is not)",
@@ -114,6 +153,7 @@ def md_robot(section: dict[str, Any], system: dict[str, Any]) -> str:
             f"{section['adapted'] or '—'}; identified model: {section['identified'] or '—'}.",
             "",
             md_table(head, table),
+            *rmse,
             "",
         ]
     )

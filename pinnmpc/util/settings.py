@@ -345,6 +345,7 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
     "robot.references": listof(text()),
     "robot.adapted": optional(text()),
     "robot.identified": optional(text()),
+    "robot.logs": optional(listof(text())),
     "optimality.n_states": integer(1),
     "optimality.random_starts": integer(0),
     "scaling.horizons": listof(integer(1)),
