@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -14,8 +16,9 @@ from pinnmpc.controller.nmpc import Controller
 from pinnmpc.plant.build import make_plant
 from pinnmpc.references.data import Reference
 from pinnmpc.references.files import out_of_box
-from pinnmpc.simulation.loop import LoopResult, divergence_box, run_loop
-from pinnmpc.simulation.metrics import limits_and_saturation, metrics, verdict
+from pinnmpc.simulation.fault_setup import plan_faults
+from pinnmpc.simulation.loop import LoopResult, divergence_box, model_step, run_loop
+from pinnmpc.simulation.metrics import faults_metrics, limits_and_saturation, metrics, verdict
 from pinnmpc.simulation.setup import (
     arm_differences,
     bounds_outside,
@@ -34,16 +37,26 @@ from pinnmpc.util.signals import StopSignal
 log = logging.getLogger(__name__)
 
 
-def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = None) -> dict[str, Any]:
+class OutputError(OSError):
+    """An output file could not be written (disk full, read-only dir, a folder in the way): one line naming it."""
+
+
+def run_closed_loop(
+    cfg: DictConfig,
+    run_dir: Path,
+    stop: StopSignal | None = None,
+    announce: Callable[[dict[str, Any]], None] | None = None,
+) -> dict[str, Any]:
     """Check the settings, load controller and reference, run the loop (until the end, a plant failure or a signal
-    to stop), write metrics.json, trajectory.npz and plots."""
+    to stop), write trajectory.npz and plots, announce the result (the caller's log line), and metrics.json last:
+    its status is "ok" only when everything before it was written; a write that fails raises OutputError."""
     system: System = job_system(cfg, validate_closed_loop)
     start = checked_start(cfg, system)
     controller, domain, tau = build_controller(cfg, system)
     differs = arm_differences(getattr(getattr(controller, "surrogate", None), "meta", None), cfg)
     if differs:  # before the run: a network of another arm tracks whatever it tracks
         log.warning(
-            "WARNING: the network was trained for another description of this arm (system.dynamics %s differ): "
+            "the network was trained for another description of this arm (system.dynamics %s differ): "
             "it predicts a different arm from the one the plant simulates",
             ", ".join(differs),
         )
@@ -60,9 +73,20 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
         what = "the surrogate's training box" if domain is not None else "the system's state box"
         log.warning("reference leaves %s by up to %.3g; tracking there is extrapolation", what, dist)
     plant = make_plant(system, cfg.plant, tau, cfg.system.get("robots"))
+    monitor = getattr(controller, "prediction_error", None)
+    plan = plan_faults(
+        cfg.get("faults"),
+        system,
+        plant,
+        plant_cfg=cfg.plant,
+        robots=cfg.system.get("robots"),
+        noise_sigma=float(cfg.noise_sigma),
+        seed=int(cfg.seed),
+        predict=None if monitor is None else model_step(monitor, len(system.state_names)),
+    )
     run = run_loop(
         controller,
-        plant,
+        plan.plant,
         ref,
         x0=start,
         max_steps=cfg.max_steps,
@@ -72,8 +96,11 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
         seed=cfg.seed,
         progress=cfg.progress,
         stop=None if stop is None else (lambda: stop.requested),
+        sensor=plan.sensor,
+        guard=plan.guard,
     )
-    result = metrics(ref, run, controller, plant, system.state_names, system.state_units)
+    result = metrics(ref, run, controller, plan.plant, system.state_names, system.state_units)
+    result["faults"] = faults_metrics(run, ref, system.nq, tau, plan.recovery)
     failure = cfg.get("failure") or {}
     result.update(limits_and_saturation(run, controller, system))
     result["status"] = verdict(result, float(failure.get("max_fallback_fraction", 1.0)))
@@ -85,27 +112,58 @@ def run_closed_loop(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = No
     result["plant"] = {"kind": str(cfg.plant.get("kind", "scipy")), "robot": cfg.plant.get("robot")}
     # the headline says "did not follow" past this final error (the robustness grid's bound of a bounded run)
     result["tracking_bound"] = float(cfg.system.get("robustness", {}).get("bound", math.inf))
+    result["followed"] = bool(result["final_position_error_max"] <= result["tracking_bound"])
     # how far a user's start x0 lies off the reference's first state (0: it starts on it)
     result["start_off_reference"] = 0.0 if start is None else float(np.abs(np.asarray(start) - ref.x[0]).max())
     result["network_arm_differs"] = differs  # system.dynamics keys
+    write_outputs(cfg, system, ref, run, controller, run_dir, result, announce)
+    return result
+
+
+def write_outputs(
+    cfg: DictConfig,
+    system: System,
+    ref: Reference,
+    run: LoopResult,
+    controller: Controller,
+    run_dir: Path,
+    result: dict[str, Any],
+    announce: Callable[[dict[str, Any]], None] | None,
+) -> None:
+    """trajectory.npz, the plots, the announcement, then metrics.json: a failed write leaves metrics.json with a
+    status naming it (or none where metrics.json itself cannot be written) and raises OutputError."""
     st = controller.stats
     n = len(run.x)
-    save_npz(
-        run_dir / "trajectory.npz",
-        t=ref.t[:n],
-        x=run.x,
-        x_ref=ref.x[:n],
-        u=run.u,
-        ocp_time_s=np.array([s.time_s for s in st]),
-        iterations=np.array([s.iterations for s in st]),
-        cost=np.array([s.cost for s in st]),
-        converged=np.array([s.converged for s in st]),
-        fallback=np.array([s.fallback for s in st]),
-    )
-    save_json(run_dir / "metrics.json", result)
-    if cfg.plots and len(run.u):
-        write_plots(cfg, system, ref, run, controller, run_dir)
-    return result
+    path = run_dir / "trajectory.npz"
+    try:
+        save_npz(
+            path,
+            t=ref.t[:n],
+            x=run.x,
+            x_ref=ref.x[:n],
+            u=run.u,
+            ocp_time_s=np.array([s.time_s for s in st]),
+            iterations=np.array([s.iterations for s in st]),
+            cost=np.array([s.cost for s in st]),
+            converged=np.array([s.converged for s in st]),
+            fallback=np.array([s.fallback for s in st]),
+        )
+        path = run_dir / "closed_loop.png"
+        if cfg.plots and len(run.u):
+            write_plots(cfg, system, ref, run, controller, run_dir)
+        path = run_dir  # the log line (the caller's announcement)
+        if announce is not None:
+            announce(result)
+    except OSError as e:
+        message = f"cannot write {path}: {e.strerror or e}"
+        result["status"] = f"failed: {message}"
+        with contextlib.suppress(OSError):  # no metrics.json then: nothing claims "ok"
+            save_json(run_dir / "metrics.json", result)
+        raise OutputError(message) from None
+    try:
+        save_json(run_dir / "metrics.json", result)
+    except OSError as e:
+        raise OutputError(f"cannot write {run_dir / 'metrics.json'}: {e.strerror or e}") from None
 
 
 def write_plots(

@@ -74,7 +74,7 @@ def check_input_bounds(cfg: DictConfig, box: Box) -> None:
     )
     if not cfg.get("allow_inputs_outside_box", False):
         raise SettingError(f"{what}; expected bounds inside the box (or allow_inputs_outside_box=true)")
-    log.warning("WARNING: %s (allowed by allow_inputs_outside_box=true)", what)
+    log.warning("%s (allowed by allow_inputs_outside_box=true)", what)
 
 
 def controller_box(controller: Controller) -> Box:
