@@ -7,7 +7,7 @@ import torch
 
 from pinnmpc.surrogate import load_surrogate, shipped
 from pinnmpc.surrogate.network import PINN
-from pinnmpc.systems import PowerCube, load_system
+from pinnmpc.systems import PowerCube, build_system, load_system
 from pinnmpc.training.curves import read_curve
 from pinnmpc.training.grow import widened
 from pinnmpc.training.models import build_model
@@ -88,9 +88,9 @@ def test_a_time_basis_that_does_not_extend_the_trained_one_is_refused(make_cfg, 
 
 
 def test_init_from_another_tau_or_together_with_a_stage_is_refused(make_cfg, base_run):
-    cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={base_run}", "tau=0.1"])
+    cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={base_run}", "system.dynamics.tau=0.1"])
     with pytest.raises(ValueError, match="trained with tau=0.2; this run has tau=0.1"):
-        build_model(cfg, PowerCube())
+        build_model(cfg, build_system(cfg.system))
     cfg = make_cfg("train", [*TINY_TRAIN, f"init_from={base_run}", f"stage.base={base_run}"])
     with pytest.raises(SettingError, match="expected stage.base=null and stage.split=null"):
         validate_train(cfg, PowerCube())

@@ -372,7 +372,6 @@ def test_a_stage_may_start_exactly_at_its_base(make_cfg) -> None:
     [
         ("train", "threads=0", "threads=0: expected an integer >= 1"),
         ("train", "seed=abc", "seed='abc': expected an integer"),
-        ("train", "tau=abc", "tau='abc': expected a finite number > 0"),
         ("train", "trainer.max_time=soon", "trainer.max_time='soon': expected a duration DD:HH:MM:SS"),
         ("train", "t_max=0.1", "t_max=0.1 is below the system's tau=0.2"),
         (

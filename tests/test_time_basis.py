@@ -15,7 +15,7 @@ from pinnmpc.util.settings import SettingError
 def test_the_servo_fast_mode_is_what_the_panda_gates_miss(make_cfg) -> None:
     cfg = make_cfg("time_basis", ["system=panda"])
     arm = build_system(cfg.system)
-    report = basis_report(arm, list(cfg.time_basis), [0.001, 0.005], 2, 1, cfg.tau, cfg.t_max, 48, 1e-4, 1e-4, 0)
+    report = basis_report(arm, list(cfg.time_basis), [0.001, 0.005], 2, 1, arm.tau, cfg.t_max, 48, 1e-4, 1e-4, 0)
     before, after = np.array(report["basis"]["rms"]), np.array(report["greedy"][-1]["rms"])
     assert report["greedy"][-1]["time_basis"][:3] == list(cfg.time_basis)
     assert sorted(report["greedy"][-1]["time_basis"][3:]) == [0.001, 0.005]

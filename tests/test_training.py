@@ -397,9 +397,11 @@ def test_a_correction_stage_trains_on_a_frozen_base_and_exports_one_network(make
 
 def test_a_stage_on_a_base_for_another_tau_is_refused(make_cfg, tmp_path):
     train(make_cfg("train", [*TINY, "trainer.max_epochs=1"]), tmp_path)
-    cfg = make_cfg("train", [*TINY, f"stage.base={tmp_path / 'surrogate.pt'}", "stage.samples=8", "tau=0.1"])
+    cfg = make_cfg(
+        "train", [*TINY, f"stage.base={tmp_path / 'surrogate.pt'}", "stage.samples=8", "system.dynamics.tau=0.1"]
+    )
     with pytest.raises(ValueError, match="trained for tau=0.2; this run has tau=0.1"):
-        build_model(cfg, PowerCube())
+        build_model(cfg, build_system(cfg.system))
 
 
 # ---------------------------------------------------------------------------------------------- DDP (trainer=ddp)
