@@ -18,7 +18,7 @@ CLI_NAMES := $(call uniq,$(call reverse,$(foreach d,$(subst \$(space),^,$(MAKEOV
 shell_quote = '$(subst ','\'',$(1))'
 OVERRIDES = $(foreach v,$(filter-out $(KNOBS),$(CLI_NAMES)),$(call shell_quote,$(v)=$($(v)))) $(ARGS)
 
-.PHONY: install train self-loop residuals time-basis capacity closed-loop closed-loop-paper robustness evaluate bench sweep sweep-optuna tensorboard test test-all lint format contract clean
+.PHONY: install train collect identify self-loop residuals time-basis capacity closed-loop closed-loop-paper robustness evaluate bench sweep sweep-optuna tensorboard test test-all lint format contract clean
 
 install: $(VENV)/.installed  ## venv with a CPU build of torch, the package (editable) and its extras
 
@@ -49,6 +49,12 @@ closed-loop: install  ## NMPC tracks the built-in reference on the RK45 plant (t
 
 closed-loop-paper: install  ## the paper's reference from ../shared (paper settings are the defaults)
 	$(PY) -m pinnmpc.closed_loop reference.path=$(SHARED_REF) $(OVERRIDES)
+
+collect: install  ## run the (simulated) robot for robot_time s and write its log (outputs/collect/<time>/)
+	$(PY) -m pinnmpc.collect $(OVERRIDES)
+
+identify: install  ## fit the model's friction, payload and armature to robot logs; a system .yaml (logs=[...] out=...)
+	$(PY) -m pinnmpc.identify $(OVERRIDES)
 
 robustness: install  ## closed loops under measurement noise and friction/mass mismatch, one table
 	$(PY) -m pinnmpc.robustness $(OVERRIDES)

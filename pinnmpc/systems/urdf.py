@@ -13,7 +13,7 @@ import functools
 import math
 import re
 import xml.etree.ElementTree as ET
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
@@ -146,6 +146,66 @@ def revolute_joints(path: Path) -> list[str]:
 
 
 @dataclass(frozen=True)
+class Payload:
+    """A point mass fixed to a link: mass in kg, pos in m in that link's frame (None: the tip drawn, as the MuJoCo
+    robots' payload), link None: the tip frame's link or the last joint's child link."""
+
+    mass: float
+    pos: tuple[float, float, float] | None = None
+    link: str | None = None
+
+
+def _payload(name: str, value: Any) -> Payload | None:
+    """A payload from config (a mapping) or as given, checked: mass >= 0 and finite, pos three finite numbers."""
+    if value is None or isinstance(value, Payload):
+        return value
+    keys = ("mass", "pos", "link")
+    if not isinstance(value, Mapping) or "mass" not in value or any(k not in keys for k in value):
+        raise ValueError(
+            f"{name}: payload={value!r}; expected {{mass: kg, pos: [x, y, z] m or null, link: name or null}}"
+        )
+    mass, pos = value["mass"], value.get("pos")
+    if isinstance(mass, bool) or not isinstance(mass, int | float) or not math.isfinite(mass) or mass < 0:
+        raise ValueError(f"{name}: payload.mass={mass!r}; expected a finite number >= 0 (kg)")
+    if pos is not None:
+        ok = isinstance(pos, Sequence) and not isinstance(pos, str) and len(pos) == 3
+        if not ok or not all(not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v) for v in pos):
+            raise ValueError(f"{name}: payload.pos={pos!r}; expected 3 finite numbers (m, in the link's frame) or null")
+        pos = tuple(float(v) for v in pos)
+    return Payload(float(mass), pos, value.get("link"))
+
+
+def payload_urdf(text: str, payload: Payload, tip_frame: str | None, joints: Sequence[str], scale: float = 1.0) -> str:
+    """URDF text with the payload as a fixed child link of zero inertia (mass / scale: the arm's mass_scale leaves
+    it unscaled), so adam and Pinocchio see one arm; its default link and pos are the MuJoCo robots' convention."""
+    root = ET.fromstring(text)
+    links = {link.get("name"): link for link in root.iter("link")}
+    last = next(j for j in root.findall("joint") if j.get("name") == joints[-1]).find("child").get("link")
+    link = payload.link or tip_frame or last
+    if link not in links:
+        by_joint = {j.get("name"): j.find("child").get("link") for j in root.findall("joint")}
+        if link not in by_joint:
+            raise ValueError(
+                f"payload.link={link!r}: neither a link nor a joint of the URDF; expected one of {list(links)}"
+            )
+        link = by_joint[link]
+    pos = payload.pos
+    if pos is None and link == last and not (payload.link or tip_frame):  # the tip drawn: twice the link's centre
+        origin = links[link].find("inertial/origin")
+        xyz = [float(v) for v in (origin.get("xyz") or "0 0 0").split()] if origin is not None else [0.0] * 3
+        pos = tuple(2.0 * v for v in xyz)
+    joint = ET.SubElement(root, "joint", {"name": "pinnmpc_payload_joint", "type": "fixed"})
+    ET.SubElement(joint, "parent", {"link": link})
+    ET.SubElement(joint, "child", {"link": "pinnmpc_payload"})
+    ET.SubElement(joint, "origin", {"xyz": " ".join(repr(float(v)) for v in (pos or (0.0, 0.0, 0.0))), "rpy": "0 0 0"})
+    inertial = ET.SubElement(ET.SubElement(root, "link", {"name": "pinnmpc_payload"}), "inertial")
+    ET.SubElement(inertial, "origin", {"xyz": "0 0 0", "rpy": "0 0 0"})
+    ET.SubElement(inertial, "mass", {"value": repr(payload.mass / scale)})
+    ET.SubElement(inertial, "inertia", dict.fromkeys(("ixx", "ixy", "ixz", "iyy", "iyz", "izz"), "0"))
+    return ET.tostring(root, encoding="unicode")
+
+
+@dataclass(frozen=True)
 class RigidArm:
     """A fixed-base serial arm from a URDF with joint state x = (q, v) and one input per joint.
 
@@ -153,6 +213,8 @@ class RigidArm:
     actuation='velocity_servo': joint torque = g(q) + K (u - v), a gravity-compensated velocity servo.
     mass_scale multiplies M and h (every link's mass and inertia) and friction_scale D and C, or K for a
     servo: plant mismatch for robustness runs; 1.0 is the nominal arm the surrogate learns.
+    payload (a point mass on a link) and armature (per joint, on M's diagonal) are what an identified model adds;
+    neither is scaled by mass_scale, and a servo compensates the gravity of the arm without the payload.
     """
 
     name: str
@@ -173,6 +235,8 @@ class RigidArm:
     input_units: tuple[str, ...] = ()
     tip_frame: str | None = None  # frame drawn as the tool tip (None: the last joint's child link)
     joint_limits: Box | None = None  # joint position limits, nq entries (None: none; see urdf_limits for the URDF's)
+    payload: Payload | None = None  # a point mass fixed to a link ({mass, pos, link} in config); None: none
+    armature: tuple[float, ...] = ()  # kg m^2 per joint added to M's diagonal (rotor inertia); (): none
     state_names: tuple[str, ...] = field(init=False)
     input_names: tuple[str, ...] = field(init=False)
 
@@ -214,6 +278,13 @@ class RigidArm:
                 raise ValueError(f"{self.name}: {key}={v!r}; expected a finite number >= 0")
         if not self.tau > 0 or not self.mass_scale > 0:
             raise ValueError(f"{self.name}: need tau > 0 and mass_scale > 0, got {self.tau} and {self.mass_scale}")
+        set_("payload", _payload(self.name, self.payload))
+        if self.payload is not None:
+            payload_urdf(locked_urdf(path, joints), self.payload, self.tip_frame, joints)  # a bad link fails here
+        armature = tuple(self.armature or ())
+        if armature and (len(armature) != n or any(not (math.isfinite(float(v)) and v >= 0) for v in armature)):
+            raise ValueError(f"{self.name}: armature={list(armature)}; expected {n} finite numbers >= 0 (kg m^2)")
+        set_("armature", tuple(float(v) for v in armature))
         if self.joint_limits is not None and self.joint_limits.dim != n:
             raise ValueError(f"{self.name}: joint_limits has {self.joint_limits.dim} entries; expected {n} (joints)")
         if self.state_box.dim != 2 * n or self.input_box.dim != n:
@@ -297,28 +368,42 @@ class RigidArm:
 
     # -- torch (adam): the public, differentiable rhs ---------------------------------------------------------
     @functools.cached_property
-    def _adam(self) -> dict[torch.dtype, Any]:
+    def model_urdf(self) -> str:
+        """The URDF text every backend loads: the locked arm, plus the payload's link when there is one."""
+        text = locked_urdf(Path(self.urdf), self.joints)
+        if self.payload is None:
+            return text
+        return payload_urdf(text, self.payload, self.tip_frame, self.joints, self.mass_scale)
+
+    @functools.cached_property
+    def _adam(self) -> dict[tuple[torch.dtype, bool], Any]:
         """adam KinDynComputations per dtype (gravity passed in that dtype: adam's default is float32)."""
         return {}
 
-    def _kindyn(self, dtype: torch.dtype) -> Any:
-        """adam's torch model in this dtype, built on first use."""
-        if dtype not in self._adam:
+    def _kindyn(self, dtype: torch.dtype, nominal: bool = False) -> Any:
+        """adam's torch model in this dtype (nominal: without the payload), built on first use."""
+        if (dtype, nominal) not in self._adam:
             from adam.pytorch import KinDynComputations
 
-            text = locked_urdf(Path(self.urdf), self.joints)
+            text = locked_urdf(Path(self.urdf), self.joints) if nominal else self.model_urdf
             with torch.inference_mode(False):  # cached constants must stay usable by later autograd calls
                 g = torch.tensor([*self.gravity, 0.0, 0.0, 0.0], dtype=dtype)
-                self._adam[dtype] = KinDynComputations(text, list(self.joints), dtype=dtype, gravity=g, device="cpu")
-        return self._adam[dtype]
+                kd = KinDynComputations(text, list(self.joints), dtype=dtype, gravity=g, device="cpu")
+                self._adam[dtype, nominal] = kd
+        return self._adam[dtype, nominal]
 
     def dynamics_terms(self, q: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """M (B, n, n), h (B, n) and gravity g (B, n) for a flat batch, the joint block of adam's floating base."""
+        """M (B, n, n), h (B, n) and the gravity g (B, n) a servo compensates (the arm's without the payload) for a
+        flat batch, the joint block of adam's floating base."""
         kd, b, n = self._kindyn(q.dtype), q.shape[0], self.nq
         base = torch.eye(4, dtype=q.dtype).expand(b, 4, 4)
         m = kd.mass_matrix(base, q).reshape(b, n + 6, n + 6)[:, 6:, 6:]
         h = kd.bias_force(base, q, torch.zeros(b, 6, dtype=q.dtype), v).reshape(b, n + 6)[:, 6:]
-        g = kd.gravity_term(base, q).reshape(b, n + 6)[:, 6:] if self.actuation == "velocity_servo" else 0 * h
+        servo = self.actuation == "velocity_servo"
+        kg = self._kindyn(q.dtype, nominal=True) if servo and self.payload is not None else kd
+        g = kg.gravity_term(base, q).reshape(b, n + 6)[:, 6:] if servo else 0 * h
+        if self.armature:
+            return self.mass_scale * m + torch.diag(torch.tensor(self.armature, dtype=q.dtype)), h, g
         return self.mass_scale * m, h, g
 
     # -- the arm frozen at q0: the linear part a learned flow map builds on (pinnmpc.surrogate.prior) -----------------
@@ -331,22 +416,23 @@ class RigidArm:
     def frozen_terms(self, q: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """M(q) (B, n, n) and c0 (B, n) of M(q) dv/dt = c0 - kv v: the arm held at q, without Coriolis and
         Coulomb terms; its exact solution over a period carries most of the flow (the rest is learned)."""
-        m, g, _ = self.dynamics_terms(q, torch.zeros_like(q))  # h at v = 0 is gravity
-        return m, self._frozen_drive(g, u)
+        m, g, comp = self.dynamics_terms(q, torch.zeros_like(q))  # h at v = 0 is gravity
+        return m, self._frozen_drive(g, u, comp)
 
     def casadi_frozen_terms(self) -> ca.Function:
         """The same (q, u) -> (M, c0) as a CasADi SX function (adam's CasADi backend)."""
-        kd, n = self._casadi_kindyn(), self.nq
+        n = self.nq
         q, u = ca.SX.sym("q", n), ca.SX.sym("u", n)
-        base = ca.SX.eye(4)
-        m = self.mass_scale * kd.mass_matrix(base, q)[6:, 6:]
-        g = kd.gravity_term(base, q)[6:]
-        return ca.Function(f"{self.name}_frozen", [q, u], [m, self._frozen_drive(g, u)], {"cse": True})
+        m, g, comp = self.casadi_terms(q, ca.SX.zeros(n), gravity=True)
+        return ca.Function(f"{self.name}_frozen", [q, u], [m, self._frozen_drive(g, u, comp)], {"cse": True})
 
-    def _frozen_drive(self, g: Any, u: Any) -> Any:
-        """c0: the actuation at rest less the gravity it must hold (none for a gravity-compensated servo)."""
+    def _frozen_drive(self, g: Any, u: Any, comp: Any = None) -> Any:
+        """c0: the actuation at rest less the gravity it must hold (for a servo: only a payload's, which its
+        compensation of the arm without it leaves)."""
         if self.actuation == "torque":
             return u - self.mass_scale * g
+        if self.payload is not None:
+            return self.friction_scale * self._coeffs("servo_gain", u) * u - self._bias(g, comp)
         return self.friction_scale * self._coeffs("servo_gain", u) * u
 
     def _rhs_torch(self, x: Tensor, u: Tensor) -> Tensor:
@@ -367,6 +453,20 @@ class RigidArm:
         """Pinocchio model and data of the arm with the other joints locked."""
         import pinocchio as pin
 
+        model = pin.buildModelFromXML(self.model_urdf)
+        model.gravity.linear = np.array(self.gravity)
+        if self.armature:  # in Pinocchio's joint order; over mass_scale, as aba is given torque / mass_scale
+            order = [self.joints.index(name) for name in list(model.names)[1:]]
+            model.armature = np.asarray(self.armature)[order] / self.mass_scale
+        return model, model.createData()
+
+    @functools.cached_property
+    def _nominal_pinocchio(self) -> tuple[Any, Any]:
+        """The arm without payload and armature: the gravity a servo compensates, the tip drawn."""
+        if self.payload is None and not self.armature:
+            return self.pinocchio
+        import pinocchio as pin
+
         model = pin.buildModelFromXML(locked_urdf(Path(self.urdf), self.joints))
         model.gravity.linear = np.array(self.gravity)
         return model, model.createData()
@@ -384,7 +484,8 @@ class RigidArm:
         else:
             vp = v
         if self.actuation == "velocity_servo":
-            torque = torque + self.mass_scale * pin.computeGeneralizedGravity(model, data, q)
+            nominal, nominal_data = self._nominal_pinocchio
+            torque = torque + self.mass_scale * pin.computeGeneralizedGravity(nominal, nominal_data, q)
         acc = pin.aba(model, data, q, vp, torque / self.mass_scale)
         if order is not None:
             acc = acc[np.argsort(order)]
@@ -413,21 +514,31 @@ class RigidArm:
     # -- CasADi: the classical NMPC and the compiled training path ----------------------------------------
     def casadi_rhs(self) -> ca.Function:
         """dx/dt = f(x, u) as a CasADi SX function (adam's CasADi backend, the joint block of M and h)."""
-        n, kd = self.nq, self._casadi_kindyn()
+        n = self.nq
         x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
         q, v = x[:n], x[n:]
-        base = ca.SX.eye(4)
-        m = self.mass_scale * kd.mass_matrix(base, q)[6:, 6:]
-        h = kd.bias_force(base, q, ca.SX.zeros(6), v)[6:]
-        g = kd.gravity_term(base, q)[6:] if self.actuation == "velocity_servo" else 0
+        m, h, g = self.casadi_terms(q, v)
         acc = ca.solve(m, self.actuation_torque(v, u) - self._bias(h, g))
         return ca.Function(f"{self.name}_rhs", [x, u], [ca.vertcat(v, acc)], {"cse": True})
 
-    def _casadi_kindyn(self) -> Any:
-        """adam's CasADi model of the arm (the other joints locked)."""
+    def casadi_terms(self, q: Any, v: Any, gravity: bool = False) -> tuple[Any, Any, Any]:
+        """M (armature included), h and the gravity a servo compensates (0 for torque arms unless gravity=True) as
+        CasADi expressions: what every symbolic model of the arm builds on."""
+        kd, base = self._casadi_kindyn(), ca.SX.eye(4)
+        m = self.mass_scale * kd.mass_matrix(base, q)[6:, 6:]
+        if self.armature:
+            m = m + ca.diag(ca.DM(self.armature))
+        h = kd.gravity_term(base, q)[6:] if gravity else kd.bias_force(base, q, ca.SX.zeros(6), v)[6:]  # gravity: v=0
+        servo = self.actuation == "velocity_servo"
+        kg = self._casadi_kindyn(nominal=True) if servo and self.payload is not None else kd
+        g = kg.gravity_term(base, q)[6:] if servo else 0
+        return m, h, g
+
+    def _casadi_kindyn(self, nominal: bool = False) -> Any:
+        """adam's CasADi model of the arm (the other joints locked; nominal: without the payload)."""
         from adam.casadi import KinDynComputations
 
-        text = locked_urdf(Path(self.urdf), self.joints)
+        text = locked_urdf(Path(self.urdf), self.joints) if nominal else self.model_urdf
         return KinDynComputations(text, list(self.joints), gravity=np.array([*self.gravity, 0, 0, 0]))
 
     @functools.cached_property
@@ -478,5 +589,5 @@ class RigidArm:
     @functools.cached_property
     def _tip_offset(self) -> np.ndarray:
         """Last link's reach for drawing: twice its centre of mass offset in its joint frame."""
-        model, _ = self.pinocchio
+        model, _ = self._nominal_pinocchio
         return 2.0 * np.asarray(model.inertias[self.nq].lever)

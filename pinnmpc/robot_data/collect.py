@@ -1,0 +1,230 @@
+"""Collecting a robot log: the simulated robot run in episodes for a given robot time, recorded `fine` times per period.
+
+Episodes cycle through closed loops of the shipped controller on random-<seed> and driven-<seed> references and
+input excitation (random steps held over whole periods around a weak stabilising feedback). The robot is stepped as
+a plant of period tau / fine with the input held over the control period, so the fine samples and the control-rate
+ones lie on one zero-hold trajectory; the controller sees the control rate only.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tqdm.auto import tqdm
+
+from pinnmpc.plant.base import Plant, PlantError
+from pinnmpc.plant.build import make_plant
+from pinnmpc.robot_data.logs import RobotLog
+from pinnmpc.simulation.loop import run_loop
+from pinnmpc.systems.base import System
+
+log = logging.getLogger(__name__)
+
+KINDS = ("random", "driven", "excitation")  # episode kinds: references of the system's built-ins, or excitation
+
+
+@dataclass
+class FineRecorder:
+    """A plant of one control period made of `fine` steps of a plant of period tau / fine, every state kept."""
+
+    plant: Plant
+    fine: int
+    states: list[np.ndarray] = field(default_factory=list)
+    step_times: list[float] = field(default_factory=list)
+    stick_slip_steps: int = 0
+
+    @property
+    def tau(self) -> float:
+        """The control period."""
+        return self.plant.tau * self.fine
+
+    def start(self, x0: np.ndarray) -> None:
+        """A new episode from x0."""
+        self.states = [np.asarray(x0, dtype=np.float64)]
+
+    def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """One control period, the input held; raises PlantError as the plant does."""
+        begin, x = time.perf_counter(), np.asarray(x0, dtype=np.float64)
+        for _ in range(self.fine):
+            x = self.plant.step(x, u)
+            self.states.append(x)
+        self.step_times.append(time.perf_counter() - begin)
+        return x
+
+
+@dataclass
+class Episode:
+    """One episode as simulated: fine states ((periods * fine + 1), nx) and the inputs held (periods, nu)."""
+
+    kind: str
+    name: str
+    x_fine: np.ndarray
+    u: np.ndarray
+    status: str
+
+
+def fine_plant(system: System, plant_cfg: DictConfig, fine: int, robots: Any) -> FineRecorder:
+    """The robot as a plant of period tau / fine, MuJoCo's RK4 step kept (substeps / fine per fine period)."""
+    cfg = OmegaConf.create(OmegaConf.to_container(plant_cfg, resolve=True))
+    if cfg.get("kind") == "mujoco":
+        cfg.substeps = max(1, -(-int(cfg.substeps) // fine))
+    return FineRecorder(make_plant(system, cfg, system.tau / fine, robots), fine)
+
+
+def inside_until(x: np.ndarray, low: np.ndarray, high: np.ndarray) -> int:
+    """How many leading states lie inside [low, high] (all of them: len(x))."""
+    out = np.flatnonzero(((x < low) | (x > high)).any(axis=1))
+    return int(out[0]) if out.size else len(x)
+
+
+def excitation_episode(
+    system: System, recorder: FineRecorder, steps: int, settings: DictConfig, rng: np.random.Generator, box: Any
+) -> Episode:
+    """Random input steps held 1..hold periods on top of a weak feedback to random targets in the middle `fraction`
+    of the joint range (gravity of the model compensated on torque arms), no step pushing a joint on beyond `speed`
+    of its velocity bound (servos: commands clipped there); stops where the state leaves `box`."""
+    n, tau = system.nq, system.tau
+    limits = system.joint_limits or type(system.state_box)(system.state_box.low[:n], system.state_box.high[:n])
+    lo, hi = np.asarray(limits.low), np.asarray(limits.high)
+    mid, half = (lo + hi) / 2, (hi - lo) / 2 * float(settings.fraction)
+    ulo, uhi = np.asarray(system.input_box.low), np.asarray(system.input_box.high)
+    w, zeta, amp = float(settings.bandwidth), float(settings.damping), float(settings.amplitude)
+    vmax = float(settings.speed) * np.minimum(-np.asarray(system.state_box.low[n:]), system.state_box.high[n:])
+    hold_max, every = int(settings.hold), max(1, round(float(settings.target_every) / tau))
+    x = np.concatenate((mid + half * rng.uniform(-1, 1, n), np.zeros(n)))
+    recorder.start(x)
+    us, target, offset, left, status = [], x[:n], np.zeros(n), 0, "ok"
+    low, high = np.asarray(box.low), np.asarray(box.high)
+    for k in range(steps):
+        if k % every == 0:
+            target = mid + half * rng.uniform(-1, 1, n)
+        if left == 0:
+            offset, left = amp * (uhi - ulo) / 2 * rng.uniform(-1, 1, n), int(rng.integers(1, hold_max + 1))
+        left -= 1
+        q, v = x[:n], x[n:]
+        push = np.where((np.abs(v) > vmax) & (v * offset > 0), 0.0, offset)  # no push past the speed limit
+        if system.actuation == "velocity_servo":
+            u = np.clip(w * (target - q) + push, -vmax, vmax)
+        else:
+            m, g, _ = system.dynamics_terms(torch.from_numpy(q[None]), torch.zeros(1, n, dtype=torch.float64))
+            u = g[0].numpy() + m[0].numpy() @ (w * w * (target - q) - 2 * zeta * w * v) + push  # h(v=0) = g
+        u = np.clip(u, ulo, uhi)
+        try:
+            x = recorder.step(x, u)
+        except PlantError as e:
+            status = f"plant_failure: {e}"
+            break
+        us.append(u)
+        if inside_until(x[None], low, high) == 0:
+            status = "left the state box"
+            break
+    return Episode("excitation", "excitation", np.array(recorder.states[: len(us) * recorder.fine + 1]),
+                   np.array(us).reshape(-1, n), status)  # fmt: skip
+
+
+def closed_loop_episode(
+    kind: str,
+    seed: int,
+    steps: int,
+    cfg: DictConfig,
+    system: System,
+    controller: Any,
+    recorder: FineRecorder,
+    reference: Callable[[str], Any],
+    stop: Callable[[], bool] | None,
+) -> Episode:
+    """The controller tracking `<kind>-<seed>` from the reference's first state, at most `steps` periods."""
+    ref = reference(f"{kind}-{seed}")
+    recorder.start(ref.x[0])
+    run = run_loop(controller, recorder, ref, max_steps=steps, noise_sigma=float(cfg.noise_sigma), seed=seed,
+                   progress=False, stop=stop)  # fmt: skip
+    periods = len(run.x) - 1  # a failed step's input has no state after it
+    return Episode(kind, ref.name, np.array(recorder.states[: periods * recorder.fine + 1]), run.u[:periods],
+                   run.status)  # fmt: skip
+
+
+def collect(
+    cfg: DictConfig,
+    system: System,
+    controller: Any,
+    reference: Callable[[str], Any],
+    *,
+    stop: Callable[[], bool] | None = None,
+    meta: dict[str, Any] | None = None,
+) -> RobotLog:
+    """Episodes until cfg.robot_time seconds of held input are logged (cut where a state leaves the state box);
+    states logged with Gaussian noise of cfg.noise_sigma."""
+    fine, tau = int(cfg.fine), system.tau
+    recorder = fine_plant(system, cfg.plant, fine, cfg.system.get("robots"))
+    total = int(round(float(cfg.robot_time) / tau))
+    noise = np.random.default_rng(int(cfg.seed) + 1)
+    box = system.state_box
+    low, high = np.asarray(box.low), np.asarray(box.high)
+    kinds, episodes, done, number = list(cfg.episodes.kinds), [], 0, 0
+    bar = tqdm(total=total * tau, desc="robot time", unit="s", disable=not cfg.progress, file=sys.stderr)
+    while done < total and not (stop is not None and stop()):
+        kind, seed = kinds[number % len(kinds)], int(cfg.seed) * 1000 + number
+        steps = total - done
+        if kind == "excitation":
+            steps = min(steps, max(1, round(float(cfg.excitation.duration) / tau)))
+            ep = excitation_episode(system, recorder, steps, cfg.excitation, np.random.default_rng(seed), box)
+        else:
+            ep = closed_loop_episode(kind, seed, steps, cfg, system, controller, recorder, reference, stop)
+        number += 1
+        keep = inside_until(ep.x_fine, low, high)  # whole periods up to the first state outside the box
+        periods = min(len(ep.u), (keep - 1) // fine if keep else 0)
+        if ep.status != "ok" or periods < len(ep.u):
+            log.warning("episode %d (%s) %s after %d of %d periods", number - 1, ep.name, ep.status, periods, steps)
+        if periods < 1:
+            if not episodes and number >= 3 * len(kinds):
+                raise RuntimeError(f"no episode logged a period in {number} tries; the robot leaves the state box")
+            continue
+        episodes.append((number - 1, ep.x_fine[: periods * fine + 1], ep.u[:periods]))
+        done += periods
+        bar.update(periods * tau)
+    bar.close()
+    return assemble(episodes, system, fine, float(cfg.noise_sigma), noise, meta or {})
+
+
+def assemble(
+    episodes: list[tuple[int, np.ndarray, np.ndarray]],
+    system: System,
+    fine: int,
+    sigma: float,
+    rng: np.random.Generator,
+    meta: dict[str, Any],
+) -> RobotLog:
+    """One log from the episodes: episode after episode in time (one tau apart), the noise on the fine samples and
+    the control-rate ones taken from them; an episode's last sample repeats the input before it."""
+    tau, h = system.tau, system.tau / fine
+    t, x, u, ep, tf, xf, ef, t0 = [], [], [], [], [], [], [], 0.0
+    for number, x_fine, inputs in episodes:
+        m = len(x_fine)
+        times = t0 + h * np.arange(m)
+        times[::fine] = t0 + tau * np.arange(len(inputs) + 1)
+        measured = x_fine + sigma * rng.standard_normal(x_fine.shape) if sigma > 0 else x_fine
+        tf.append(times), xf.append(measured), ef.append(np.full(m, number))
+        t.append(times[::fine]), x.append(measured[::fine]), ep.append(np.full(len(inputs) + 1, number))
+        u.append(np.vstack((inputs, inputs[-1:])))
+        t0 = times[-1] + tau
+    cat = np.concatenate
+    robot_time = sum(len(e[2]) for e in episodes) * tau
+    meta = {
+        **meta,
+        "system": system.name,
+        "tau": tau,
+        "state_names": list(system.state_names),
+        "input_names": list(system.input_names),
+        "fine": fine,
+        "noise_sigma": sigma,
+        "robot_time_s": robot_time,
+    }
+    return RobotLog(cat(t), cat(x), cat(u), cat(ep), cat(tf), cat(xf), cat(ef), meta)

@@ -1,0 +1,130 @@
+"""The model's payload and armature, and identification: exact against MuJoCo, none leaves every number as it was,
+and a fit to a robot whose truth is known recovers it."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("mujoco")
+
+from pinnmpc import load_system  # noqa: E402 (after the skip)
+from pinnmpc.plant.mujoco_robot import MujocoPlant  # noqa: E402
+from pinnmpc.robot_data.collect import collect  # noqa: E402
+from pinnmpc.robot_data.export import system_yaml, write_system  # noqa: E402
+from pinnmpc.robot_data.identify import identify  # noqa: E402
+from pinnmpc.robot_data.logs import read_log, write_log  # noqa: E402
+from pinnmpc.systems.urdf import Payload, RigidArm, locked_urdf  # noqa: E402
+
+LAB = {  # planar3's lab robot without its dry friction: what the model can represent exactly
+    "payload": {"mass": 0.5, "pos": [0.25, 0.0, 0.0]},
+    "armature": [0.03, 0.015, 0.0025],
+}
+
+
+def states(arm: RigidArm, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Random states and inputs in the arm's boxes."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(arm.state_box.low, arm.state_box.high, (count, 2 * arm.nq))
+    return x, rng.uniform(arm.input_box.low, arm.input_box.high, (count, arm.nq))
+
+
+def test_no_payload_no_armature_is_bit_identical() -> None:
+    """The defaults load the same URDF text and give the same numbers in torch, numpy and CasADi."""
+    arm = load_system("planar3")
+    same = dataclasses.replace(arm, payload=None, armature=[])
+    assert same.payload is None and same.armature == () and arm.model_urdf == locked_urdf(Path(arm.urdf), arm.joints)
+    x, u = states(arm, 8)
+    assert np.array_equal(arm.rhs(x, u), same.rhs(x, u))
+    xt, ut = torch.from_numpy(x), torch.from_numpy(u)
+    assert torch.equal(arm.rhs(xt, ut), same.rhs(xt, ut))
+    f, g = arm.casadi_rhs(), same.casadi_rhs()
+    assert np.array_equal(np.asarray(f(x[0], u[0])), np.asarray(g(x[0], u[0])))
+    m, c = arm.frozen_terms(xt[:, :3], ut)
+    m2, c2 = same.frozen_terms(xt[:, :3], ut)
+    assert torch.equal(m, m2) and torch.equal(c, c2)
+
+
+@pytest.mark.parametrize("name", ["planar3", "panda"])
+def test_payload_and_armature_match_the_mujoco_robot(name: str) -> None:
+    """With the lab robot's payload and armature (no dry friction) the model's rhs in torch, numpy (Pinocchio) and
+    CasADi equals MujocoPlant.rhs to 1e-10 of the largest value, scaled masses included; the servo compensates the
+    gravity of the arm without the payload, as the robot's does."""
+    from pinnmpc.systems import system_config
+
+    arm = load_system(name)
+    lab = system_config(name).robots.lab
+    robot = {"payload": dict(lab.payload), "armature": list(lab.armature)}
+    for mass_scale in (1.0, 1.3):
+        nominal = arm.with_mismatch(mass_scale=mass_scale)
+        model = dataclasses.replace(nominal, payload=robot["payload"], armature=robot["armature"])
+        plant = MujocoPlant(nominal, arm.tau, robot)
+        x, u = states(arm, 20)
+        ref = np.stack([plant.rhs(xi, ui) for xi, ui in zip(x, u)])
+        scale = np.abs(ref).max()
+        assert np.abs(model.rhs(x, u) - ref).max() <= 1e-10 * scale
+        assert np.abs(model.rhs(torch.from_numpy(x), torch.from_numpy(u)).numpy() - ref).max() <= 1e-10 * scale
+        if mass_scale == 1.0:
+            f = model.casadi_rhs()
+            got = np.stack([np.asarray(f(xi, ui)).ravel() for xi, ui in zip(x[:5], u[:5])])
+            assert np.abs(got - ref[:5]).max() <= 1e-10 * scale
+
+
+def test_bad_payload_and_armature_refused() -> None:
+    arm = load_system("planar3")
+    with pytest.raises(ValueError, match=r"payload.mass=-1; expected a finite number >= 0"):
+        dataclasses.replace(arm, payload={"mass": -1})
+    with pytest.raises(ValueError, match=r"armature=\[0.1\]; expected 3 finite numbers >= 0"):
+        dataclasses.replace(arm, armature=[0.1])
+    with pytest.raises(ValueError, match=r"payload.link='nowhere'"):
+        dataclasses.replace(arm, payload=Payload(1.0, None, "nowhere"))
+
+
+@pytest.fixture(scope="module")
+def known_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """12 s of excitation of planar3 with friction 1.2 x the model's and the lab's payload and armature (no dry
+    friction), logged 50 times per period."""
+    from hydra import compose, initialize_config_dir
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    known = "{payload: {mass: 0.5, pos: [0.25, 0.0, 0.0]}, armature: [0.03, 0.015, 0.0025]}"
+    overrides = ["system=planar3", "plant.robot=known", f"+system.robots.known={known}", "plant.friction_scale=1.2",
+                 "robot_time=12", "fine=50", "episodes.kinds=[excitation]", "excitation.duration=6",
+                 "progress=false"]  # fmt: skip
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose(config_name="collect", overrides=overrides)
+    system = load_system("planar3")
+    log = collect(cfg, system, None, None, meta={"robot": "known"})
+    stem = tmp_path_factory.mktemp("known") / "robot_log"
+    write_log(stem, log)
+    return stem.with_suffix(".npz")
+
+
+def test_identify_recovers_a_known_robot(known_log: Path, tmp_path: Path) -> None:
+    """Payload mass within 1 %, viscous and Coulomb friction within 1 %, armature within 8 % (the interval average
+    of M, h and the Coulomb term is the fit's only approximation); the fitted system loads from its .yaml."""
+    system = load_system("planar3")
+    log = read_log(known_log, system)
+    assert log.robot_time == pytest.approx(12.0)
+    fit = identify(system, [log], ["viscous", "coulomb", "payload", "armature"], Payload(0.0), name="known3",
+                   validation_periods=50)  # fmt: skip
+    v = fit.values
+    assert v["payload_mass"] == pytest.approx(0.5, rel=0.01)
+    np.testing.assert_allclose(v["viscous"], [24.0, 9.6, 2.4], rtol=0.01)
+    np.testing.assert_allclose(v["coulomb"], [1.2, 0.6, 0.12], rtol=0.01)
+    np.testing.assert_allclose(v["armature"], LAB["armature"], rtol=0.08)
+    assert all(a < b / 100 for a, b in zip(fit.prediction_rmse, fit.nominal_prediction_rmse))
+    from omegaconf import OmegaConf
+
+    from pinnmpc.systems import system_config
+
+    nominal = OmegaConf.to_container(system_config("planar3"), resolve=True)
+    path = write_system(tmp_path / "system" / "known3.yaml", system_yaml(nominal, fit, [log.meta], [str(known_log)]))
+    loaded = load_system(path)
+    assert loaded.name == "known3" and loaded.payload.mass == pytest.approx(0.5, rel=0.01)
+    x, u = states(system, 4)
+    assert np.abs(loaded.rhs(x, u) - fit.system.rhs(x, u)).max() < 1e-3 * np.abs(fit.system.rhs(x, u)).max()
