@@ -8,7 +8,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pinnmpc.cli import StopSignal, check_choices, run_cli, say
+from pinnmpc.cli import StopSignal, check_choices, end_job, run_cli, say
 from pinnmpc.simulation.metrics import headline
 from pinnmpc.simulation.run import run_closed_loop
 
@@ -17,14 +17,15 @@ from pinnmpc.simulation.run import run_closed_loop
 def main(cfg: DictConfig) -> None:
     """CLI: print the headline numbers and where the outputs went."""
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
+    prog = "pinnmpc.closed_loop"
+    announce = lambda m: say(headline(m, run_dir), run_dir, prog)  # noqa: E731  (the log line, before metrics.json)
     with StopSignal() as stop:
-        m = run_cli(lambda: run_closed_loop(cfg, run_dir, stop), "pinnmpc.closed_loop", run_dir)
-    say(headline(m, run_dir), run_dir, "pinnmpc.closed_loop")
+        m = run_cli(lambda: run_closed_loop(cfg, run_dir, stop, announce), prog, run_dir)
     if m["status"] == "interrupted":
-        print(f"pinnmpc.closed_loop: interrupted by {stop.name} after {m['steps']} steps", file=sys.stderr)
+        print(f"{prog}: interrupted by {stop.name} after {m['steps']} steps", file=sys.stderr)
         sys.exit(stop.exit_code)
     if m["status"] != "ok":
-        sys.exit(1)
+        end_job(1, m["status"], run_dir)
 
 
 if __name__ == "__main__":

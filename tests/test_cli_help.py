@@ -22,6 +22,8 @@ COMMANDS = {  # module: its primary config
     "capacity": "capacity",
     "robustness": "robustness",
     "bench": "bench",
+    "collect": "collect",
+    "identify": "identify",
 }
 KEY = re.compile(r"^ {2,}([A-Za-z_][\w.]*)=", re.MULTILINE)  # a key at the start of an indented help line
 ABSENT = object()

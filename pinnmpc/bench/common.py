@@ -9,6 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.plant.base import Plant
 from pinnmpc.plant.build import make_plant as closed_loop_plant
+from pinnmpc.plant.build import simulated_arm
 from pinnmpc.references.files import Reference
 from pinnmpc.simulation.setup import system_reference
 from pinnmpc.systems.base import System
@@ -20,7 +21,7 @@ NO_DISTURBANCE = {"gain": 0.0}  # controller.disturbance override: the paper's c
 
 def make_plant(cfg: DictConfig, system: System, tau: float) -> Plant:
     """The simulated robot of every closed loop and of the RK45 row, as pinnmpc.closed_loop builds it."""
-    return closed_loop_plant(system, cfg.plant, tau, cfg.system.get("robots"))
+    return closed_loop_plant(simulated_arm(system, cfg.system), cfg.plant, tau, cfg.system.get("robots"))
 
 
 def bench_reference(cfg: DictConfig, system: System, tau: float, name: str | None = None) -> Reference:

@@ -27,8 +27,9 @@ from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
 from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
 from pinnmpc.references.files import Reference
-from pinnmpc.simulation.loop import divergence_box, run_loop
-from pinnmpc.simulation.metrics import metrics, verdict
+from pinnmpc.simulation.fault_setup import plan_faults
+from pinnmpc.simulation.loop import divergence_box, model_step, run_loop
+from pinnmpc.simulation.metrics import faults_metrics, metrics, verdict
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.surrogate.flowmap import CompiledRK4, FlowMap, RK4Model
 from pinnmpc.systems.base import Box, System
@@ -79,21 +80,33 @@ def loop_row(
     cfg: DictConfig, system: System, controller: Controller, domain: Box | None, tau: float, ref: Reference
 ) -> dict[str, Any]:
     """One closed loop of any controller on the plant, summarised as a table row (the same protocol for all)."""
-    plant = make_plant(cfg, system, tau)
+    monitor = getattr(controller, "prediction_error", None)
+    plan = plan_faults(  # faults: as in pinnmpc.closed_loop (all off by default)
+        cfg.get("faults"),
+        system,
+        make_plant(cfg, system, tau),
+        plant_cfg=cfg.plant,
+        robots=cfg.system.get("robots"),
+        noise_sigma=0.0,
+        seed=int(cfg.seed),
+        predict=None if monitor is None else model_step(monitor, len(system.state_names)),
+    )
     start = time.perf_counter()
     steps, box = cfg.closed_loop.max_steps, divergence_box(system)  # a diverged loop stops, as in pinnmpc.closed_loop
     run = run_loop(
         controller,
-        plant,
+        plan.plant,
         ref,
         max_steps=steps,
         domain=domain,
         state_box=box,
         seed=int(cfg.seed),
         progress=bool(cfg.progress),
+        sensor=plan.sensor,
+        guard=plan.guard,
     )
     wall = time.perf_counter() - start
-    m = metrics(ref, run, controller, plant, system.state_names)
+    m = metrics(ref, run, controller, plan.plant, system.state_names)
     m["status"] = verdict(m, float(cfg.failure.max_fallback_fraction))  # too many fallbacks: failed
     ocp = m["ocp_time_s"]
     return {
@@ -111,6 +124,8 @@ def loop_row(
         "fallbacks": int(m["fallbacks"]),
         "out_of_box_steps": int(m["out_of_box_steps"]),
         "wall_s": float(wall),
+        "measurement_guard": m["measurement_guard"],  # readings rejected, inputs held (all 0 without faults)
+        "faults": faults_metrics(run, ref, system.nq, tau, plan.recovery),  # each fault, what was done, recovery
     }
 
 

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import atexit
+import contextlib
 import errno
 import fcntl
 import os
@@ -23,6 +24,9 @@ from pinnmpc.cli.args import CONF as CONF  # re-exported: the entry points take 
 from pinnmpc.cli.args import EXIT_BAD_INPUT as EXIT_BAD_INPUT
 from pinnmpc.cli.args import check_choices as check_choices
 from pinnmpc.cli.args import config_dir_args as config_dir_args
+from pinnmpc.cli.jobs import JobFailedError as JobFailedError
+from pinnmpc.cli.jobs import end_job as end_job
+from pinnmpc.cli.jobs import in_multirun
 from pinnmpc.util.io import append_log as append_log  # re-exported for the tasks
 from pinnmpc.util.io import atomic_write
 from pinnmpc.util.signals import StopSignal as StopSignal  # re-exported for the tasks
@@ -30,7 +34,7 @@ from pinnmpc.util.signals import StopSignal as StopSignal  # re-exported for the
 T = TypeVar("T")
 
 USER_ERRORS = (ValueError, FileNotFoundError, KeyError, OmegaConfBaseException)  # bad input, not a bug of ours
-RUN_FAILURES = (FloatingPointError,)  # a run that started and went wrong (e.g. a NaN training loss)
+RUN_FAILURES = (FloatingPointError, OSError)  # a run that started and went wrong (a NaN training loss, a disk full)
 EXIT_RUN_FAILED = 1  # exit code for a run that started and failed
 # a run stopped by a signal exits with 128 + the signal number (130 SIGINT, 143 SIGTERM), as a shell reports it
 LOCK_NAME = ".pinnmpc.lock"  # in a run dir while a run holds it: the PID of that run
@@ -285,15 +289,21 @@ def job_log(run_dir: Path, prog: str) -> Path:
 
 
 def say(message: str, run_dir: Path | None, prog: str, err: bool = False) -> None:
-    """Print a command's closing line and keep it in the run dir's log, so the log says how the run ended."""
+    """Print a command's closing line and keep it in the run dir's log, so the log says how the run ended (a log
+    that cannot be written raises OSError naming it)."""
     print(message, file=sys.stderr if err else sys.stdout)
     if run_dir is not None and run_dir.is_dir():
-        append_log(job_log(run_dir, prog), message)
+        path = job_log(run_dir, prog)
+        try:
+            append_log(path, message)
+        except OSError as e:
+            raise OSError(f"cannot write {path}: {e.strerror or e}") from None
 
 
 def run_cli(body: Callable[[], T], prog: str, run_dir: Path | None = None) -> T:
     """Call body; a user error or failed run becomes `prog: error: message` on stderr and exit code 2 or 1;
-    after bad input, what this process added to run_dir is removed (the dir too, if this process made it)."""
+    after bad input, what this process added to run_dir is removed (the dir too, if this process made it). In a
+    sweep the job's dir is kept with its verdict (job_status.json) and JobFailedError ends this job alone."""
     try:
         if run_dir is not None and absolute(run_dir) not in _STATE and run_dir.is_dir():
             try:  # configs without the Hydra callback still get the lock
@@ -302,14 +312,17 @@ def run_cli(body: Callable[[], T], prog: str, run_dir: Path | None = None) -> T:
                 raise ValueError(str(e)) from None
         return body()
     except (*USER_ERRORS, *RUN_FAILURES) as e:
-        if isinstance(e, USER_ERRORS):
+        bad_input, sweep = isinstance(e, USER_ERRORS), in_multirun()
+        if bad_input and not sweep:
             discard_own_files(run_dir)
         if verbose():
             raise
         message = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        kept = run_dir if isinstance(e, RUN_FAILURES) else None  # after bad input the run dir is gone or not ours
-        say(f"{prog}: error: {message} (HYDRA_FULL_ERROR=1 for a traceback)", kept, prog, err=True)
-        sys.exit(EXIT_RUN_FAILED if isinstance(e, RUN_FAILURES) else EXIT_BAD_INPUT)
+        kept = run_dir if sweep or not bad_input else None  # after bad input the run dir is gone or not ours
+        line = f"{prog}: error: {message} (HYDRA_FULL_ERROR=1 for a traceback)"
+        with contextlib.suppress(OSError):  # the log is what failed: the line is on stderr all the same
+            say(line, kept, prog, err=True)
+        end_job(EXIT_BAD_INPUT if bad_input else EXIT_RUN_FAILED, message, kept)
 
 
 def hydra_run_dir() -> Path:
@@ -322,9 +335,14 @@ def hydra_run_dir() -> Path:
 def run_job(body: Callable[[Path], T], prog: str, summary: Callable[[T, Path], str]) -> T:
     """An entry point's whole job: run body in Hydra's run dir under run_cli, then print and log its summary."""
     run_dir = hydra_run_dir()
-    result = run_cli(lambda: body(run_dir), prog, run_dir)
-    say(summary(result, run_dir), run_dir, prog)
-    return result
+
+    def whole() -> T:
+        """The body and its closing line (a log that cannot be written is a failed run too)."""
+        result = body(run_dir)
+        say(summary(result, run_dir), run_dir, prog)
+        return result
+
+    return run_cli(whole, prog, run_dir)
 
 
 # ---------------------------------------------------------------------------------------------- make clean

@@ -21,6 +21,17 @@ def plant_system(system: System, cfg: DictConfig) -> System:
     return system.with_mismatch(friction_scale=cfg.friction_scale, mass_scale=cfg.mass_scale)
 
 
+def simulated_arm(system: System, system_cfg: Any) -> System:
+    """The arm the plant simulates: for a model identified from a robot's logs (`identified_from` in its config) the
+    nominal arm it was fitted to, whose `robots` are the real ones; else the system itself."""
+    origin = (system_cfg or {}).get("identified_from") if hasattr(system_cfg, "get") else None
+    if not origin:
+        return system
+    from pinnmpc.systems.registry import load_system
+
+    return load_system(str(origin["system"]))
+
+
 def make_plant(system: System, cfg: DictConfig, tau: float, robots: Mapping[str, Any] | None = None) -> Plant:
     """The simulated robot of every closed loop (and of the bench's plant rows) from the plant settings: scipy's
     solve_ivp on the model, or MuJoCo on the arm's URDF as one of the system's `robots` (read here alone)."""

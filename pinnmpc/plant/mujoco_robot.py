@@ -146,6 +146,11 @@ def _tip_body(system: RigidArm, root_text: str, last_link: str) -> str:
 def compile_arm(system: RigidArm, effects: RobotEffects = RobotEffects()) -> Any:
     """The arm as a mujoco.MjModel: URDF inertias as written (scaled by system.mass_scale), gravity from the system,
     no contacts, limits, damping or springs; the robot's payload, armature and frictionloss on top."""
+    if getattr(system, "payload", None) or getattr(system, "armature", None):
+        raise ValueError(
+            f"system {system.name} models a payload or armature; expected plant=mujoco on an arm without them "
+            "(describe a robot's payload and armature under system.robots, plant.robot=<name>)"
+        )
     mujoco = _import_mujoco()
     text, last_link = _mjcf_urdf(system)
     spec = mujoco.MjSpec.from_string(text)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import logging
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -13,6 +14,7 @@ from tqdm.auto import tqdm
 from pinnmpc.controller.nmpc import Controller
 from pinnmpc.plant.base import Plant, PlantError
 from pinnmpc.references.data import Reference
+from pinnmpc.simulation.faults import MeasurementGuard, NoisySensor, Predict, Sensor
 from pinnmpc.systems.base import Box, System
 
 log = logging.getLogger(__name__)
@@ -28,6 +30,8 @@ class LoopResult:
     out_of_box_steps: int  # measured states outside the model's training box
     prediction_error: np.ndarray | None = None  # (steps - 1, nx): measured next state less the controller model's
     #   one-step prediction from the measured state and the applied input (the model monitor; None: no model)
+    faults: list[dict[str, Any]] = field(default_factory=list)  # what the sensor chain and plant wrappers injected
+    guard: MeasurementGuard | None = None  # what screened the measurements (its counts and events)
 
 
 def run_loop(
@@ -43,10 +47,14 @@ def run_loop(
     seed: int = 0,
     progress: bool = True,
     stop: Callable[[], bool] | None = None,
+    sensor: Sensor | None = None,
+    guard: MeasurementGuard | None = None,
 ) -> LoopResult:
     """Receding-horizon loop from x0 (None: the reference's first sample); stops cleanly on a plant failure, when the
     state leaves state_box by more than its width (a diverged simulation or controller) or when stop() turns true
-    (a signal), and returns what was reached."""
+    (a signal), and returns what was reached. sensor (default: Gaussian noise of noise_sigma, seeded) gives each
+    measurement, guard (default: MeasurementGuard on the controller's model) screens it before the controller
+    sees it, and no non-finite input ever reaches the plant."""
     horizon, nx = controller.horizon, ref.x.shape[1]
     steps = len(ref) - horizon - 1
     if steps < 1:
@@ -55,20 +63,25 @@ def run_loop(
         )
     if max_steps is not None:
         steps = min(steps, int(max_steps))
-    rng = np.random.default_rng(seed)
+    sensor = NoisySensor(noise_sigma, np.random.default_rng(seed)) if sensor is None else sensor
     lo = np.full(nx, -np.inf) if domain is None else np.array(domain.low)
     hi = np.full(nx, np.inf) if domain is None else np.array(domain.high)
     controller.reset()
     x = np.array(ref.x[0] if x0 is None else x0, dtype=np.float64)
     xs, us, status, out_of_box_steps, warned = [x], [], "ok", 0, False
     monitor = getattr(controller, "prediction_error", None)  # the controller's model, one step (None: it has none)
-    errors, last = [], None
+    predict = None if monitor is None else model_step(monitor, nx)
+    guard = MeasurementGuard(predict) if guard is None else guard
+    errors, last, u_applied = [], None, None
     for k in tqdm(range(steps), desc="closed loop", unit="step", disable=not progress, file=sys.stderr):
         if stop is not None and stop():
             status = "interrupted"
             log.warning("interrupted after %d of %d steps; writing what was reached", k, steps)
             break
-        measured = x + noise_sigma * rng.standard_normal(nx)
+        reading = sensor.read(k, x)
+        predicted = None if predict is None or last is None else predict(*last)
+        offset = getattr(controller, "disturbance", None)  # the offset-free estimate: what the model misses
+        measured = guard.screen(k, reading, predicted, reading.value if last is None else last[0], offset)
         if np.any(measured < lo) or np.any(measured > hi):
             out_of_box_steps += 1
             if not warned:
@@ -78,10 +91,12 @@ def run_loop(
                     k,
                 )
                 warned = True
-        if monitor is not None and last is not None:
-            errors.append(monitor(*last, measured))
-        u = controller.make_step(measured, ref.x[k + 1 : k + 1 + horizon])
+        if predicted is not None and measured is reading.value:  # a fresh reading the guard accepted
+            errors.append(measured - predicted)
+        u = guard.safe_input(k, np.asarray(controller.make_step(measured, ref.x[k + 1 : k + 1 + horizon])), u_applied)
         last = (measured, np.asarray(u, dtype=np.float64))
+        u_applied = last[1]
+        guard.applied(u_applied)
         try:
             x = plant.step(x, u)
         except PlantError as e:
@@ -98,7 +113,14 @@ def run_loop(
             break
     U = np.array(us, dtype=np.float64).reshape(-1, len(controller.low))
     E = None if monitor is None else np.array(errors, dtype=np.float64).reshape(-1, nx)
-    return LoopResult(np.array(xs), U, status, out_of_box_steps, E)
+    injected = [*sensor.faults(), *(plant.faults() if hasattr(plant, "faults") else [])]
+    return LoopResult(np.array(xs), U, status, out_of_box_steps, E, injected, guard)
+
+
+def model_step(monitor: Callable[..., np.ndarray], nx: int) -> Predict:
+    """The controller model's one step F(x, u) from its monitor's x - F(x_prev, u_prev) (exactly: 0 - F, negated)."""
+    zero = np.zeros(nx)
+    return lambda x, u: -monitor(x, u, zero)
 
 
 def divergence_box(system: System) -> Box:

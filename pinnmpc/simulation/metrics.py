@@ -11,6 +11,8 @@ import numpy as np
 from pinnmpc.controller.nmpc import Controller
 from pinnmpc.plant.base import Plant
 from pinnmpc.references.data import Reference
+from pinnmpc.simulation.fault_setup import Recovery
+from pinnmpc.simulation.faults import fault_report, position_error
 from pinnmpc.simulation.loop import LoopResult
 from pinnmpc.systems.base import System
 
@@ -71,7 +73,35 @@ def metrics(
         "state_units": dict(zip(names, units)),  # for readers of the file (and the headline)
         "fallback_fraction": sum(s.fallback for s in st) / len(st) if st else 0.0,
         "model_monitor": model_monitor(run, names),  # the model's one-step miss on the measured states
+        "measurement_guard": None if run.guard is None else run.guard.report(),  # readings rejected, inputs held
     }
+
+
+def faults_metrics(run: LoopResult, ref: Reference, nq: int, tau: float, recovery: Recovery) -> list[dict[str, Any]]:
+    """metrics.json's `faults`: each injected fault, what was done and the samples tracking took to recover."""
+    if not run.faults or run.guard is None:
+        return []
+    error = position_error(run.x, ref.x, nq)
+    r = recovery
+    return fault_report(run.faults, run.guard, error, tau, r.window, r.factor, r.tolerance, r.samples)
+
+
+def faults_note(m: dict[str, Any]) -> str:
+    """The headline's faults: each by name, what was done, and its recovery."""
+    parts = []
+    for f in m.get("faults") or []:
+        n = f.get("recovery_samples")
+        rec = "not recovered" if n is None else f"recovered in {n} samples"
+        if f.get("recovered") is None:
+            rec = "no recovery to measure"
+        if n is not None and not f.get("recovered"):
+            rec += f" (more than {f['recovery_bound']})"
+        parts.append(f"{f['fault']} ({f['what']}, t={f['t']:.3g} s): {'; '.join(f['actions'])}; {rec}")
+    if not parts:  # no fault injected: whatever the guard had to do came from the run itself
+        g = m.get("measurement_guard") or {}
+        counts = ("rejected_nonfinite", "rejected_jump", "inputs_held")
+        parts = [f"{g[k]} {k.replace('_', ' ')}" for k in counts if g.get(k)]
+    return f"; faults: {' | '.join(parts)}" if parts else ""
 
 
 def model_monitor(run: LoopResult, names: tuple[str, ...]) -> dict[str, Any] | None:
@@ -146,7 +176,8 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
         )
         if m[k] and not (real_time and k == "not_converged")
     ] + (["input bounds beyond the training box"] if m.get("input_bounds_outside_box") else [])
-    if m.get("final_position_error_max", 0.0) > m.get("tracking_bound", math.inf):
+    followed = m.get("final_position_error_max", 0.0) <= m.get("tracking_bound", math.inf)
+    if not m.get("followed", followed):  # metrics.json's `followed`
         trouble.append(f"did not follow: it ends {m['final_position_error_max']:.2g} rad off the reference")
     if m.get("joint_limit_samples"):
         past = f"{m['joint_limit_samples']} samples past a joint limit"
@@ -165,6 +196,7 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
         + f"; MAE {mae}; OCP median {1e3 * m['ocp_time_s']['median']:.2f} ms "
         f"(plant step {1e3 * m['plant_step_time_s']['median']:.2f} ms)"
         + monitor_note(m)
+        + faults_note(m)
         + (f"; {', '.join(trouble)}" if trouble else "")
         + f"; outputs in {run_dir}"
     )

@@ -13,7 +13,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from pinnmpc.controller.nmpc import Controller
-from pinnmpc.plant.build import make_plant
+from pinnmpc.plant.build import make_plant, simulated_arm
 from pinnmpc.references.data import Reference
 from pinnmpc.references.files import out_of_box
 from pinnmpc.simulation.fault_setup import plan_faults
@@ -72,7 +72,7 @@ def run_closed_loop(
     if dist > 0:
         what = "the surrogate's training box" if domain is not None else "the system's state box"
         log.warning("reference leaves %s by up to %.3g; tracking there is extrapolation", what, dist)
-    plant = make_plant(system, cfg.plant, tau, cfg.system.get("robots"))
+    plant = make_plant(simulated_arm(system, cfg.system), cfg.plant, tau, cfg.system.get("robots"))
     monitor = getattr(controller, "prediction_error", None)
     plan = plan_faults(
         cfg.get("faults"),

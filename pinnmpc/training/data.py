@@ -247,11 +247,12 @@ class CollocationDataModule(L.LightningDataModule):
         logs = [read_log(path, self.system) for path in self.logs]
         parts = [split_episodes(log, self.val_episodes, self.seed) for log in logs]
         t, x0, u, xt = transitions([train for train, _ in parts], self.t_max)
-        check_enough(len(t), MIN_ROBOT_TRANSITIONS, "data.logs")
+        fine = min(log.fine for log in logs)
+        check_enough(len(t), MIN_ROBOT_TRANSITIONS, "data.logs", tau=self.tau, fine=fine, t_max=self.t_max)
         self.robot = {"t": t, "x0": x0, "u": u, "dx": xt - x0}
         vt, vx0, vu, vx1 = transitions([val for _, val in parts], self.tau)
         at_tau = (vt[:, 0] - self.tau).abs() <= 1e-9 * self.tau  # one control period: what the controller asks for
-        check_enough(int(at_tau.sum()), MIN_ROBOT_VALIDATION, "the held-out episodes of data.logs")
+        check_enough(int(at_tau.sum()), MIN_ROBOT_VALIDATION, "the held-out episodes of data.logs", tau=self.tau)
         self.val = {"x0": vx0[at_tau], "u": vu[at_tau], "x1": vx1[at_tau]}
         self.robot_meta = [log.meta for log in logs]
 
