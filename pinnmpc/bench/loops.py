@@ -26,6 +26,7 @@ from pinnmpc.controller.arrays import Array
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
 from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
+from pinnmpc.plant.build import simulated_arm
 from pinnmpc.references.files import Reference
 from pinnmpc.simulation.fault_setup import plan_faults
 from pinnmpc.simulation.loop import divergence_box, model_step, run_loop
@@ -83,7 +84,7 @@ def loop_row(
     monitor = getattr(controller, "prediction_error", None)
     plan = plan_faults(  # faults: as in pinnmpc.closed_loop (all off by default)
         cfg.get("faults"),
-        system,
+        simulated_arm(system, cfg.system),
         make_plant(cfg, system, tau),
         plant_cfg=cfg.plant,
         robots=cfg.system.get("robots"),

@@ -2,7 +2,9 @@
 
 Same cost, soft joint limits, bounds, horizon and zero-order hold as NMPC (pinnmpc.controller.nmpc), the same
 make_step/reset/stats interface, the same fallback (a failed solve applies the previous plan shifted) and the same
-offset-free estimator.
+offset-free estimator. The model is transcribed by RK4 shooting (pinnmpc.controller.casadi_ocp) or Radau IIA
+collocation (pinnmpc.controller.casadi_collocation); a real-time iteration takes one condensed Gauss-Newton step per
+sample (pinnmpc.controller.casadi_rti).
 """
 
 from __future__ import annotations
@@ -14,11 +16,13 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.controller.casadi_ocp import CasadiOCP, NlpSolver, Solution
+from pinnmpc.controller.casadi_ocp import CasadiOCP, NlpSolver, Solution, merged
+from pinnmpc.controller.casadi_rti import RTI_STATUS, RtiSolver, rti_function, rti_solver
 from pinnmpc.controller.nmpc import StepStats, disturbance_bound, filtered_disturbance
 from pinnmpc.plant.stick_slip import coulomb_joints
 
-RTI_STATUSES = {"Solve_Succeeded", "Maximum_Iterations_Exceeded"}  # what one SQP step may end with and be used
+TRANSCRIPTIONS = ("rk4", "radau")  # controller.transcription: RK4 shooting or Radau IIA collocation
+RTI_STATUSES = {"Solve_Succeeded", "Maximum_Iterations_Exceeded", RTI_STATUS}  # one step's usable ends
 
 
 class CasadiNMPC:
@@ -27,7 +31,7 @@ class CasadiNMPC:
     def __init__(
         self,
         ocp: CasadiOCP,
-        solver: NlpSolver,
+        solver: NlpSolver | RtiSolver,
         label: str,
         warm_start: bool = True,
         rti: bool = False,
@@ -57,7 +61,7 @@ class CasadiNMPC:
             "disturbance_gain": self.disturbance_gain,
             "prediction": "true_model",
             "real_time": self.rti,  # one SQP step per sample: unconverged by design
-            "rk4_steps": self.ocp.rk4_steps,
+            **self.ocp.describe(),  # the transcription and its settings
             "smoothed_solves": self.smoothed_solves,  # failed solves repeated on the smoothed-friction model
         }
 
@@ -147,7 +151,7 @@ class CasadiNMPC:
         mine, theirs = (self.ocp.rollout_cost(u, p) for u in (U, plan))
         return mine if np.isfinite(mine) and not mine >= theirs else None
 
-    def _load(self, s: NlpSolver, x0: np.ndarray, ref: np.ndarray) -> None:
+    def _load(self, s: NlpSolver | RtiSolver, x0: np.ndarray, ref: np.ndarray) -> None:
         """Parameters and starting point into the solver's input buffers."""
         ocp = self.ocp
         s.p[ocp.p_x0] = x0
@@ -155,11 +159,10 @@ class CasadiNMPC:
         s.p[ocp.p_uprev] = self._u_prev
         s.p[ocp.p_d] = 0.0 if self.disturbance is None else self.disturbance
         if self._w is None:  # cold: every state at the measured one, the planned (or zero) inputs
-            s.w0[ocp.ix] = x0
-            s.w0[ocp.iu] = self._U
+            ocp.cold_start(s.w0, x0, self._U, self._u_prev)
         else:
             s.w0[:] = self._w
-            s.w0[ocp.ix[0]] = x0  # the initial-state constraint holds at the start
+            ocp.pin_start(s.w0, x0, self._u_prev)  # the initial-state constraints hold at the start
         if self._lam is None:
             s.lam_x0[:] = 0.0
             s.lam_g0[:] = 0.0
@@ -176,21 +179,10 @@ class CasadiNMPC:
         if sol is None:
             self._w, self._lam = None, None
             return
-        ix, iu, nx = self.ocp.ix, self.ocp.iu, self.nx
-        w, lam_x, lam_g = sol.w, sol.lam_x, sol.lam_g
-        nw = np.empty_like(w)
-        nw[ix[:-1]] = w[ix[1:]]
-        nw[ix[-1]] = w[ix[-1]]
-        nw[iu] = self._U
-        lx = np.empty_like(lam_x)
-        lx[ix[:-1]] = lam_x[ix[1:]]
-        lx[ix[-1]] = lam_x[ix[-1]]
-        lx[iu[:-1]] = lam_x[iu[1:]]
-        lx[iu[-1]] = lam_x[iu[-1]]
-        lg = np.empty_like(lam_g)  # g = (initial state, defect 0..H-1), nx each
-        lg[:-nx] = lam_g[nx:]
-        lg[-nx:] = lam_g[-nx:]
-        self._w, self._lam = nw, (lx, lg)
+        ocp = self.ocp
+        nw = ocp.shifted(sol.w, ocp.w_blocks)
+        nw[ocp.iu] = self._U
+        self._w, self._lam = nw, (ocp.shifted(sol.lam_x, ocp.w_blocks), ocp.shifted(sol.lam_g, ocp.g_blocks))
 
     def _estimate_disturbance(self, x: np.ndarray) -> None:
         """Offset-free MPC as NMPC's: what the model missed over the last period (x - F(x_prev, u_prev)),
@@ -201,6 +193,17 @@ class CasadiNMPC:
         self.disturbance = filtered_disturbance(self.disturbance, error, self.disturbance_gain, self._d_max)
 
 
+def sqpmethod_options(cfg: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
+    """sqpmethod's options with the QP solver controller.qpsol (else the one they name, else qrqp) and its options
+    from controller.qpsols."""
+    named = options.get("qpsol")
+    qpsol = str(cfg.get("qpsol") or named or "qrqp")
+    qp_options = dict((cfg.get("qpsols") or {}).get(qpsol) or {})
+    if named == qpsol:  # options written for this QP solver under solvers.sqpmethod too
+        qp_options = merged(qp_options, options.get("qpsol_options") or {})
+    return {**options, "qpsol": qpsol, "qpsol_options": qp_options}
+
+
 def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
     """CasadiNMPC from conf/controller/casadi.yaml (a DictConfig or a plain dict) for a system of pinnmpc.systems."""
     if isinstance(cfg, DictConfig):
@@ -208,41 +211,49 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
     plugin, rti = str(cfg.get("solver", "sqpmethod")), bool(cfg.get("rti", False))
     if rti and plugin != "sqpmethod":
         raise ValueError(f"rti=true takes one SQP step per sample: it needs solver=sqpmethod, got {plugin!r}")
+    transcription = cfg.get("transcription", "rk4")
+    if transcription not in TRANSCRIPTIONS:
+        raise ValueError(f"controller.transcription={transcription!r}; expected one of {list(TRANSCRIPTIONS)}")
     low = system.input_box.low if cfg.get("u_low") is None else cfg["u_low"]
     high = system.input_box.high if cfg.get("u_high") is None else cfg["u_high"]
 
     def make_ocp(coulomb_width: float | None = None) -> CasadiOCP:
         """The OCP of these settings, on the exact model or with its sign(v) friction smoothed."""
-        return CasadiOCP(
-            system,
-            cfg["horizon"],
-            cfg["Q"],
-            cfg["R"],
-            cfg.get("R_rate"),
-            low,
-            high,
-            rk4_steps=cfg.get("rk4_steps") if coulomb_width is None else None,
-            joint_limits=cfg.get("joint_limits"),
-            coulomb_width=coulomb_width,
-        )
+        problem = (system, cfg["horizon"], cfg["Q"], cfg["R"], cfg.get("R_rate"), low, high)
+        limits = cfg.get("joint_limits")
+        if transcription == "radau":
+            from pinnmpc.controller.casadi_collocation import RadauOCP
+
+            stages, intervals = cfg.get("collocation_stages", 3), cfg.get("collocation_intervals", 1)
+            return RadauOCP(*problem, stages, intervals, joint_limits=limits, coulomb_width=coulomb_width)
+        steps = cfg.get("rk4_steps") if coulomb_width is None else None
+        return CasadiOCP(*problem, rk4_steps=steps, joint_limits=limits, coulomb_width=coulomb_width)
 
     ocp = make_ocp()
     options = dict((cfg.get("solvers") or {}).get(plugin) or {})
+    if plugin == "sqpmethod":
+        options = sqpmethod_options(cfg, options)
     hessian, codegen = str(cfg.get("hessian", "gauss_newton")), bool(cfg.get("codegen", True))
+    if rti and hessian != "gauss_newton":
+        raise ValueError(f"rti=true takes Gauss-Newton steps: it needs hessian=gauss_newton, got {hessian!r}")
     level = str(cfg.get("codegen_opt", "-O2"))
-    solver = ocp.solver(plugin, options, hessian, codegen, level)
+    extra = [rti_function(ocp)] if rti else []  # compiled with the solver's functions: their code is shared
+    solver = ocp.solver(plugin, options, hessian, codegen, level, extra)
     smooth_solver, width = None, cfg.get("coulomb_width")
-    if width is not None and coulomb_joints(system):  # its own RK4 sub-steps: the smoothed model is stiffer
+    if width is not None and coulomb_joints(system):  # RK4: its own sub-steps, the smoothed model is stiffer
         smooth_solver = make_ocp(float(width)).solver(plugin, options, hessian, codegen, level)
     cold_solver = None
-    if rti:  # one full SQP step from the shifted solution; the first step (and any after a fallback) solves fully
-        one_step = {**options, "max_iter": 1, "max_iter_ls": 0}
-        cold_solver, solver = solver, ocp.solver(plugin, one_step, hessian, codegen, level)
+    if rti:  # one Gauss-Newton step from the shifted solution; the first step (and any after a fallback) solves fully
+        qp_data = solver.functions["rti_qp"]
+        cold_solver, solver = solver, rti_solver(ocp, options["qpsol"], options["qpsol_options"], qp_data, solver.flow)
     d = cfg.get("disturbance") or {}
+    label = f"casadi-{plugin}"
+    label += f"-{options['qpsol']}" if plugin == "sqpmethod" and options["qpsol"] != "qrqp" else ""
+    label += f"-{transcription}" if transcription != "rk4" else ""
     return CasadiNMPC(
         ocp,
         solver,
-        label=f"casadi-{plugin}" + ("-rti" if rti else ""),
+        label=label + ("-rti" if rti else ""),
         warm_start=bool(cfg.get("warm_start", True)),
         rti=rti,
         cold_solver=cold_solver,

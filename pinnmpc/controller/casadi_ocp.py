@@ -1,11 +1,13 @@
-"""The horizon OCP on the true model as a CasADi NLP: multiple shooting over RK4, stage-wise variables.
+"""The horizon OCP on the true model as a CasADi NLP: multiple shooting, variables and constraints stage by stage.
 
-Variables w = (x_0, u_0, x_1, u_1, ..., x_{H-1}, u_{H-1}, x_H) and constraints g = (x_0 - x_meas,
-x_1 - F(x_0, u_0) - d, ..., x_H - F(x_{H-1}, u_{H-1}) - d) are ordered stage by stage (fatrop's
-structure detection needs that); the cost is the PINN controller's (pinnmpc.controller.ocp.HorizonOCP):
-sum_{k=1..H} |x_k - xref_k|_Q^2 + sum_{k=0..H-1} |u_k|_R^2 + |u_k - u_{k-1}|_{R_rate}^2 with u_{-1} the
-input applied last, plus the same soft joint-limit penalty on x_1..x_H (JointLimits). Parameters
-p = (x_meas, xref_1..xref_H, u_prev, d).
+Stage k < H holds x_k, up_k (the input applied before it; only with an input-rate weight, so that the cost's Hessian
+stays block diagonal), u_k and z_k (the transcription's own unknowns: none here; the collocation's stage
+accelerations in pinnmpc.controller.casadi_collocation); stage H holds x_H. The constraints come in the order a
+structured QP solver (HPIPM) reads them, stage by stage: the dynamics x_{k+1} - F_k - d (and up_{k+1} - u_k), then
+stage k's own: x_0 - x_meas (and up_0 - u_prev) at k = 0, and the transcription's residuals. The cost is the PINN
+controller's (pinnmpc.controller.ocp.HorizonOCP): sum_{k=1..H} |x_k - xref_k|_Q^2 + sum_{k=0..H-1} |u_k|_R^2 +
+|u_k - up_k|_{R_rate}^2, plus the same soft joint-limit penalty on x_1..x_H (JointLimits). Parameters
+p = (x_meas, xref_1..xref_H, u_prev, d). This module's transcription: F_k = F(x_k, u_k), RK4 sub-steps over tau.
 
 With codegen, every function the solver evaluates (and F itself) is generated as C in one library
 (pinnmpc.systems.compiled) and the solver is rebuilt on it: a solve is then the solver's own C/C++ loop
@@ -14,6 +16,7 @@ calling compiled code.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -22,78 +25,20 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from pinnmpc.controller.casadi_nlpsol import QUIET, SUCCESS, NlpSolver, Solution
+from pinnmpc.controller.casadi_rk4 import rk4_flow, stable_rk4_steps
 from pinnmpc.controller.ocp import JointLimits, psd_sqrt
-from pinnmpc.plant.integrators import rk4_fixed
 from pinnmpc.systems.compiled import compile_functions
 
+__all__ = ["CasadiOCP", "NlpSolver", "Solution", "Stages", "merged", "rk4_flow", "stable_rk4_steps", "weight"]
+
 SOLVERS = ("ipopt", "sqpmethod", "fatrop")  # nlpsol plugins this controller knows how to configure
+QPSOLS = ("qrqp", "hpipm", "osqp")  # sqpmethod QP solvers this controller configures (hpipm: with the stage structure)
 OPT_LEVELS = ("-O0", "-O1", "-O2", "-O3", "-Os")  # C compiler optimisation levels for codegen
 HESSIANS = ("gauss_newton", "exact")  # Hessian of the Lagrangian: the cost's only (constant) or with the dynamics'
-RK4_STABLE = 2.0  # h * max|eig(df/dx)| kept below this (RK4's real stability bound is 2.785)
-STIFFNESS_SAMPLES = 400  # states sampled to estimate the stiffest eigenvalue
-SUCCESS = {  # return statuses that count as converged, per plugin
-    "ipopt": {"Solve_Succeeded", "Solved_To_Acceptable_Level"},
-    "sqpmethod": {"Solve_Succeeded"},
-    "fatrop": {"Solve_Succeeded"},
-}
-QUIET = {  # options that silence each plugin
-    "ipopt": {"ipopt": {"print_level": 0, "sb": "yes"}, "print_time": False},
-    "sqpmethod": {
-        "print_time": False,
-        "print_header": False,
-        "print_iteration": False,
-        "print_status": False,
-    },
-    "fatrop": {"fatrop": {"print_level": 0}, "print_time": False},
-}
 
 
-def stable_rk4_steps(
-    system: Any, tau: float, seed: int = 0, rhs: ca.Function | None = None, at_rest: bool = False
-) -> int:
-    """Fewest RK4 sub-steps per tau that keep h * max|eig(df/dx)| below RK4_STABLE on the state box (of rhs, by
-    default the system's).
-
-    Friction with a steep tanh makes the arms stiff near zero velocity, so half the samples there; with at_rest a
-    quarter at exactly zero, where a smoothed sign(v) (tanh(v / width), any width) is steepest."""
-    rhs = system.casadi_rhs() if rhs is None else rhs
-    nx, nu = rhs.size1_in(0), rhs.size1_in(1)
-    x, u = ca.SX.sym("x", nx), ca.SX.sym("u", nu)
-    jac = ca.Function("rhs_jacobian", [x, u], [ca.jacobian(rhs(x, u), x)]).map(STIFFNESS_SAMPLES)
-    rng = np.random.default_rng(seed)
-    lo, hi = np.array(system.state_box.low), np.array(system.state_box.high)
-    xs = rng.uniform(lo, hi, (STIFFNESS_SAMPLES, nx))
-    xs[::2, nx // 2 :] *= 1e-3  # velocities near zero: the steepest friction slope
-    if at_rest:
-        xs[::4, nx // 2 :] = 0.0
-    us = rng.uniform(system.input_box.low, system.input_box.high, (STIFFNESS_SAMPLES, nu))
-    jacs = np.asarray(jac(xs.T, us.T)).reshape(nx, STIFFNESS_SAMPLES, nx).transpose(1, 0, 2)
-    worst = float(np.abs(np.linalg.eigvals(jacs)).max())
-    return max(1, math.ceil(tau * worst / RK4_STABLE))
-
-
-def rk4_flow(rhs: ca.Function, tau: float, steps: int) -> tuple[ca.Function, ca.Function]:
-    """F(x, u): the zero-order-hold flow over tau by `steps` RK4 steps, a loop (mapaccum) of one SX step, and
-    F_sens(x, u) = (F, dF/dx, dF/du) by forward sensitivities carried through the same loop (one SX step with
-    its own Jacobian, cheaper than AD through the loop)."""
-    nx, nu = rhs.size1_in(0), rhs.size1_in(1)
-    h = tau / steps
-    x, u, s = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("s", nx, nx + nu)
-    nxt = rk4_fixed(rhs, x, u, h, 1)  # one step on symbols: the same RK4 as every other path
-    step = ca.Function("rk4_step", [x, u], [nxt], {"cse": True})
-    s_next = ca.jacobian(nxt, x) @ s + ca.horzcat(ca.SX.zeros(nx, nx), ca.jacobian(nxt, u))
-    sens = ca.Function("rk4_sens", [x, u, s], [nxt, s_next], {"cse": True})
-    xm, um = ca.MX.sym("x", nx), ca.MX.sym("u", nu)
-    xs = step.mapaccum("rk4_loop", steps)(xm, ca.repmat(um, 1, steps))
-    flow = ca.Function("F", [xm, um], [xs[:, -1]], ["x", "u"], ["xf"])
-    s0 = ca.horzcat(ca.MX.eye(nx), ca.MX.zeros(nx, nu))
-    xs, ss = sens.mapaccum("rk4_sens_loop", steps, [0, 2], [0, 1])(xm, ca.repmat(um, 1, steps), s0)
-    last = ss[:, -(nx + nu) :]
-    outs = [xs[:, -1], last[:, :nx], last[:, nx:]]
-    return flow, ca.Function("F_sens", [xm, um], outs, ["x", "u"], ["xf", "A", "B"])
-
-
-def _whole(value: Any) -> bool:
+def whole_number(value: Any) -> bool:
     """A count from a config or a caller: an int >= 1, never a float silently truncated or a bool."""
     return not isinstance(value, bool) and isinstance(value, (int, np.integer)) and value >= 1
 
@@ -113,20 +58,27 @@ def weight(matrix: Sequence, n: int, name: str) -> np.ndarray:
 
 
 @dataclass
-class Solution:
-    """What one solve returned; the arrays are the solver's output buffers (copy what you keep)."""
+class Stages:
+    """The NLP's variables and parameters split by stage (MX or SX); ups and zs are empty where the layout has none."""
 
-    w: np.ndarray
-    lam_x: np.ndarray
-    lam_g: np.ndarray
-    cost: float
-    success: bool
-    iterations: int
-    status: str
+    xs: list
+    ups: list
+    us: list
+    zs: list
+    x0: Any
+    ref: Any
+    u_prev: Any
+    d: Any
+
+
+Blocks = list[tuple[int, Any]]  # the nonzero blocks of one Jacobian block row: (first column in w, matrix)
 
 
 class CasadiOCP:
     """The NLP, its layout and bounds; `solver` turns it into a callable nlpsol (compiled or not)."""
+
+    transcription = "rk4"  # what predicts the next state (controller.transcription)
+    flow_codegen = True  # whether F compiles to C (a rootfinder with a line search does not)
 
     def __init__(
         self,
@@ -141,17 +93,12 @@ class CasadiOCP:
         joint_limits: JointLimits | Mapping | None = None,
         coulomb_width: float | None = None,
     ) -> None:
-        if not _whole(horizon):
+        if not whole_number(horizon):
             raise ValueError(f"controller.horizon={horizon!r}; expected a whole number >= 1")
         rhs = system.casadi_rhs() if coulomb_width is None else system.casadi_rhs(coulomb_width)
         self.name = system.name
         self.horizon, self.nx, self.nu = int(horizon), rhs.size1_in(0), rhs.size1_in(1)
         self.tau = float(system.tau)
-        if rk4_steps is None:
-            rk4_steps = stable_rk4_steps(system, self.tau, rhs=rhs, at_rest=coulomb_width is not None)
-        if not _whole(rk4_steps):
-            raise ValueError(f"controller.rk4_steps={rk4_steps!r}; expected a whole number >= 1 or null (automatic)")
-        self.rk4_steps = int(rk4_steps)
         self.low = np.array(u_low, dtype=np.float64)
         self.high = np.array(u_high, dtype=np.float64)
         if self.low.shape != (self.nu,) or self.high.shape != (self.nu,):
@@ -162,25 +109,67 @@ class CasadiOCP:
         self.R_rate = None if R_rate is None else weight(R_rate, self.nu, "R_rate")
         if self.R_rate is not None and not np.any(self.R_rate):
             self.R_rate = None
+        self.n_up = 0 if self.R_rate is None else self.nu  # the previous input as a stage variable: see the top
+        self.nz = 0  # the transcription's unknowns per stage
         self.joint_limits = JointLimits.from_config(joint_limits, self.nx // 2)
         self._limit_sides: list[tuple[int, float, float]] = []  # (joint, sign, where its penalty starts) per side
         if self.joint_limits is not None:
             for j, lo, hi in zip(self.joint_limits.joints, *self.joint_limits.inner):
                 self._limit_sides += [(int(j), -1.0, lo)] if math.isfinite(lo) else []
                 self._limit_sides += [(int(j), 1.0, hi)] if math.isfinite(hi) else []
-        self.F, self.F_sens = rk4_flow(rhs, self.tau, self.rk4_steps)
+        self._prepare(system, rhs, coulomb_width, rk4_steps)
         self._rollout_cost: ca.Function | None = None  # built on first use (see rollout_cost)
         self._layout()
         self._build()
 
+    def _prepare(self, system: Any, rhs: ca.Function, coulomb_width: float | None, rk4_steps: int | None) -> None:
+        """The transcription's model: RK4 sub-steps (null: the fewest stable on the state box) and F, F_sens."""
+        if rk4_steps is None:
+            rk4_steps = stable_rk4_steps(system, self.tau, rhs=rhs, at_rest=coulomb_width is not None)
+        if not whole_number(rk4_steps):
+            raise ValueError(f"controller.rk4_steps={rk4_steps!r}; expected a whole number >= 1 or null (automatic)")
+        self.rk4_steps = int(rk4_steps)
+        self.F, self.F_sens = rk4_flow(rhs, self.tau, self.rk4_steps)
+
+    @property
+    def tag(self) -> str:
+        """The transcription in a file name."""
+        return "rk4"
+
+    def describe(self) -> dict[str, Any]:
+        """The transcription and its settings, for metrics.json."""
+        return {"transcription": self.transcription, "rk4_steps": self.rk4_steps}
+
     # -- layout ---------------------------------------------------------------------------------------------
     def _layout(self) -> None:
-        """Index arrays of x_k (H+1, nx) and u_k (H, nu) in w, of the parts of p, and the bounds."""
-        nx, nu, horizon = self.nx, self.nu, self.horizon
-        stage = nx + nu
-        self.ix = np.array([[k * stage + i for i in range(nx)] for k in range(horizon + 1)])
-        self.iu = np.array([[k * stage + nx + i for i in range(nu)] for k in range(horizon)])
-        self.nw, self.ng = (horizon + 1) * nx + horizon * nu, (horizon + 1) * nx
+        """Index arrays of x_k (H+1, nx), up_k, u_k, z_k (H, n) in w, of the constraint blocks in g (in
+        _constraints' order), of the parts of p, and the bounds."""
+        nx, nu, nup, nz, horizon = self.nx, self.nu, self.n_up, self.nz, self.horizon
+        counter = itertools.count()
+
+        def take(n: int) -> list[int]:
+            return [next(counter) for _ in range(n)]
+
+        ix, iup, iu, iz = [], [], [], []
+        for _ in range(horizon):
+            for rows, n in ((ix, nx), (iup, nup), (iu, nu), (iz, nz)):
+                rows.append(take(n))
+        ix.append(take(nx))
+        self.nw = next(counter)
+        as_array = lambda rows, n: np.array(rows, dtype=np.int64).reshape(len(rows), n)  # noqa: E731
+        self.ix, self.iup, self.iu, self.iz = as_array(ix, nx), as_array(iup, nup), as_array(iu, nu), as_array(iz, nz)
+        counter = itertools.count()
+        gx, gup, gres, first = [], [], [], ([], [])
+        for k in range(horizon):
+            gx.append(take(nx))
+            gup += [take(nup)] if k < horizon - 1 else []
+            first = (take(nx), take(nup)) if k == 0 else first
+            gres.append(take(nz))
+        self.ng = next(counter)
+        # blocks that move one stage forward when a solution is shifted (the last one repeated)
+        self.w_blocks = [self.ix, self.iup, self.iu, self.iz]
+        self.g_res = as_array(gres, nz)  # the transcription's residuals, per stage
+        self.g_blocks = [as_array([first[0], *gx], nx), as_array([first[1], *gup], nup), self.g_res]
         self.np = nx + horizon * nx + nu + nx
         self.p_x0 = slice(0, nx)
         self.p_ref = slice(nx, nx + horizon * nx)
@@ -191,48 +180,136 @@ class CasadiOCP:
         self.ubw[self.iu] = self.high
         self.lbg, self.ubg = np.zeros(self.ng), np.zeros(self.ng)
 
+    def qp_structure(self) -> dict[str, Any]:
+        """The stage dimensions in HPIPM's terms (its qpsol options N, nx, nu, ng): states (x_k, up_k), inputs
+        (u_k, z_k), and the constraints that are not dynamics."""
+        horizon, states = self.horizon, self.nx + self.n_up
+        return {
+            "N": horizon,
+            "nx": [states] * horizon + [self.nx],
+            "nu": [self.nu + self.nz] * horizon + [0],
+            "ng": [states + self.nz] + [self.nz] * (horizon - 1) + [0],
+        }
+
+    @staticmethod
+    def shifted(values: np.ndarray, blocks: list[np.ndarray]) -> np.ndarray:
+        """values with every stage block moved one stage forward, the last one kept (a warm start's shift)."""
+        out = values.copy()
+        for b in blocks:
+            if b.size and len(b) > 1:
+                out[b[:-1]] = values[b[1:]]
+        return out
+
+    def cold_start(self, w0: np.ndarray, x0: np.ndarray, U: np.ndarray, u_prev: np.ndarray) -> None:
+        """A starting point without a previous solution, in place: every state at x0, the inputs U (H, nu)."""
+        w0[self.ix] = x0
+        w0[self.iu] = U
+        w0[self.iup] = np.vstack([u_prev, U[:-1]]) if self.n_up else 0.0
+        w0[self.iz] = 0.0
+
+    def pin_start(self, w0: np.ndarray, x0: np.ndarray, u_prev: np.ndarray) -> None:
+        """The first stage's known values into a shifted starting point: the initial constraints hold at the start."""
+        w0[self.ix[0]] = x0
+        if self.n_up:
+            w0[self.iup[0]] = u_prev
+
     # -- the NLP --------------------------------------------------------------------------------------------
-    def _split(self, w: Any, p: Any) -> tuple[list, list, Any, Any, Any, Any]:
-        """States x_0..x_H, inputs u_0..u_{H-1} of w, and x_meas, xref (nx, H), u_prev, d of p (MX or SX)."""
-        xs = [w[self.ix[k]] for k in range(self.horizon + 1)]
-        us = [w[self.iu[k]] for k in range(self.horizon)]
-        ref = ca.reshape(p[self.p_ref], self.nx, self.horizon)
-        return xs, us, p[self.p_x0], ref, p[self.p_uprev], p[self.p_d]
+    def _split(self, w: Any, p: Any) -> Stages:
+        """w and p by stage (MX or SX)."""
+        horizon = self.horizon
+        return Stages(
+            xs=[w[self.ix[k]] for k in range(horizon + 1)],
+            ups=[w[self.iup[k]] for k in range(horizon)] if self.n_up else [],
+            us=[w[self.iu[k]] for k in range(horizon)],
+            zs=[w[self.iz[k]] for k in range(horizon)] if self.nz else [],
+            x0=p[self.p_x0],
+            ref=ca.reshape(p[self.p_ref], self.nx, horizon),
+            u_prev=p[self.p_uprev],
+            d=p[self.p_d],
+        )
+
+    def _model(self, s: Stages, jac: bool) -> tuple[list, list, list[Blocks], list[Blocks]]:
+        """Per stage: the predicted next state, the residuals (none here) and, with jac, their derivatives' blocks
+        (F_sens: cheaper than AD through the RK4 loop)."""
+        horizon, nx, nu = self.horizon, self.nx, self.nu
+        X, U = ca.horzcat(*s.xs[:-1]), ca.horzcat(*s.us)
+        if not jac:
+            nxt = self.F.map(horizon)(X, U)
+            return [nxt[:, k] for k in range(horizon)], [], [], []
+        nxt, a, b = self.F_sens.map(horizon)(X, U)
+        blocks = [
+            [(int(self.ix[k, 0]), a[:, k * nx : (k + 1) * nx]), (int(self.iu[k, 0]), b[:, k * nu : (k + 1) * nu])]
+            for k in range(horizon)
+        ]
+        return [nxt[:, k] for k in range(horizon)], [], blocks, []
+
+    def _constraints(self, s: Stages, nxt: list, res: list) -> Any:
+        """g in the order of the layout: per stage the dynamics, then x_0 - x_meas (k = 0) and the residuals."""
+        rows = []
+        for k in range(self.horizon):
+            rows.append(s.xs[k + 1] - nxt[k] - s.d)
+            if self.n_up and k < self.horizon - 1:
+                rows.append(s.ups[k + 1] - s.us[k])
+            if k == 0:
+                rows += [s.xs[0] - s.x0] + ([s.ups[0] - s.u_prev] if self.n_up else [])
+            if self.nz:
+                rows.append(res[k])
+        return ca.vertcat(*rows)
+
+    def _jacobian(self, dnxt: list[Blocks], dres: list[Blocks]) -> Any:
+        """dg/dw (MX) block row by block row, in _constraints' order."""
+        nx, nu, horizon = self.nx, self.nu, self.horizon
+        eye_x, eye_u = ca.MX.eye(nx), ca.MX.eye(nu)
+        rows = []
+        for k in range(horizon):
+            rows.append(self._row(nx, [(int(self.ix[k + 1, 0]), eye_x)] + [(c, -b) for c, b in dnxt[k]]))
+            if self.n_up and k < horizon - 1:
+                rows.append(self._row(nu, [(int(self.iu[k, 0]), -eye_u), (int(self.iup[k + 1, 0]), eye_u)]))
+            if k == 0:
+                rows.append(self._row(nx, [(int(self.ix[0, 0]), eye_x)]))
+                rows += [self._row(nu, [(int(self.iup[0, 0]), eye_u)])] if self.n_up else []
+            if self.nz:
+                rows.append(self._row(self.nz, dres[k]))
+        return ca.vertcat(*rows)
+
+    def _row(self, n: int, blocks: Blocks) -> Any:
+        """One block row of n rows: the blocks at their columns, structural zeros between."""
+        parts, col = [], 0
+        for start, block in sorted(blocks, key=lambda b: b[0]):
+            parts += [ca.MX(n, start - col)] if start > col else []
+            parts.append(ca.MX(block))
+            col = start + block.shape[1]
+        parts += [ca.MX(n, self.nw - col)] if col < self.nw else []
+        return ca.horzcat(*parts)
 
     def _build(self) -> None:
-        """Symbolic NLP (MX: every stage calls the same F) and the Gauss-Newton Hessian (SX, constant)."""
+        """Symbolic NLP (MX: every stage calls the same functions) and the Gauss-Newton Hessian (SX, constant)."""
         w, p = ca.MX.sym("w", self.nw), ca.MX.sym("p", self.np)
-        xs, us, x0, ref, u_prev, d = self._split(w, p)
-        nxt = self.F.map(self.horizon)(ca.horzcat(*xs[:-1]), ca.horzcat(*us))
-        g = [xs[0] - x0] + [xs[k + 1] - nxt[:, k] - d for k in range(self.horizon)]
-        self.nlp = {"x": w, "p": p, "f": self._cost(xs, us, ref, u_prev), "g": ca.vertcat(*g)}
-        # Gauss-Newton: the cost is quadratic in w, so its Hessian is exact and constant; only the dynamics'
+        s = self._split(w, p)
+        nxt, res, _, _ = self._model(s, jac=False)
+        self.nlp = {"x": w, "p": p, "f": self._cost(s.xs, s.us, s.ref, s.ups), "g": self._constraints(s, nxt, res)}
+        # Gauss-Newton: the cost is quadratic in w, so its Hessian is exact and constant; only the constraints'
         # curvature (lam_g^T d2g) is dropped.
         ws, ps = ca.SX.sym("x", self.nw), ca.SX.sym("p", self.np)
         lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", self.ng)
-        xss, uss, _, refs, u_prevs, _ = self._split(ws, ps)
-        hess = ca.sparsify(ca.evalf(ca.hessian(self._tracking_cost(xss, uss, refs, u_prevs), ws)[0]))
-        hess = ca.triu(hess + self._limit_hessian(xss)) if self._limit_sides else ca.triu(hess)
+        ss = self._split(ws, ps)
+        hess = ca.sparsify(ca.evalf(ca.hessian(self._tracking_cost(ss.xs, ss.us, ss.ref, ss.ups), ws)[0]))
+        hess = ca.triu(hess + self._limit_hessian(ss.xs)) if self._limit_sides else ca.triu(hess)
         self.gauss_newton = ca.Function(
             "nlp_hess_l", [ws, ps, lam_f, lam_g], [lam_f * hess], ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"]
         )
 
     def _with_sensitivities(self, w: Any, p: Any) -> tuple[Any, Any, Any]:
-        """Cost, constraints and the constraints' Jacobian (MX) from F_sens: the compiled solvers' derivatives."""
-        xs, us, x0, ref, u_prev, d = self._split(w, p)
-        nx, nu = self.nx, self.nu
-        nxt, a, b = self.F_sens.map(self.horizon)(ca.horzcat(*xs[:-1]), ca.horzcat(*us))
-        g = ca.vertcat(xs[0] - x0, *[xs[k + 1] - nxt[:, k] - d for k in range(self.horizon)])
-        rows = [ca.horzcat(ca.MX.eye(nx), ca.MX(nx, self.nw - nx))]  # d(x_0 - x_meas)/dw
-        for k in range(self.horizon):  # d(x_{k+1} - F(x_k, u_k) - d)/dw: [-A_k, -B_k, I] on stage k's columns
-            before, after = int(self.ix[k, 0]), self.nw - int(self.ix[k + 1, -1]) - 1
-            block = [-a[:, k * nx : (k + 1) * nx], -b[:, k * nu : (k + 1) * nu], ca.MX.eye(nx)]
-            rows.append(ca.horzcat(ca.MX(nx, before), *block, ca.MX(nx, after)))
-        return self._cost(xs, us, ref, u_prev), g, ca.vertcat(*rows)
+        """Cost, constraints and the constraints' Jacobian (MX) from the model's own derivatives: the compiled
+        solvers' derivatives."""
+        s = self._split(w, p)
+        nxt, res, dnxt, dres = self._model(s, jac=True)
+        return self._cost(s.xs, s.us, s.ref, s.ups), self._constraints(s, nxt, res), self._jacobian(dnxt, dres)
 
-    def _cost(self, xs: list, us: list, ref: Any, u_prev: Any) -> Any:
-        """The PINN controller's horizon cost on symbols (MX or SX), joint-limit penalty included."""
-        cost = self._tracking_cost(xs, us, ref, u_prev)
+    def _cost(self, xs: list, us: list, ref: Any, prev: list) -> Any:
+        """The PINN controller's horizon cost on symbols (MX or SX), joint-limit penalty included; prev[k]: the input
+        before u_k (for the rate weight)."""
+        cost = self._tracking_cost(xs, us, ref, prev)
         return cost + self._limit_cost(xs) if self._limit_sides else cost  # no limits: the very same expression
 
     def _limit_cost(self, xs: list) -> Any:
@@ -253,14 +330,14 @@ class CasadiOCP:
                 hess[i, i] += 2.0 * self.joint_limits.weight * (sign * (xs[k][j] - edge) > 0)
         return hess
 
-    def _tracking_cost(self, xs: list, us: list, ref: Any, u_prev: Any) -> Any:
+    def _tracking_cost(self, xs: list, us: list, ref: Any, prev: list) -> Any:
         """The quadratic part of the cost: tracking, input and input-rate weights."""
         cost = 0
         for k in range(self.horizon):
             e = xs[k + 1] - ref[:, k]
             cost += ca.bilin(self.Q, e, e) + ca.bilin(self.R, us[k], us[k])
             if self.R_rate is not None:
-                du = us[k] - (u_prev if k == 0 else us[k - 1])
+                du = us[k] - prev[k]
                 cost += ca.bilin(self.R_rate, du, du)
         return cost
 
@@ -273,8 +350,8 @@ class CasadiOCP:
             xs, d = [par[self.p_x0]], par[self.p_d]
             for k in range(self.horizon):
                 xs.append(self.F(xs[-1], us[k]) + d)
-            ref = ca.reshape(par[self.p_ref], self.nx, self.horizon)
-            self._rollout_cost = ca.Function("rollout_cost", [u, par], [self._cost(xs, us, ref, par[self.p_uprev])])
+            ref, prev = ca.reshape(par[self.p_ref], self.nx, self.horizon), [par[self.p_uprev], *us[:-1]]
+            self._rollout_cost = ca.Function("rollout_cost", [u, par], [self._cost(xs, us, ref, prev)])
         return float(self._rollout_cost(np.asarray(U, dtype=np.float64).reshape(-1), p))
 
     # -- solvers --------------------------------------------------------------------------------------------
@@ -285,9 +362,11 @@ class CasadiOCP:
         hessian: str = "gauss_newton",
         codegen: bool = True,
         codegen_opt: str = "-O2",
+        extra: Sequence[ca.Function] = (),
     ) -> NlpSolver:
         """The nlpsol for this OCP: plugin (SOLVERS), its options (CasADi's names), compiled (at the C
-        optimisation level codegen_opt) or not."""
+        optimisation level codegen_opt) or not; extra functions go into the same library (NlpSolver.functions):
+        code they share with the solver's is generated once."""
         if codegen_opt not in OPT_LEVELS:
             raise ValueError(f"controller.codegen_opt={codegen_opt!r}; expected one of {list(OPT_LEVELS)}")
         if plugin not in SOLVERS:
@@ -300,20 +379,29 @@ class CasadiOCP:
         if gauss_newton and plugin == "fatrop" and not codegen:
             raise ValueError("fatrop takes no hess_lag option: hessian=gauss_newton needs codegen=true with fatrop")
         opts = merged(QUIET[plugin], options)
+        if plugin == "sqpmethod":
+            qpsol = opts.setdefault("qpsol", "qrqp")
+            if qpsol not in QPSOLS or not ca.has_conic(qpsol):
+                have = [q for q in QPSOLS if ca.has_conic(q)]
+                raise ValueError(f"controller.qpsol={qpsol!r}; expected one of {have} (available in this CasADi build)")
+            if qpsol == "hpipm":  # the Riccati recursion needs the stages: HPIPM's own detection misreads this layout
+                opts["qpsol_options"] = {**self.qp_structure(), **opts.get("qpsol_options", {})}
         if plugin == "fatrop":
             opts.setdefault("structure_detection", "auto")  # stage-wise variables and constraints
             opts.setdefault("equality", [True] * self.ng)
         if gauss_newton and plugin == "ipopt" and not self._limit_sides:  # the limits' Hessian is piecewise constant
             opts["ipopt"].setdefault("hessian_constant", "yes")
         if codegen:
-            return self._compiled(plugin, opts, gauss_newton, codegen_opt)
-        extra = {"hess_lag": self.gauss_newton} if gauss_newton else {}
-        return NlpSolver(self, ca.nlpsol("ocp", plugin, self.nlp, {**opts, **extra}), self.F, SUCCESS[plugin])
+            return self._compiled(plugin, opts, gauss_newton, codegen_opt, list(extra))
+        hess = {"hess_lag": self.gauss_newton} if gauss_newton else {}
+        solver = ca.nlpsol("ocp", plugin, self.nlp, {**opts, **hess})
+        return NlpSolver(self, solver, self.F, SUCCESS[plugin], {f.name(): f for f in extra})
 
-    def _compiled(self, plugin: str, opts: dict, gauss_newton: bool, opt: str) -> NlpSolver:
+    def _compiled(self, plugin: str, opts: dict, gauss_newton: bool, opt: str, extra: list) -> NlpSolver:
         """The solver on a library of its functions compiled to C: CasADi loads every derivative the solver
         asks for (nlp_grad_f, nlp_jac_g, nlp_hess_l, ...) from the library that holds the oracle "nlp".
-        The constraint Jacobians come from F_sens; with Gauss-Newton, nlp_hess_l is the constant cost Hessian."""
+        The constraint Jacobians come from the model's own derivatives (_model); with Gauss-Newton, nlp_hess_l is
+        the constant cost Hessian."""
         nlp = self.nlp
         oracle = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]], ["x", "p"], ["f", "g"])
         symbolic = ca.nlpsol("ocp", plugin, nlp, opts)  # names the functions the solver needs, and their signatures
@@ -325,14 +413,16 @@ class CasadiOCP:
                 f = self._like(f, gauss_newton=True)
             deps.append(f)
         x, u = self.F.mx_in()
-        flow = ca.Function("flow", [x, u], [self.F(x, u)])
-        tag = f"casadi_nmpc_{self.name}_{plugin}_{'gn' if gauss_newton else 'exact'}"
-        lib = compile_functions(tag, [oracle, flow, *deps], opt=opt)
-        return NlpSolver(self, ca.nlpsol("ocp", plugin, lib["nlp"], opts), lib["flow"], SUCCESS[plugin])
+        flow = [ca.Function("flow", [x, u], [self.F(x, u)])] if self.flow_codegen else []
+        tag = f"casadi_nmpc_{self.name}_{self.tag}_{plugin}_{'gn' if gauss_newton else 'exact'}"
+        lib = compile_functions(tag, [oracle, *flow, *deps, *extra], opt=opt)
+        solver = ca.nlpsol("ocp", plugin, lib["nlp"], opts)
+        flow_fn = lib["flow"] if self.flow_codegen else self.F
+        return NlpSolver(self, solver, flow_fn, SUCCESS[plugin], {f.name(): lib[f.name()] for f in extra})
 
     def _like(self, template: ca.Function, gauss_newton: bool) -> ca.Function:
         """A replacement for one of the solver's derivative functions with its exact signature (the outputs
-        differ per plugin), built on F_sens, projected onto the template's sparsity."""
+        differ per plugin), built on the model's derivatives, projected onto the template's sparsity."""
         args = template.mx_in()
         w, p = args[0], args[1]
         f, g, jac = self._with_sensitivities(w, p)
@@ -348,50 +438,3 @@ class CasadiOCP:
                 raise ValueError(f"unexpected output {name!r} of the solver's {template.name()}; use codegen=false")
             outs.append(ca.project(known[name], template.sparsity_out(i)))
         return ca.Function(template.name(), args, outs, template.name_in(), template.name_out())
-
-
-class NlpSolver:
-    """An nlpsol evaluated through CasADi's buffer interface: numpy arrays in and out, no copies per call."""
-
-    def __init__(self, ocp: CasadiOCP, solver: ca.Function, flow: ca.Function, success: set[str]) -> None:
-        self.solver, self._success = solver, success
-        self.w0, self.p = np.zeros(ocp.nw), np.zeros(ocp.np)
-        self.lam_x0, self.lam_g0 = np.zeros(ocp.nw), np.zeros(ocp.ng)
-        self._args = [self.w0, self.p, ocp.lbw.copy(), ocp.ubw.copy(), ocp.lbg.copy(), ocp.ubg.copy()]
-        self._args += [self.lam_x0, self.lam_g0]
-        self.w, self.cost, self.g = np.zeros(ocp.nw), np.zeros(1), np.zeros(ocp.ng)
-        self.lam_x, self.lam_g, self.lam_p = np.zeros(ocp.nw), np.zeros(ocp.ng), np.zeros(ocp.np)
-        self._res = [self.w, self.cost, self.g, self.lam_x, self.lam_g, self.lam_p]
-        self._buf, self._trigger = solver.buffer()
-        for i, a in enumerate(self._args):
-            self._buf.set_arg(i, memoryview(a))
-        for i, r in enumerate(self._res):
-            self._buf.set_res(i, memoryview(r))
-        # the flow F(x, u), for the offset-free estimator's one-step prediction
-        self.flow_x, self.flow_u, self.flow_out = np.zeros(ocp.nx), np.zeros(ocp.nu), np.zeros(ocp.nx)
-        self._fbuf, self._ftrigger = flow.buffer()
-        self._fbuf.set_arg(0, memoryview(self.flow_x))
-        self._fbuf.set_arg(1, memoryview(self.flow_u))
-        self._fbuf.set_res(0, memoryview(self.flow_out))
-
-    def __call__(self) -> Solution:
-        """Solve from the current w0, lam_x0, lam_g0 and p (fill them in place first)."""
-        self._trigger()
-        stats = self._buf.stats()
-        status = str(stats.get("return_status", "unknown"))
-        return Solution(
-            w=self.w,
-            lam_x=self.lam_x,
-            lam_g=self.lam_g,
-            cost=float(self.cost[0]),
-            success=bool(stats.get("success", False)) or status in self._success,
-            iterations=int(stats.get("iter_count", 0)),
-            status=status,
-        )
-
-    def flow(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """F(x, u) over one tau (undisturbed), a copy."""
-        self.flow_x[:] = x
-        self.flow_u[:] = u
-        self._ftrigger()
-        return self.flow_out.copy()

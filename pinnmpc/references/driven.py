@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from pinnmpc.util.settings import positive
+from pinnmpc.util.checks import positive
 
 RTOL = ATOL = 1e-9  # solve_ivp tolerances of the driven motion: far below any tracking error a reference is used for
 

@@ -72,11 +72,12 @@ def run_closed_loop(
     if dist > 0:
         what = "the surrogate's training box" if domain is not None else "the system's state box"
         log.warning("reference leaves %s by up to %.3g; tracking there is extrapolation", what, dist)
-    plant = make_plant(simulated_arm(system, cfg.system), cfg.plant, tau, cfg.system.get("robots"))
+    arm = simulated_arm(system, cfg.system)  # the robot's arm: for an identified model, the nominal one
+    plant = make_plant(arm, cfg.plant, tau, cfg.system.get("robots"))
     monitor = getattr(controller, "prediction_error", None)
     plan = plan_faults(
         cfg.get("faults"),
-        system,
+        arm,
         plant,
         plant_cfg=cfg.plant,
         robots=cfg.system.get("robots"),

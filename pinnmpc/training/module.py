@@ -13,7 +13,7 @@ from pinnmpc.surrogate.network import PINN
 from pinnmpc.surrogate.prior import tensor_key
 from pinnmpc.systems.base import System
 from pinnmpc.training.ssbfgs import SSBFGS
-from pinnmpc.util.settings import positive, vector
+from pinnmpc.util.checks import positive, vector
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 CAST_MEMO = 32  # training-dtype copies kept (a draw has up to ~10 tensors: collocation, anchors, data, validation)
