@@ -9,71 +9,16 @@ for the controller, without extra reverse passes.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor, nn
 
+from pinnmpc.surrogate.activations import ACTIVATIONS as ACTIVATIONS  # re-exported: the choices of model.activation
+from pinnmpc.surrogate.activations import CURVATURES
 from pinnmpc.surrogate.prior import FrozenArmPrior, check_prior
 
-
-def _tanh(a: Tensor) -> tuple[Tensor, Tensor]:
-    """tanh and its derivative, reusing the value."""
-    y = torch.tanh(a)
-    return y, 1 - y * y
-
-
-def _sin(a: Tensor) -> tuple[Tensor, Tensor]:
-    """sin (SIREN-style) and its derivative."""
-    return torch.sin(a), torch.cos(a)
-
-
-def _silu(a: Tensor) -> tuple[Tensor, Tensor]:
-    """SiLU (swish) and its derivative: smooth, non-saturating."""
-    s = torch.sigmoid(a)
-    y = a * s
-    return y, s + y * (1 - s)
-
-
-def _softplus(a: Tensor) -> tuple[Tensor, Tensor]:
-    """Softplus and its derivative."""
-    return nn.functional.softplus(a), torch.sigmoid(a)
-
-
-def _tanh_curvature(a: Tensor, y: Tensor, slope: Tensor) -> Tensor:
-    """tanh'' from its value and slope."""
-    return -2 * y * slope
-
-
-def _sin_curvature(a: Tensor, y: Tensor, slope: Tensor) -> Tensor:
-    """sin'' = -sin."""
-    return -y
-
-
-def _silu_curvature(a: Tensor, y: Tensor, slope: Tensor) -> Tensor:
-    """SiLU'' = s (1 - s) (2 + a (1 - 2 s)), s = sigmoid(a)."""
-    s = torch.sigmoid(a)
-    return s * (1 - s) * (2 + a * (1 - 2 * s))
-
-
-def _softplus_curvature(a: Tensor, y: Tensor, slope: Tensor) -> Tensor:
-    """Softplus'' = s (1 - s), s = sigmoid(a) = the slope."""
-    return slope * (1 - slope)
-
-
 IC_MODES = ("hard", "gated", "soft")  # exact x(0) = x0; exact with relaxation gates; the paper's data loss
-ACTIVATIONS: dict[str, Callable[[Tensor], tuple[Tensor, Tensor]]] = {
-    "tanh": _tanh,
-    "sin": _sin,
-    "silu": _silu,
-    "softplus": _softplus,
-}
-CURVATURES: dict[str, Callable[[Tensor, Tensor, Tensor], Tensor]] = {  # second derivatives, for second-order models
-    "tanh": _tanh_curvature,
-    "sin": _sin_curvature,
-    "silu": _silu_curvature,
-    "softplus": _softplus_curvature,
-}
 
 
 def _checked_prior(prior: dict | None, ic: str, second_order: bool) -> dict | None:

@@ -9,103 +9,16 @@ from typing import ClassVar
 
 import numpy as np
 import torch
-from scipy.special import expit
 
+from pinnmpc.surrogate.activations import FUSED, NUMPY_ACTIVATIONS, NUMPY_CURVATURES, VALUE_ACTIVATIONS
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.surrogate.prior import CompiledPrior
 from pinnmpc.systems.base import Box
 
 
-def _tanh(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """tanh and its slope, for forward-mode tangents."""
-    y = np.tanh(a)
-    slope = y * y
-    np.subtract(1.0, slope, out=slope)
-    return y, slope
-
-
-def _sin(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """sin and its slope, for forward-mode tangents."""
-    return np.sin(a), np.cos(a)
-
-
-def _silu(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """SiLU and its slope from one sigmoid, for forward-mode tangents."""
-    s = expit(a)
-    y = a * s
-    slope = 1.0 - s  # silu' = s + silu (1 - s), in place
-    slope *= y
-    slope += s
-    return y, slope
-
-
-def _softplus(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """softplus and its slope, for forward-mode tangents."""
-    return np.logaddexp(0.0, a), 1.0 / (1.0 + np.exp(-a))
-
-
-def _silu_value(a: np.ndarray) -> np.ndarray:
-    """SiLU alone, for value-only calls."""
-    y = expit(a)
-    y *= a
-    return y
-
-
-def _softplus_value(a: np.ndarray) -> np.ndarray:
-    """softplus alone, for value-only calls."""
-    return np.logaddexp(0.0, a)
-
-
-def _tanh_curvature(a: np.ndarray, y: np.ndarray, slope: np.ndarray) -> np.ndarray:
-    """tanh'' from its value and slope (second-order Jacobians)."""
-    return -2.0 * y * slope
-
-
-def _sin_curvature(a: np.ndarray, y: np.ndarray, slope: np.ndarray) -> np.ndarray:
-    """sin'' = -sin (second-order Jacobians)."""
-    return -y
-
-
-def _silu_curvature(a: np.ndarray, y: np.ndarray, slope: np.ndarray) -> np.ndarray:
-    """SiLU'' from the sigmoid (second-order Jacobians)."""
-    s = expit(a)
-    return s * (1.0 - s) * (2.0 + a * (1.0 - 2.0 * s))
-
-
-def _softplus_curvature(a: np.ndarray, y: np.ndarray, slope: np.ndarray) -> np.ndarray:
-    """softplus'' = sigmoid (1 - sigmoid), the slope being the sigmoid (second-order Jacobians)."""
-    return slope * (1.0 - slope)
-
-
-def _silu_full(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """SiLU value, slope and curvature from one sigmoid, in place where possible (second-order Jacobians)."""
-    s = expit(a)
-    y = a * s
-    rest = 1.0 - s
-    slope = y * rest
-    slope += s
-    curvature = rest - s  # s (1 - s) (2 + a (1 - 2 s))
-    curvature *= a
-    curvature += 2.0
-    curvature *= s
-    curvature *= rest
-    return y, slope, curvature
-
-
 def _np(t: torch.Tensor) -> np.ndarray:
     """A float64 numpy copy, detached from the torch module."""
     return t.detach().double().numpy().copy()
-
-
-NUMPY_ACTIVATIONS = {"tanh": _tanh, "sin": _sin, "silu": _silu, "softplus": _softplus}  # mirrors pinn.ACTIVATIONS
-VALUE_ACTIVATIONS = {"tanh": np.tanh, "sin": np.sin, "silu": _silu_value, "softplus": _softplus_value}  # no slope
-CURVATURES = {  # second derivatives, mirrors pinn.CURVATURES
-    "tanh": _tanh_curvature,
-    "sin": _sin_curvature,
-    "silu": _silu_curvature,
-    "softplus": _softplus_curvature,
-}
-FUSED = {"silu": _silu_full}  # value, slope and curvature sharing work; others compose the two above
 
 
 def _folded_input(model: PINN, tau: float) -> tuple[dict[str, np.ndarray], np.ndarray]:
@@ -363,7 +276,7 @@ class SecondOrderNumpyFlow(NumpyFlow):
         super().__post_init__()
         self.nq = self.nx // 2
         self.w_time = np.ascontiguousarray(self.w_out[:, : self.nq])  # W_G: the time block's velocity increment
-        self.curvature = CURVATURES[self.activation]
+        self.curvature = NUMPY_CURVATURES[self.activation]
         self.full = FUSED.get(self.activation, self._composed)
         self.kinematic = np.zeros((self.nx, self.nx + self.nu))  # d(q0 + v0 tau, v0)/d(x0, u)
         self.kinematic[:, : self.nx] = np.eye(self.nx)
