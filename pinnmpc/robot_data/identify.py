@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from scipy.optimize import lsq_linear
 
+from pinnmpc.plant.integrators import rk4_fixed
 from pinnmpc.robot_data.logs import RobotLog, check_enough
 from pinnmpc.systems.urdf import Payload, RigidArm
 
@@ -249,13 +250,6 @@ def one_period_rmse(system: RigidArm, logs: Sequence[RobotLog], periods: int, st
     if len(x0) > periods:
         keep = np.random.default_rng(seed).choice(len(x0), periods, replace=False)
         x0, u, x1 = x0[keep], u[keep], x1[keep]
-    x, ut, h = torch.from_numpy(x0), torch.from_numpy(u), system.tau / steps
-    f = system.rhs
     with torch.no_grad():
-        for _ in range(steps):
-            k1 = f(x, ut)
-            k2 = f(x + 0.5 * h * k1, ut)
-            k3 = f(x + 0.5 * h * k2, ut)
-            k4 = f(x + h * k3, ut)
-            x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        x = rk4_fixed(system.rhs, torch.from_numpy(x0), torch.from_numpy(u), system.tau / steps, steps)
     return _rms(x.numpy() - x1)
