@@ -25,19 +25,23 @@ log = logging.getLogger(__name__)
 NOMINAL_PLANT = Path(__file__).resolve().parents[2] / "conf" / "plant" / "scipy.yaml"  # the model as the plant
 
 
+def estimator(cfg: DictConfig) -> dict[str, Any]:
+    """Every row's offset-free estimator: the PINN controller's (robot.offset_free) or none."""
+    return {"disturbance": cfg.controller.disturbance} if cfg.robot.offset_free else {"disturbance": {"gain": 0.0}}
+
+
 def robot_controllers(cfg: DictConfig, system: System, shipped: Surrogate) -> list[tuple[str, str, Any, Any]]:
     """(key, label, controller, training box) of every row: the classical NMPC on the nominal and (robot.identified)
     the identified model, the shipped and (robot.adapted) the fine-tuned network; all with the same OCP."""
     from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc
 
-    r = cfg.robot
-    shared = {"disturbance": cfg.controller.disturbance} if r.offset_free else {"disturbance": {"gain": 0.0}}
+    r, shared = cfg.robot, estimator(cfg)
     classical = OmegaConf.merge(classical_cfg(cfg, classical_solvers(cfg)[0]), shared)
     pinn = OmegaConf.merge(controller_cfg(cfg), shared)
     rows = [("classical_nominal", "classical NMPC, nominal model", build_casadi_nmpc(classical, system), None)]
     if r.identified is not None:
         fitted = load_system(str(r.identified))
-        if fitted.state_names != system.state_names:
+        if tuple(fitted.state_names) != tuple(system.state_names):
             raise ValueError(f"robot.identified={r.identified} is another arm: states {fitted.state_names}")
         rows.append(
             ("classical_identified", "classical NMPC, identified model", build_casadi_nmpc(classical, fitted), None)
@@ -67,7 +71,7 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
     nominal = cfg.copy()
     with open_dict(nominal):
         nominal.plant = OmegaConf.load(NOMINAL_PLANT)
-    pinn = build_nmpc(controller_cfg(cfg), shipped, system)
+    pinn = build_nmpc(OmegaConf.merge(controller_cfg(cfg), estimator(cfg)), shipped, system)
     for ref in refs:
         row = loop_row(nominal, system, pinn, shipped.domain, system.tau, ref)
         label = "PINN-MPC, shipped network, nominal plant"

@@ -21,8 +21,9 @@ import numpy as np
 from pinnmpc.controller.casadi_ocp import Blocks, CasadiOCP, Stages, whole_number
 from pinnmpc.controller.ocp import JointLimits
 
-NEWTON_TOL = 1e-12  # residual max-norm at which the one-period map's Newton solve stops (the flow F)
-NEWTON_ITERATIONS = 50  # its iteration cap (from zero accelerations it converges in a handful)
+NEWTON_ITERATIONS = 12  # Newton steps of the one-period map F from zero accelerations (smooth periods converge
+#   to rounding in 4-10; where sign(v) friction switches inside the period it may not converge at all)
+POLISH_ITERATIONS = 2  # Newton steps of the estimator's prediction from the plan's accelerations (already close)
 
 
 def radau_tableau(stages: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -55,14 +56,17 @@ def period_maps(stages: int, intervals: int, tau: float) -> tuple[np.ndarray, np
 
 
 def inverse_dynamics(system: Any, coulomb_width: float | None = None) -> ca.Function:
-    """r(q, v, a, u) = M(q) a + h(q, v) - tau_act(q, v, u) of the system (SX), from its own CasADi terms: the
-    PowerCube's closed form, a URDF arm's adam model; any other system as a - f(x, u)'s accelerations.
+    """r(q, v, a, u) = M(q) a + h(q, v) - tau_act(q, v, u) of the system (SX): its casadi_inverse_dynamics where it
+    has one, else from its CasADi terms (the PowerCube's closed form, a URDF arm's adam model), else as
+    a - f(x, u)'s accelerations.
 
     coulomb_width: sign(v) friction smoothed as tanh(v / width), as system.casadi_rhs(width) smooths it."""
-    nq = system.nq
-    q, v, a, u = (ca.SX.sym(name, n) for name, n in (("q", nq), ("v", nq), ("a", nq), ("u", len(system.input_names))))
     if coulomb_width is not None and not coulomb_width > 0:
         raise ValueError(f"controller.coulomb_width={coulomb_width!r}; expected a number > 0 (rad/s) or null")
+    if hasattr(system, "casadi_inverse_dynamics"):  # the system's own, where it offers one
+        return system.casadi_inverse_dynamics(*(() if coulomb_width is None else (coulomb_width,)))
+    nq = system.nq
+    q, v, a, u = (ca.SX.sym(name, n) for name, n in (("q", nq), ("v", nq), ("a", nq), ("u", len(system.input_names))))
     if hasattr(system, "params") and hasattr(system, "coulomb_joints"):  # the PowerCube
         from pinnmpc.systems.powercube import generalized_forces, mass_matrix
 
@@ -71,11 +75,8 @@ def inverse_dynamics(system: Any, coulomb_width: float | None = None) -> ca.Func
         m11, m12, m22 = mass_matrix(x, system.params)
         f1, f2 = generalized_forces(x, u, system.params, coulomb_sign=sign)
         r = ca.vertcat(m11 * a[0] + m12 * a[1] - f1, m12 * a[0] + m22 * a[1] - f2)
-    elif hasattr(system, "_casadi_kindyn"):  # a URDF arm: the joint block of adam's M and h, as its casadi_rhs
-        kd, base = system._casadi_kindyn(), ca.SX.eye(4)
-        m = system.mass_scale * kd.mass_matrix(base, q)[6:, 6:]
-        h = kd.bias_force(base, q, ca.SX.zeros(6), v)[6:]
-        g = kd.gravity_term(base, q)[6:] if system.actuation == "velocity_servo" else 0
+    elif hasattr(system, "casadi_terms"):  # a URDF arm: M (armature included), h and a servo's g, as its casadi_rhs
+        m, h, g = system.casadi_terms(q, v)
         r = m @ a + system._bias(h, g) - system.actuation_torque(v, u)
     else:
         rhs = system.casadi_rhs() if coulomb_width is None else system.casadi_rhs(coulomb_width)
@@ -118,7 +119,6 @@ class RadauOCP(CasadiOCP):
     """The horizon OCP of CasadiOCP with Radau IIA collocation of the inverse dynamics instead of RK4 shooting."""
 
     transcription = "radau"
-    flow_codegen = False  # F solves the collocation by CasADi's Newton with a line search, which has no C code
 
     def __init__(
         self,
@@ -154,16 +154,24 @@ class RadauOCP(CasadiOCP):
         self.end_z = ca.sparsify(ca.DM(np.kron(end[:, 2:], np.eye(nq))))
         self.F = self._flow()
 
+    def _newton(self, x: Any, u: Any, z: Any, iterations: int) -> Any:
+        """The period's accelerations after Newton steps on its residuals from z (MX)."""
+        for _ in range(iterations):
+            res, _, _, dz = self.period_jac(x, u, z)
+            z = z - ca.solve(dz, res, "qr")
+        return z
+
     def _flow(self) -> ca.Function:
-        """F(x, u): the collocation's one-period map, its residuals solved for the accelerations by Newton (with a line
-        search) from zero; where none solves them (sign(v) friction switching inside the period), the last iterate."""
+        """F(x, u): the collocation's one-period map, its residuals solved for the accelerations by Newton from zero."""
+        x, u = ca.MX.sym("x", self.nx), ca.MX.sym("u", self.nu)
+        z = self._newton(x, u, ca.MX.zeros(self.nz), NEWTON_ITERATIONS)
+        return ca.Function("F", [x, u], [self.end_x @ x + self.end_z @ z], ["x", "u"], ["xf"])
+
+    def flow_function(self) -> ca.Function:
+        """flow(x, u, z): F(x, u) polished from the plan's accelerations z (the estimator's prediction, compiled)."""
         x, u, z = ca.MX.sym("x", self.nx), ca.MX.sym("u", self.nu), ca.MX.sym("z", self.nz)
-        xu = ca.MX.sym("xu", self.nx + self.nu)
-        residual = ca.Function("residual", [z, xu], [self.period_res(xu[: self.nx], xu[self.nx :], z)])
-        opts = {"abstol": NEWTON_TOL, "max_iter": NEWTON_ITERATIONS, "error_on_fail": False}
-        solve = ca.rootfinder("collocation_solve", "newton", residual, opts)
-        zs = solve(ca.MX.zeros(self.nz), ca.vertcat(x, u))
-        return ca.Function("F", [x, u], [self.end_x @ x + self.end_z @ zs], ["x", "u"], ["xf"])
+        xf = self.end_x @ x + self.end_z @ self._newton(x, u, z, POLISH_ITERATIONS)
+        return ca.Function("flow", [x, u, z], [xf], ["x", "u", "z"], ["xf"])
 
     @property
     def tag(self) -> str:

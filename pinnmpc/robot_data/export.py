@@ -42,6 +42,7 @@ def system_yaml(nominal: dict[str, Any], fit: Fit, logs_meta: list[dict[str, Any
     dyn, arm = cfg["dynamics"], fit.system
     nominal_name = dyn["name"]
     dyn["name"] = arm.name
+    dyn["joint_prefix"] = f"{nominal_name}_" if dyn.get("joint_prefix") is None else dyn["joint_prefix"]  # its names
     dyn["urdf"] = portable_urdf(dyn["urdf"])
     for key in ("viscous", "coulomb", "servo_gain"):
         if key in dyn or key in fit.fitted:

@@ -82,6 +82,8 @@ class RigidArm:
     joint_limits: Box | None = None  # joint position limits, nq entries (None: none; see urdf_limits for the URDF's)
     payload: Payload | None = None  # a point mass fixed to a link ({mass, pos, link} in config); None: none
     armature: tuple[float, ...] = ()  # kg m^2 per joint added to M's diagonal (rotor inertia); (): none
+    joint_prefix: str | None = None  # stripped from joint names in state and input names (None: "<name>_"); an
+    #   identified model of an arm keeps its arm's names with it
     state_names: tuple[str, ...] = field(init=False)
     input_names: tuple[str, ...] = field(init=False)
 
@@ -103,7 +105,8 @@ class RigidArm:
         set_("joints", joints)
         set_("urdf", str(path))
         set_("gravity", tuple(float(g) for g in self.gravity))
-        short = [j.removeprefix(f"{self.name}_") for j in joints]
+        prefix = f"{self.name}_" if self.joint_prefix is None else self.joint_prefix
+        short = [j.removeprefix(prefix) for j in joints]
         set_("state_names", (*(f"q_{j}" for j in short), *(f"v_{j}" for j in short)))
         set_("input_names", tuple(f"u_{j}" for j in short))
         set_("state_units", tuple(self.state_units) or ("rad",) * n + ("rad/s",) * n)

@@ -182,7 +182,10 @@ class PINNModule(L.LightningModule):
     def losses(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         """Physics, data and total loss for one full batch."""
         b = self._cast(batch)
-        out = {"physics": self._penalty(self._scaled_residual(b)).mean()}
+        if self.hparams.weight_physics > 0:
+            out = {"physics": self._penalty(self._scaled_residual(b)).mean()}
+        else:  # no physics loss (fine-tuning on logs alone): its residual, the dearest term, is not evaluated
+            out = {"physics": torch.zeros((), dtype=self.res_scale.dtype, device=self.res_scale.device)}
         if "share" in b:  # a DDP shard: weighted so that the mean over the processes is the mean over all points
             out["physics"] = out["physics"] * b["share"]
         total = self.hparams.weight_physics * out["physics"]
