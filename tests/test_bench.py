@@ -263,7 +263,7 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
     mismatch = ["pinn_lifted_gauss_newton_friction_0.8", "classical_friction_0.8"]
     mismatch += ["pinn_lifted_gauss_newton_friction_1.2", "classical_friction_1.2"]
     exact_rows = ["pinn_lifted_gauss_newton_exact_values", "pinn_lifted_gauss_newton_exact_values_rti"]
-    rti_rows = ["pinn_lifted_gauss_newton_rti", *exact_rows, "classical_sqpmethod", "classical_sqpmethod_rti"]
+    rti_rows = ["pinn_lifted_gauss_newton_rti", *exact_rows, "classical_sqpmethod", "classical_sqpmethod_converged"]
     assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", *rti_rows, *mismatch]
     exact, exact_rti = (cl["rows"][r] for r in exact_rows)  # the true model's values, the PINN's Jacobians
     assert exact["prediction"] == exact_rti["prediction"] == "exact_values" and exact["status"] == "ok"
@@ -271,8 +271,8 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
     assert cl["rows"]["pinn_lifted_gauss_newton"]["prediction"] == "surrogate"
     surrogate_only = cl["rows"]["pinn_lifted_gauss_newton"]["mae"]
     assert all(exact["mae"][k] < 0.1 * surrogate_only[k] for k in ("alpha", "beta"))  # measured: 1/285 and 1/71
-    pinn, classical = cl["rows"]["pinn_lifted_gauss_newton"], cl["rows"]["classical_sqpmethod"]
-    rti = cl["rows"]["classical_sqpmethod_rti"]  # one SQP step per sample from the shifted solution
+    pinn, classical = cl["rows"]["pinn_lifted_gauss_newton"], cl["rows"]["classical_sqpmethod_converged"]
+    rti = cl["rows"]["classical_sqpmethod"]  # the arm's default: one SQP step per sample from the shifted solution
     assert rti["solver"] == "casadi-sqpmethod-rti" and rti["status"] == "ok" and rti["steps"] == MAX_STEPS
     pinn_rti = cl["rows"]["pinn_lifted_gauss_newton_rti"]  # one lifted step per sample: unconverged after the first
     assert pinn_rti["status"] == "ok" and pinn_rti["converged_fraction"] == pytest.approx(1 / MAX_STEPS)

@@ -28,6 +28,9 @@ def systems() -> dict[str, Any]:
     return {name: load_system(name) for name in ("powercube", "planar3")}
 
 
+RK4_SHOOTING = ["controller.rti=false", "controller.transcription=rk4", "controller.qpsol=qrqp"]  # what these test
+
+
 @pytest.fixture(scope="module")
 def base_cfg() -> Callable[..., dict]:
     """conf/controller/casadi.yaml composed with a system (as the closed loop composes it), as a plain dict,
@@ -37,7 +40,7 @@ def base_cfg() -> Callable[..., dict]:
     def _cfg(system: str, **overrides: Any) -> dict:
         if system not in composed:
             with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-                cfg = compose("closed_loop", overrides=["controller=casadi", f"system={system}"])
+                cfg = compose("closed_loop", overrides=["controller=casadi", f"system={system}", *RK4_SHOOTING])
             composed[system] = OmegaConf.create(OmegaConf.to_container(cfg.controller, resolve=True))
         cfg = composed[system].copy()
         for key, value in overrides.items():

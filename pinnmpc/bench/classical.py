@@ -32,6 +32,23 @@ def classical_solvers(cfg: DictConfig) -> list[str]:
     return [default, *(str(s) for s in cfg.classical.solvers if str(s) != default)]
 
 
+def classical_variants(cfg: DictConfig, rti: bool) -> list[tuple[str, DictConfig]]:
+    """The classical rows: the arm's default (its strongest setting: a real-time iteration where it tracks as the
+    converged solve), with classical.rti its other mode, today's RK4 shooting where the default transcribes
+    otherwise, and classical.solvers (converged: a real-time iteration needs sqpmethod)."""
+    first, *others = classical_solvers(cfg)
+    default = classical_cfg(cfg, first)
+    variants = [(first, default)]
+    if rti and default.solver == "sqpmethod":
+        fast = bool(default.get("rti", False))
+        variants.append((f"{first}_converged" if fast else f"{first}_rti", OmegaConf.merge(default, {"rti": not fast})))
+    if default.get("transcription", "rk4") != "rk4":
+        shooting = {"transcription": "rk4", "qpsol": "qrqp", "rti": False}
+        variants.append((f"{first}_rk4", OmegaConf.merge(default, shooting)))
+    variants += [(name, OmegaConf.merge(classical_cfg(cfg, name), {"rti": False})) for name in others]
+    return variants
+
+
 def available(cfg: DictConfig) -> bool:
     """Whether the classical controller's config was composed into the bench config."""
     return cfg.classical.get("controller") is not None
@@ -120,9 +137,7 @@ def bench_classical(
         row, _ = run_controller(cfg, system, surrogate, ref, solver, record=False, **changes)
         rows[f"pinn_{solver}{suffix}"] = {**row, "label": f"PINN-MPC, {solver}{tail}", "model": "pinn"}
         log.info("classical: PINN %s%s done in %.1f s", solver, tail, row["wall_s"])
-    variants = [(name, classical_cfg(cfg, name)) for name in classical_solvers(cfg)]
-    if rti and variants[0][1].solver == "sqpmethod":
-        variants.append(("sqpmethod_rti", OmegaConf.merge(variants[0][1], {"rti": True})))
+    variants = classical_variants(cfg, rti)
     for name, settings in variants:
         controller = build_casadi_nmpc(settings, system)  # compiled here, outside the timed loop
         row = loop_row(cfg, system, controller, None, system.tau, ref)

@@ -66,11 +66,13 @@ class NlpSolver:
             self._buf.set_arg(i, memoryview(a))
         for i, r in enumerate(self._res):
             self._buf.set_res(i, memoryview(r))
-        # the flow F(x, u), for the offset-free estimator's one-step prediction
+        # the flow F(x, u) from a guess of the transcription's unknowns, for the offset-free estimator's prediction
         self.flow_x, self.flow_u, self.flow_out = np.zeros(ocp.nx), np.zeros(ocp.nu), np.zeros(ocp.nx)
+        self.flow_z = np.zeros(ocp.nz)
+        self._cold_flow = ocp.F if ocp.nz else None  # from scratch, where there is no guess
         self._fbuf, self._ftrigger = flow.buffer()
-        self._fbuf.set_arg(0, memoryview(self.flow_x))
-        self._fbuf.set_arg(1, memoryview(self.flow_u))
+        for i, a in enumerate((self.flow_x, self.flow_u, self.flow_z)):
+            self._fbuf.set_arg(i, memoryview(a))
         self._fbuf.set_res(0, memoryview(self.flow_out))
 
     def __call__(self) -> Solution:
@@ -88,9 +90,13 @@ class NlpSolver:
             status=status,
         )
 
-    def flow(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """F(x, u) over one tau (undisturbed), a copy."""
+    def flow(self, x: np.ndarray, u: np.ndarray, guess: np.ndarray | None = None) -> np.ndarray:
+        """F(x, u) over one tau (undisturbed), a copy; guess: the transcription's unknowns to start from (the plan's),
+        None: from scratch."""
+        if guess is None and self._cold_flow is not None:
+            return np.asarray(self._cold_flow(x, u), dtype=np.float64).reshape(-1)
         self.flow_x[:] = x
         self.flow_u[:] = u
+        self.flow_z[:] = 0.0 if guess is None else guess
         self._ftrigger()
         return self.flow_out.copy()

@@ -71,7 +71,7 @@ class CasadiNMPC:
         self._u_prev = self._U[0].copy()
         self._w: np.ndarray | None = None  # the last solution shifted (None: cold start from the measured state)
         self._lam: tuple[np.ndarray, np.ndarray] | None = None  # its multipliers shifted (None: zeros)
-        self._last: tuple[np.ndarray, np.ndarray] | None = None  # the last measured state and the input applied
+        self._last: tuple | None = None  # the last measured state, the input applied and the plan's unknowns (or None)
         self.disturbance: np.ndarray | None = None
         self.stats = []
         self.smoothed_solves = 0
@@ -121,7 +121,8 @@ class CasadiNMPC:
         elapsed = time.perf_counter() - start
         self._shift(sol if ok or kept else None, U)
         self._u_prev = U[0].copy()
-        self._last = (x0.copy(), self._u_prev)
+        guess = sol.w[self.ocp.iz[0]].copy() if (ok or kept) and self.ocp.nz else None  # the plan's unknowns
+        self._last = (x0.copy(), self._u_prev, guess)
         self.stats.append(
             StepStats(
                 time_s=elapsed,

@@ -78,7 +78,6 @@ class CasadiOCP:
     """The NLP, its layout and bounds; `solver` turns it into a callable nlpsol (compiled or not)."""
 
     transcription = "rk4"  # what predicts the next state (controller.transcription)
-    flow_codegen = True  # whether F compiles to C (a rootfinder with a line search does not)
 
     def __init__(
         self,
@@ -395,7 +394,7 @@ class CasadiOCP:
             return self._compiled(plugin, opts, gauss_newton, codegen_opt, list(extra))
         hess = {"hess_lag": self.gauss_newton} if gauss_newton else {}
         solver = ca.nlpsol("ocp", plugin, self.nlp, {**opts, **hess})
-        return NlpSolver(self, solver, self.F, SUCCESS[plugin], {f.name(): f for f in extra})
+        return NlpSolver(self, solver, self.flow_function(), SUCCESS[plugin], {f.name(): f for f in extra})
 
     def _compiled(self, plugin: str, opts: dict, gauss_newton: bool, opt: str, extra: list) -> NlpSolver:
         """The solver on a library of its functions compiled to C: CasADi loads every derivative the solver
@@ -407,30 +406,38 @@ class CasadiOCP:
         symbolic = ca.nlpsol("ocp", plugin, nlp, opts)  # names the functions the solver needs, and their signatures
         deps = []
         for f in (symbolic.get_function(n) for n in symbolic.get_function()):
-            if f.name() in ("nlp_jac_g", "nlp_jac_fg"):
+            if f.name() in ("nlp_jac_g", "nlp_jac_fg", "nlp_grad"):  # not AD through the model: its own blocks
                 f = self._like(f, gauss_newton=False)
             elif f.name() == "nlp_hess_l" and gauss_newton:
                 f = self._like(f, gauss_newton=True)
             deps.append(f)
-        x, u = self.F.mx_in()
-        flow = [ca.Function("flow", [x, u], [self.F(x, u)])] if self.flow_codegen else []
         tag = f"casadi_nmpc_{self.name}_{self.tag}_{plugin}_{'gn' if gauss_newton else 'exact'}"
-        lib = compile_functions(tag, [oracle, *flow, *deps, *extra], opt=opt)
+        lib = compile_functions(tag, [oracle, self.flow_function(), *deps, *extra], opt=opt)
         solver = ca.nlpsol("ocp", plugin, lib["nlp"], opts)
-        flow_fn = lib["flow"] if self.flow_codegen else self.F
-        return NlpSolver(self, solver, flow_fn, SUCCESS[plugin], {f.name(): lib[f.name()] for f in extra})
+        return NlpSolver(self, solver, lib["flow"], SUCCESS[plugin], {f.name(): lib[f.name()] for f in extra})
+
+    def flow_function(self) -> ca.Function:
+        """flow(x, u, z): F(x, u), from a guess z of the transcription's unknowns (none here)."""
+        x, u, z = ca.MX.sym("x", self.nx), ca.MX.sym("u", self.nu), ca.MX.sym("z", self.nz)
+        return ca.Function("flow", [x, u, z], [self.F(x, u)], ["x", "u", "z"], ["xf"])
 
     def _like(self, template: ca.Function, gauss_newton: bool) -> ca.Function:
         """A replacement for one of the solver's derivative functions with its exact signature (the outputs
         differ per plugin), built on the model's derivatives, projected onto the template's sparsity."""
         args = template.mx_in()
-        w, p = args[0], args[1]
+        named = dict(zip(template.name_in(), args))
+        w, p = named["x"], named["p"]
         f, g, jac = self._with_sensitivities(w, p)
         known = {"f": f, "g": g, "jac_g_x": jac, "jac_f_x": ca.jacobian(f, w), "grad_f_x": ca.gradient(f, w)}
-        if gauss_newton:
-            lam_f, lam_g = args[2], args[3]
-            hess = self.gauss_newton(w, p, lam_f, lam_g)
+        if "lam_g" in named:  # the Lagrangian f lam_f + g^T lam_g
+            lam_f, lam_g = named["lam_f"], named["lam_g"]
             known["grad_gamma_x"] = lam_f * known["grad_f_x"] + ca.mtimes(jac.T, lam_g)
+            horizon = self.horizon  # g's part in p is affine (-x_meas, -u_prev, -d): g at w = 0 without the model
+            s, zero = self._split(ca.MX(self.nw, 1), p), [ca.MX(self.nx, 1)] * horizon
+            g_p = self._constraints(s, zero, [ca.MX(self.nz, 1)] * horizon)
+            known["grad_gamma_p"] = ca.gradient(lam_f * f + ca.dot(lam_g, g_p), p)
+        if gauss_newton:
+            hess = self.gauss_newton(w, p, named["lam_f"], named["lam_g"])
             known["triu_hess_gamma_x_x"], known["hess_gamma_x_x"] = hess, ca.triu2symm(hess)
         outs = []
         for i, name in enumerate(template.name_out()):
