@@ -56,6 +56,10 @@ collect: install  ## run the (simulated) robot for robot_time s and write its lo
 identify: install  ## fit the model's friction, payload and armature to robot logs; a system .yaml (logs=[...] out=...)
 	$(PY) -m pinnmpc.identify $(OVERRIDES)
 
+.PHONY: export
+export: install  ## the flow map and its Jacobian for CasADi, C or ONNX (format=casadi|c|onnx out=DIR), checked vs torch
+	$(PY) -m pinnmpc.export $(OVERRIDES)
+
 robustness: install  ## closed loops under measurement noise and friction/mass mismatch, one table
 	$(PY) -m pinnmpc.robustness $(OVERRIDES)
 

@@ -24,6 +24,7 @@ COMMANDS = {  # module: its primary config
     "bench": "bench",
     "collect": "collect",
     "identify": "identify",
+    "export": "export",
 }
 KEY = re.compile(r"^ {2,}([A-Za-z_][\w.]*)=", re.MULTILINE)  # a key at the start of an indented help line
 ABSENT = object()

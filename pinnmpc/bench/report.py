@@ -348,7 +348,8 @@ def md_classical(cl: dict[str, Any], system: dict[str, Any], plant: str) -> str:
             title,
             "",
             f"Reference: {cl['reference']}; horizon {cl['horizon']}; plant {plant}; one process, the same protocol. "
-            "The classical NMPC solves the same OCP on the true model (RK4 multiple shooting, CasADi, compiled); "
+            "The classical NMPC solves the same OCP on the true model (CasADi, compiled; first the arm's default "
+            "transcription and QP, conf/system/<arm>.yaml control.casadi); "
             f"taken from the PINN controller: {', '.join(cl['shared']) or 'nothing'}."
             + MISMATCH_NOTE * any("plant_friction_scale" in r for r in cl["rows"].values())
             + EXACT_NOTE * any(r.get("prediction") == "exact_values" for r in cl["rows"].values()),

@@ -254,6 +254,23 @@ IDENTIFY: dict[str, Check] = {  # conf/identify.yaml
 }
 
 
+EXPORT: dict[str, Check] = {  # conf/export.yaml
+    "checkpoint": optional(text()),
+    "format": one_of("casadi", "c", "onnx"),
+    "out": optional(text()),
+    "points": integer(1),
+    "jacobian_points": integer(1),
+    "seed": SEED,
+    "tolerance.float64": positive(),
+    "tolerance.float32": positive(),
+    "tolerance.jacobian": positive(),
+    "compiler": text(),
+    "opt": text(),
+    "opset": integer(7),
+    "threads": integer(1),
+}
+
+
 def _plain(value: Any) -> Any:
     """Config nodes as plain lists/dicts, for the checks and the messages."""
     if OmegaConf.is_config(value):
@@ -373,6 +390,11 @@ def validate_identify(cfg: DictConfig, system: Any) -> None:
     validate(cfg, IDENTIFY, system_dims(system))
     if not cfg.logs:
         raise SettingError("logs=[]: expected at least one robot log (.npz or .csv from pinnmpc.collect)")
+
+
+def validate_export(cfg: DictConfig, system: Any) -> None:
+    """export settings, before the network is loaded."""
+    validate(cfg, EXPORT, system_dims(system))
 
 
 def job_system(cfg: DictConfig, validate: Callable[[DictConfig, Any], None]) -> Any:

@@ -1,0 +1,133 @@
+"""The trained flow map x(tau) = f(x0, u) as CasADi expressions built from the float64 weights, so that users can
+put the surrogate into their own CasADi problems (Opti, nlpsol, code generation) with CasADi's exact derivatives.
+
+The network is an MX graph (dense matrix products with the weights as constants: compact to serialise and to
+generate C from); the frozen-arm prior, where the network has one, is the formula of FrozenArmPrior.compiled as
+an SX function called from that graph, with M^-1 kv by Cholesky and exp - I squared as such, so that it keeps
+float64 agreement with torch's matrix_exp on a stiff 7-joint arm too.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import torch
+
+from pinnmpc.surrogate.checkpoint import Surrogate
+from pinnmpc.surrogate.network import PINN
+from pinnmpc.surrogate.prior import TAYLOR_DEGREE, FrozenArmPrior
+
+SOFTPLUS_THRESHOLD = 20.0  # torch's softplus returns its input above this, and so does the export
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    """A float64 numpy copy of a module's tensor."""
+    return t.detach().double().cpu().numpy().copy()
+
+
+def _activation(name: str, a: ca.MX) -> ca.MX:
+    """The network's activation written as torch computes it."""
+    if name == "tanh":
+        return ca.tanh(a)
+    if name == "sin":
+        return ca.sin(a)
+    if name == "silu":
+        return a / (1 + ca.exp(-a))
+    if name == "softplus":
+        return ca.if_else(a > SOFTPLUS_THRESHOLD, a, ca.log1p(ca.exp(a)))
+    raise ValueError(f"activation {name!r} has no CasADi form; expected tanh, sin, silu or softplus")
+
+
+def _network(model: PINN, t: ca.MX, x0: ca.MX, u: ca.MX) -> ca.MX:
+    """The MLP output N (n_gates * n_head) at (t, x0, u): the same normalised input as PINN._inputs."""
+    center, half = _np(model.in_center), _np(model.in_half)
+    z = (ca.vertcat(t, x0, u) - center) / half
+    if model.periodic:
+        parts = [z[i] for i in range(z.shape[0])]
+        for i in model.periodic:
+            parts[1 + i] = ca.sin(x0[i])  # the sine replaces the normalised angle, as index_copy does
+        z = ca.vertcat(*parts, *(ca.cos(x0[i]) for i in model.periodic))
+        if len(model.sum_map):
+            total = ca.mtimes(ca.DM(_np(model.sum_map)), x0)
+            z = ca.vertcat(z, ca.sin(total), ca.cos(total))
+    layers = list(model.net.layers)
+    activation = model.config["activation"]
+    for layer in layers[:-1]:
+        z = _activation(activation, ca.mtimes(ca.DM(_np(layer.weight)), z) + _np(layer.bias))
+    return ca.mtimes(ca.DM(_np(layers[-1].weight)), z) + _np(layers[-1].bias)
+
+
+def _expm1(x: ca.MX, squarings: int) -> ca.MX:
+    """exp(x 2^s) - I: a Taylor series of exp(x) - I (Horner), then s squarings in the form (I + F)^2 - I = 2F + F^2,
+    which keeps the near-identity part of the exponential (an arm's slow modes) to full relative precision where
+    squaring exp itself would double its rounding error each time."""
+    eye = ca.DM.eye(x.shape[0])
+    out = eye
+    for k in range(TAYLOR_DEGREE, 1, -1):
+        out = eye + ca.mtimes(x, out) / k
+    out = ca.mtimes(x, out)
+    for _ in range(squarings):
+        out = 2 * out + ca.mtimes(out, out)
+    return out
+
+
+def _relaxation(n: int, kv: np.ndarray) -> ca.Function:
+    """M -> A = M^-1 kv by Cholesky (M is SPD; a symbolic QR solve loses digits on a stiff arm's M), in SX."""
+    m = ca.SX.sym("m", n, n)
+    chol = ca.chol(m)  # M = R^T R
+    return ca.Function("relaxation", [m], [ca.solve(chol, ca.solve(chol.T, ca.diag(ca.DM(kv))))], {"cse": True})
+
+
+def prior_function(prior: FrozenArmPrior, tau: float) -> ca.Function:
+    """x_p(tau) of the frozen-arm prior as a function (x0, u) -> x_p: FrozenArmPrior.compiled's formula with M^-1 kv
+    by Cholesky and E - I from _expm1, as matrix operations (MX), so that its Jacobian and C stay compact."""
+    n, s, kv = prior.nq, prior.squarings(tau), prior.kv.numpy()
+    x, u = ca.MX.sym("x", 2 * n), ca.MX.sym("u", n)
+    q0, v0 = x[:n], x[n:]
+    m, c0 = prior.arm.casadi_frozen_terms()(q0, u)
+    vss = c0 / ca.DM(kv)
+    e_minus_i = _expm1(-_relaxation(n, kv)(m) * (tau / 2**s), s)
+    d = v0 - vss
+    lag = -ca.mtimes(ca.DM(np.diag(1 / kv)), ca.mtimes(m, e_minus_i))  # kv^-1 M (I - E)
+    xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), v0 + ca.mtimes(e_minus_i, d))  # vss + E d = v0 + (E - I) d
+    return ca.Function(f"{prior.arm.name}_frozen_prior", [x, u], [xp])
+
+
+def _gated(weights: np.ndarray, n: ca.MX, n_gates: int, n_head: int) -> ca.MX:
+    """sum_k w_k N_k for N stacked gate-major (n_gates * n_head)."""
+    out = 0
+    for k in range(n_gates):
+        out = out + float(weights[k]) * n[k * n_head : (k + 1) * n_head]
+    return out
+
+
+def flow_expression(surrogate: Surrogate, x0: ca.MX, u: ca.MX) -> ca.MX:
+    """x(tau) as an MX expression in x0 (nx x 1) and u (nu x 1), as PINN.forward computes it at t = tau."""
+    model, tau = surrogate.model, surrogate.tau
+    t_tau = torch.full((1,), tau, dtype=torch.float64)
+    if not model.exact_ic:
+        return _np(model.out_center) + _np(model.out_scale) * _network(model, ca.MX(tau), x0, u)
+    g = _np(model.gates(t_tau)[0])
+    if model.second_order:  # q = q0 + v0 tau + s sum G_k N_k, v = v0 + s (sum g_k N_k + sum G_k dN_k/dt)
+        t = ca.MX.sym("t")
+        n = _network(model, t, x0, u)
+        n, dn = ca.Function("net", [t, x0, u], [n, ca.jtimes(n, t, ca.MX(1))])(ca.MX(tau), x0, u)
+        big_g = _np(model.gate_integrals(t_tau))
+        scale, nq, heads = _np(model.head_scale), model.nq, (model.n_gates, model.n_head)
+        q = x0[:nq] + tau * x0[nq:] + scale * _gated(big_g, n, *heads)
+        v = x0[nq:] + scale * (_gated(g, n, *heads) + _gated(big_g, dn, *heads))
+        return ca.vertcat(q, v)
+    start = x0 if model.prior is None else prior_function(model.prior, tau)(x0, u)
+    n = _network(model, ca.MX(tau), x0, u)
+    return start + _np(model.out_scale) * _gated(g, n, model.n_gates, model.n_head)
+
+
+def casadi_flow(surrogate: Surrogate, name: str = "flow") -> tuple[ca.Function, ca.Function]:
+    """f(x0, u) -> x1 and f_jac(x0, u) -> (x1, dx1/dx0, dx1/du) on column vectors, named name and name_jacobian."""
+    x0, u = ca.MX.sym("x0", surrogate.nx), ca.MX.sym("u", surrogate.nu)
+    x1 = flow_expression(surrogate, x0, u)
+    f = ca.Function(name, [x0, u], [x1], ["x0", "u"], ["x1"])
+    y = f(x0, u)  # the Jacobian of the function's call: the network graph once, not copied into the derivative
+    outputs = [y, ca.jacobian(y, x0), ca.jacobian(y, u)]
+    jac = ca.Function(f"{name}_jacobian", [x0, u], outputs, ["x0", "u"], ["x1", "dx1_dx0", "dx1_du"])
+    return f, jac
