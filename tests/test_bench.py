@@ -295,7 +295,7 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
         assert classical["disturbance_gain"] == 0  # exact model: nothing to estimate
         assert all(off["mae"][n] > 10 * classical["mae"][n] for n in ("alpha", "beta"))  # its model is not exact now
         assert cl["rows"][f"pinn_lifted_gauss_newton_friction_{scale}"]["mae"] != pinn["mae"]
-        label = f"| classical NMPC, casadi-sqpmethod, plant friction x{scale}, offset-free"
+        label = f"| classical NMPC, casadi-sqpmethod-rti, plant friction x{scale}, offset-free"
         assert label in (bench[1] / "bench.md").read_text()
 
 
@@ -415,8 +415,9 @@ def test_planar3_bench_is_generic(planar3: tuple[dict[str, Any], Path]) -> None:
         assert row["steps"] == P3_STEPS and set(row["mae"]) == set(names)
     mismatch = [f"{who}_friction_{f}" for f in ("0.8", "1.2") for who in ("pinn_lifted_gauss_newton", "classical")]
     rows = ["pinn_lifted_gauss_newton", "pinn_lifted_gauss_newton_rti", "pinn_lifted_gauss_newton_exact_values"]
-    rows += ["pinn_lifted_gauss_newton_exact_values_rti", "classical_sqpmethod", "classical_sqpmethod_rti", *mismatch]
-    assert list(result["classical"]["rows"]) == rows  # the real-time iteration: classical.rti, on by default
+    rows += ["pinn_lifted_gauss_newton_exact_values_rti", "classical_sqpmethod", "classical_sqpmethod_converged"]
+    rows += ["classical_sqpmethod_rk4", *mismatch]  # planar3's default: Radau, a real-time iteration; then the others
+    assert list(result["classical"]["rows"]) == rows
     targets = {t["what"]: t for t in result["targets"]}
     assert targets["one-step RMSE q_joint1"]["limit"] == 1e-3  # conf/system/planar3.yaml
     md = (run_dir / "bench.md").read_text()
