@@ -477,3 +477,9 @@ def test_loading_never_writes(shipped_obj: dict, tmp_path: Path) -> None:
         with pytest.raises(CheckpointError):
             load_surrogate(tmp_path / name)
     assert _listing(tmp_path, SHIPPED.parent) == before
+
+
+def test_a_network_whose_tau_lies_beyond_its_training_interval_is_refused():
+    net = load_surrogate(system="planar3")
+    with pytest.raises(CheckpointError, match=r"tau=0.2 s lies outside the interval \(0, t_max=0.125\]"):
+        Surrogate(net.model, 0.2, net.state_names, net.input_names)

@@ -79,6 +79,11 @@ class Surrogate(Dimensions):
         self.state_box = Box(cfg["state_low"], cfg["state_high"])
         self.input_box = Box(cfg["input_low"], cfg["input_high"])
         self.t_max = cfg["t_max"]
+        if not 0.0 < self.tau <= self.t_max * (1 + 1e-9):  # x(tau) would be the network's extrapolation in time
+            raise CheckpointError(
+                f"surrogate tau={self.tau:g} s lies outside the interval (0, t_max={self.t_max:g}] s it was trained "
+                "on; expected 0 < tau <= t_max (a hand-edited checkpoint?)"
+            )
         self.meta = meta or {}
         low, high = cfg["state_low"], cfg["state_high"]
         turning = {i for i in cfg.get("periodic", ()) if high[i] - low[i] >= 2 * math.pi - 1e-9}
