@@ -239,3 +239,13 @@ def test_shipped_planar3_network_tracks_its_reference(make_cfg, tmp_path: Path) 
     m = run_closed_loop(make_cfg("closed_loop", ["system=planar3", "max_steps=40", "progress=false"]), tmp_path)
     assert m["status"] == "ok" and m["fallbacks"] == 0
     assert max(m["mae"][n] for n in list(m["mae"])[:3]) < 3e-3
+
+
+def test_a_wrong_length_list_is_refused_when_the_arm_loads(tmp_path):
+    # a new arm's config copied from planar3 with one per-joint list too short: refused by load_system already
+    text = (ROOT / "conf" / "system" / "planar3.yaml").read_text()
+    short = text.replace("disturbance_max: [0.05, 0.05, 0.05, 0.5, 0.5, 0.5]", "disturbance_max: [0.05, 0.05]")
+    assert short != text
+    (tmp_path / "arm.yaml").write_text(short)
+    with pytest.raises(ValueError, match=r"disturbance_max=\[0.05, 0.05\]: expected null or a list of 6"):
+        load_system(str(tmp_path / "arm.yaml"))

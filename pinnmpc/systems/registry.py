@@ -46,5 +46,11 @@ def build_system(cfg: Any) -> System:
 
 def load_system(name: str | Path = "powercube") -> System:
     """A controlled arm by name (conf/system) or by the path of its .yaml: rhs(x, u) batched and differentiable in
-    torch, state/input names, tau."""
-    return build_system(system_config(name))
+    torch, state/input names, tau. The config's per-joint lists are checked against the arm here too, so a
+    wrong-length list shows when the arm loads, not in a closed loop after a training."""
+    from pinnmpc.util.settings import validate_system  # settings checks import the surrogate, which imports systems
+
+    cfg = system_config(name)
+    system = build_system(cfg)
+    validate_system(OmegaConf.create({"system": cfg}), system)
+    return system

@@ -39,6 +39,9 @@ SYSTEM: dict[str, Check] = {  # the per-joint lists of conf/system/<name>.yaml t
     "system.targets.closed_loop_mae": per_state_targets(),
     "system.self_loop.x0": vector("nx"),
     "system.self_loop.amplitude": vector("nu"),
+    "system.control.Q": weight("nx"),  # the NMPC's weights: checked before a training the controller comes after
+    "system.control.R": weight("nu"),
+    "system.control.disturbance_max": optional(vector("nx", real(0.0))),
 }
 
 PLANT: dict[str, Check] = {  # conf/plant/<kind>.yaml, in every job that simulates the robot
@@ -350,7 +353,9 @@ def validate_capacity(cfg: DictConfig, system: Any) -> None:
 
 
 def validate_train(cfg: DictConfig, system: Any) -> None:
-    """train settings, before any data is drawn."""
+    """train settings and the system's per-joint lists, before any data is drawn (a wrong list would show only in
+    the closed loop that comes after the training)."""
+    validate_system(cfg, system)
     validate(cfg, TRAIN, system_dims(system))
     if cfg.get("init_from") and (cfg.stage.base or cfg.stage.get("split") is not None):
         raise SettingError(
