@@ -502,7 +502,7 @@ def test_ddp_two_gloo_processes_train_on_their_shards_with_identical_parameters(
     system = build_system(cfg.system)
     data = instantiate(cfg.data, _partial_=True, _convert_="all")
     for r in ranks:  # each process held exactly its half of the same global draw: different points
-        dm = _as_rank(data(system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed), r["rank"], 2)
+        dm = _as_rank(data(system=system, tau=system.tau, t_max=cfg.t_max, seed=cfg.seed), r["rank"], 2)
         dm.draws = r["draws"] - 1
         dm.draw()
         assert r["points"] == 128 and r["points_sha256"] == sha256([dm.batch[k] for k in ("t", "x0", "u")])
@@ -512,12 +512,12 @@ def test_ddp_two_gloo_processes_train_on_their_shards_with_identical_parameters(
     start = build_model(cfg, system)
     trained = load_surrogate(tmp_path / "checkpoints" / "last.ckpt").model
     assert sha256([p for p in trained.parameters()]) == ranks[0]["params_sha256"]  # rank 0's network was saved
-    first = data(system=system, tau=cfg.tau, t_max=cfg.t_max, seed=cfg.seed)
+    first = data(system=system, tau=system.tau, t_max=cfg.t_max, seed=cfg.seed)
     first.draw()  # all the points of the first epoch (both shards)
     module = instantiate(cfg.module, _partial_=True, _convert_="all")
     with torch.no_grad():
-        before = float(module(system=system, model=start, tau=cfg.tau).losses(first.batch)["total"])
-        after = float(module(system=system, model=trained, tau=cfg.tau).losses(first.batch)["total"])
+        before = float(module(system=system, model=start, tau=system.tau).losses(first.batch)["total"])
+        after = float(module(system=system, model=trained, tau=system.tau).losses(first.batch)["total"])
     assert after < 0.5 * before  # the loss fell
 
 
