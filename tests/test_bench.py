@@ -19,6 +19,7 @@ from pinnmpc.bench.common import bench_reference
 from pinnmpc.bench.report import md_targets
 from pinnmpc.bench.targets import _per_state
 from pinnmpc.surrogate import Surrogate, load_surrogate
+from pinnmpc.surrogate.checkpoint import CHECKPOINTS
 from pinnmpc.surrogate.flowmap import RK4Model
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems import PowerCube, load_system
@@ -455,3 +456,18 @@ def test_bad_sizes_are_refused_before_any_work(tmp_path: Path, override: str, me
 def test_a_zero_target_is_a_target_and_null_is_none() -> None:
     rows = _per_state("one-step RMSE", {"a": 1e-9, "b": 0.0, "c": 1.0}, ["a", "b", "c"], [0.0, 0.0, None])
     assert [(r["what"], r["met"]) for r in rows] == [("one-step RMSE a", False), ("one-step RMSE b", True)]
+
+
+def test_the_robot_section_runs_every_controller_on_the_robot(tmp_path: Path) -> None:
+    off = [f"{s}.enabled=false" for s in ("step", "closed_loop", "optimality", "scaling", "classical")]
+    cfg = _cfg(
+        ["system=planar3", "plant=mujoco", "plant.robot=lab", *off, "robot.enabled=true", "closed_loop.max_steps=3",
+         f"robot.adapted={CHECKPOINTS / 'planar3-lab.pt'}", "robot.references=[default]", "progress=false"]
+    )  # fmt: skip
+    robot = run_bench(cfg, tmp_path)["robot"]
+    keys = ["classical_nominal", "pinn_shipped", "pinn_adapted", "pinn_shipped_nominal"]
+    assert list(robot["rows"]) == [f"{k}@builtin:default" for k in keys]
+    assert all(r["status"] == "ok" and r["steps"] == 3 for r in robot["rows"].values())
+    assert "## 7. On the robot `lab`" in (tmp_path / "bench.md").read_text()
+    with pytest.raises(ValueError, match="expected plant=mujoco plant.robot=<name>"):
+        run_bench(_cfg(["system=planar3", *off, "robot.enabled=true", "progress=false"]), tmp_path / "b")

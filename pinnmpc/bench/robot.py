@@ -30,12 +30,14 @@ def estimator(cfg: DictConfig) -> dict[str, Any]:
     return {"disturbance": cfg.controller.disturbance} if cfg.robot.offset_free else {"disturbance": {"gain": 0.0}}
 
 
-def robot_controllers(cfg: DictConfig, system: System, shipped: Surrogate) -> list[tuple[str, str, Any, Any]]:
+def robot_controllers(
+    cfg: DictConfig, system: System, networks: dict[str, Surrogate]
+) -> list[tuple[str, str, Any, Any]]:
     """(key, label, controller, training box) of every row: the classical NMPC on the nominal and (robot.identified)
     the identified model, the shipped and (robot.adapted) the fine-tuned network; all with the same OCP."""
     from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc
 
-    r, shared = cfg.robot, estimator(cfg)
+    r, shared = cfg.robot, estimator(cfg)  # the shipped and (robot.adapted) fine-tuned networks: `networks`
     classical = OmegaConf.merge(classical_cfg(cfg, classical_solvers(cfg)[0]), shared)
     pinn = OmegaConf.merge(controller_cfg(cfg), shared)
     rows = [("classical_nominal", "classical NMPC, nominal model", build_casadi_nmpc(classical, system), None)]
@@ -46,10 +48,9 @@ def robot_controllers(cfg: DictConfig, system: System, shipped: Surrogate) -> li
         rows.append(
             ("classical_identified", "classical NMPC, identified model", build_casadi_nmpc(classical, fitted), None)
         )
-    rows.append(("pinn_shipped", "PINN-MPC, shipped network", build_nmpc(pinn, shipped, system), shipped.domain))
-    if r.adapted is not None:
-        adapted = load_surrogate(str(r.adapted), state_names=system.state_names)
-        rows.append(("pinn_adapted", "PINN-MPC, fine-tuned network", build_nmpc(pinn, adapted, system), adapted.domain))
+    labels = {"pinn_shipped": "PINN-MPC, shipped network", "pinn_adapted": "PINN-MPC, fine-tuned network"}
+    for key, net in networks.items():
+        rows.append((key, labels[key], build_nmpc(pinn, net, system), net.domain))
     return rows
 
 
@@ -62,8 +63,11 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
             f"{cfg.plant.get('robot')}; expected plant=mujoco plant.robot=<name> (a robot that is not the model)"
         )
     refs = [bench_reference(cfg, system, system.tau, str(name)) for name in cfg.robot.references]
+    networks = {"pinn_shipped": shipped}  # each network loaded once: its rows and its one-step RMSE
+    if cfg.robot.adapted is not None:
+        networks["pinn_adapted"] = load_surrogate(str(cfg.robot.adapted), state_names=system.state_names)
     rows: dict[str, dict[str, Any]] = {}
-    for key, label, controller, box in robot_controllers(cfg, system, shipped):
+    for key, label, controller, box in robot_controllers(cfg, system, networks):
         for ref in refs:
             row = loop_row(cfg, system, controller, box, system.tau, ref)
             rows[f"{key}@{ref.name}"] = {**row, "label": label, "controller": key, "reference": ref.name}
@@ -79,9 +83,6 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
         rows[f"pinn_shipped_nominal@{ref.name}"]["reference"] = ref.name
     one_step = {}
     if cfg.robot.logs:
-        networks = {"pinn_shipped": shipped}
-        if cfg.robot.adapted is not None:
-            networks["pinn_adapted"] = load_surrogate(str(cfg.robot.adapted), state_names=system.state_names)
         one_step = held_out_rmse(system, networks, [str(p) for p in cfg.robot.logs])
     return {
         "one_step_rmse": one_step,
