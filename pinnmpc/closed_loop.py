@@ -8,7 +8,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from pinnmpc.cli import StopSignal, check_choices, end_job, run_cli, say
+from pinnmpc.cli import StopSignal, check_choices, end_job, exit_stopped, run_cli, say
 from pinnmpc.simulation.metrics import headline
 from pinnmpc.simulation.run import run_closed_loop
 
@@ -23,7 +23,7 @@ def main(cfg: DictConfig) -> None:
         m = run_cli(lambda: run_closed_loop(cfg, run_dir, stop, announce), prog, run_dir)
     if m["status"] == "interrupted":
         print(f"{prog}: interrupted by {stop.name} after {m['steps']} steps", file=sys.stderr)
-        sys.exit(stop.exit_code)
+        exit_stopped(stop.exit_code, f"interrupted by {stop.name}", run_dir)
     if m["status"] != "ok":
         end_job(1, m["status"], run_dir)
 

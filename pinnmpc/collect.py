@@ -10,7 +10,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.cli import StopSignal, check_choices, run_cli, say
+from pinnmpc.cli import StopSignal, check_choices, exit_stopped, run_cli, say
 from pinnmpc.robot_data.collect import collect
 from pinnmpc.robot_data.logs import write_log
 from pinnmpc.simulation.setup import build_controller, system_reference
@@ -66,7 +66,7 @@ def main(cfg: DictConfig) -> None:
         m = run_cli(lambda: run_collect(cfg, run_dir, stop), "pinnmpc.collect", run_dir)
     say(_summary(m), run_dir, "pinnmpc.collect")
     if m["interrupted"]:
-        sys.exit(stop.exit_code)
+        exit_stopped(stop.exit_code, f"interrupted by {stop.name}", run_dir)
 
 
 def _summary(m: dict[str, Any]) -> str:

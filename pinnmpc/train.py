@@ -9,7 +9,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from pinnmpc.cli import StopSignal, check_choices, config_dir_args, run_cli, say
+from pinnmpc.cli import StopSignal, check_choices, config_dir_args, exit_stopped, run_cli, say
 from pinnmpc.training.run import train_command
 
 
@@ -73,7 +73,7 @@ def exit_interrupted(summary: dict[str, Any], run_dir: Path, stop: StopSignal) -
         print(f"resume with: {summary['resume_command']}", file=sys.stderr)
     else:
         print("nothing to resume: no epoch had ended; start the run again", file=sys.stderr)
-    sys.exit(stop.exit_code)
+    exit_stopped(stop.exit_code, f"interrupted by {stop.name}", run_dir)
 
 
 if __name__ == "__main__":

@@ -141,6 +141,25 @@ def test_sigterm_during_training_checkpoints_and_says_how_to_resume(make_cfg, tm
     assert done["status"] == "ok" and done["epochs"] == 2
 
 
+def test_a_run_killed_after_its_budget_resumes_to_write_its_network(make_cfg, tmp_path):
+    run_dir = tmp_path / "run"
+    first = train(make_cfg("train", [*TINY, "trainer.max_epochs=2"]), run_dir)
+    # killed after its last epoch's checkpoint, before surrogate.pt and train_metrics.json were written
+    (run_dir / "surrogate.pt").unlink()
+    (run_dir / "train_metrics.json").unlink()
+    ckpts = {f: f.stat().st_mtime_ns for f in (run_dir / "checkpoints").iterdir()}
+    done = train(make_cfg("train", [*TINY, "trainer.max_epochs=2", "resume=true"]), run_dir)
+    assert done["status"] == "ok" and done["finished_from_checkpoint"] and done["epochs"] == 2
+    assert done["best_val_rmse_position"] == pytest.approx(first["best_val_rmse_position"])
+    assert 0 < done["training_time_s"] <= first["training_time_s"]  # as counted at its last checkpoint
+    assert ckpts == {f: f.stat().st_mtime_ns for f in (run_dir / "checkpoints").iterdir()}  # nothing trained
+    net = load_surrogate(run_dir / "surrogate.pt")
+    assert net.meta["finished_from_checkpoint"] and json.loads((run_dir / "train_metrics.json").read_text())
+    # with its network written, a spent budget is refused again
+    with pytest.raises(ValueError, match="trainer.max_epochs=2 is reached"):
+        train(make_cfg("train", [*TINY, "trainer.max_epochs=2", "resume=true"]), run_dir)
+
+
 def test_sigint_during_a_closed_loop_keeps_what_was_reached(tmp_path):
     run_dir = tmp_path / "run"
     slow = ["controller.solver=rmsprop", "controller.solvers.rmsprop.max_iter=400", "controller.solvers.rmsprop.tol=0"]
@@ -228,6 +247,18 @@ def test_input_bounds_beyond_the_training_box_need_an_explicit_override(make_cfg
     assert any(r.levelname == "WARNING" and "extrapolation" in r.getMessage() for r in caplog.records)
     u = np.load(tmp_path / "trajectory.npz")["u"]
     assert np.all(np.isfinite(u)) and np.all(np.abs(u) <= 5.0)
+
+
+def test_a_long_horizon_is_warned_about_before_the_run(make_cfg, tmp_path, caplog):
+    run_closed_loop(make_cfg("closed_loop", [*QUICK, "max_steps=2"]), tmp_path / "a")
+    assert not any("long_horizon" in r.getMessage() for r in caplog.records)
+    m = run_closed_loop(make_cfg("closed_loop", [*QUICK, "max_steps=2", "long_horizon=4"]), tmp_path / "b")
+    warned = [r.getMessage() for r in caplog.records if "long_horizon" in r.getMessage()]
+    assert warned == ["controller.horizon=5 is above long_horizon=4: each solve costs H^2 to H^3 and may stop at its "
+                      "iteration cap unconverged; expected a horizon of a few to a few dozen steps (raise long_horizon "
+                      "to silence this)"] and m["status"] == "ok"  # fmt: skip
+    with pytest.raises(SettingError, match="long_horizon=0: expected an integer >= 1"):
+        run_closed_loop(make_cfg("closed_loop", [*QUICK, "long_horizon=0"]), tmp_path / "c")
 
 
 @pytest.fixture(scope="module")

@@ -4,8 +4,10 @@ exit code says that one failed (real multirun processes)."""
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -51,6 +53,31 @@ def test_closed_loop_sweep_of_good_jobs_exits_0(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert _summary(tmp_path)["ok"] == 2
     assert "sweep: all 2 jobs ok" in r.stdout
+
+
+def test_sigint_stops_the_sweep_and_still_writes_its_summary(tmp_path):
+    slow = ["controller.solver=rmsprop", "controller.solvers.rmsprop.max_iter=400", "controller.solvers.rmsprop.tol=0"]
+    cmd = [sys.executable, "-m", "pinnmpc.closed_loop", "-m", "seed=0,1,2", *slow, "plots=false"]
+    err = tmp_path / "stderr.txt"
+    with open(err, "w") as stderr:
+        proc = subprocess.Popen([*cmd, f"hydra.sweep.dir={tmp_path / 'sweep'}"], cwd=ROOT, stdout=subprocess.PIPE,
+                                stderr=stderr, text=True)  # fmt: skip
+        try:
+            deadline = time.monotonic() + 240
+            while "closed loop:" not in err.read_text() and proc.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.2)
+            proc.send_signal(signal.SIGINT)
+            proc.communicate(timeout=120)
+        finally:
+            proc.kill()
+            proc.wait()
+    text = err.read_text()
+    assert proc.returncode == 128 + signal.SIGINT, text[-2000:]
+    assert "Traceback" not in text and "sweep: stopped at job 0 (interrupted by SIGINT)" in text
+    s = _summary(tmp_path / "sweep")
+    assert s["interrupted"] == "interrupted by SIGINT" and s["jobs"] == 1  # jobs 1 and 2 never started
+    assert s["rows"][0]["verdict"] == "interrupted" and s["rows"][0]["exit_code"] == 130
+    assert not (tmp_path / "sweep" / "1").exists()
 
 
 def _tiny_train(bad: str, *more: str) -> list[str]:

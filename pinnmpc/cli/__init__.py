@@ -26,6 +26,7 @@ from pinnmpc.cli.args import check_choices as check_choices
 from pinnmpc.cli.args import config_dir_args as config_dir_args
 from pinnmpc.cli.jobs import JobFailedError as JobFailedError
 from pinnmpc.cli.jobs import end_job as end_job
+from pinnmpc.cli.jobs import exit_stopped as exit_stopped
 from pinnmpc.cli.jobs import in_multirun
 from pinnmpc.util.io import append_log as append_log  # re-exported for the tasks
 from pinnmpc.util.io import atomic_write

@@ -58,6 +58,22 @@ def end_job(code: int, message: str, run_dir: Path | None) -> NoReturn:
     sys.exit(code)
 
 
+def exit_stopped(code: int, message: str, run_dir: Path | None) -> NoReturn:
+    """A job stopped by a signal exits with `code` (128 + the signal). A signal means "stop", not "skip": in a
+    sweep the job's verdict is recorded, the summary written for the jobs that ran (the later ones never start),
+    and the whole sweep exits with that code."""
+    if in_multirun() and run_dir is not None:
+        record(run_dir, "interrupted", code, message)
+        from hydra.core.hydra_config import HydraConfig
+
+        sweep_dir = Path(HydraConfig.get().sweep.dir)
+        with contextlib.suppress(OSError):
+            s = write_summary(sweep_dir, interrupted=message)
+            print(f"sweep: stopped at job {run_dir.name} ({message}): {s['ok']} of {s['jobs']} jobs ran to the end, "
+                  f"the rest did not start; summary: {sweep_dir / f'{SUMMARY}.md'}", file=sys.stderr)  # fmt: skip
+    sys.exit(code)
+
+
 def _overrides(job_dir: Path) -> list[str]:
     """The job's own overrides as Hydra saved them."""
     f = job_dir / ".hydra" / "overrides.yaml"
@@ -102,8 +118,9 @@ def job_row(job_dir: Path, common: set[str]) -> dict[str, Any]:
     return row
 
 
-def write_summary(sweep_dir: Path) -> dict[str, Any]:
-    """sweep_summary.json and .md in the sweep dir, from every job dir's verdict."""
+def write_summary(sweep_dir: Path, interrupted: str | None = None) -> dict[str, Any]:
+    """sweep_summary.json and .md in the sweep dir, from every job dir's verdict (interrupted: why the sweep
+    stopped before its end, None: it ran every job)."""
     jobs = sorted((p for p in sweep_dir.iterdir() if p.is_dir() and (p / ".hydra").is_dir()), key=_numbered)
     sets = [set(_overrides(j)) for j in jobs]
     common = set.intersection(*sets) if len(sets) > 1 else set()
@@ -115,12 +132,14 @@ def write_summary(sweep_dir: Path) -> dict[str, Any]:
         "ok": len(rows) - len(failed),
         "failed": len(failed),
         "exit_code": EXIT_SWEEP_FAILED if failed else 0,
+        "interrupted": interrupted,  # why the sweep stopped early (the jobs after the last row never started)
         "rows": rows,
     }
     save_json(sweep_dir / f"{SUMMARY}.json", summary)
     fields = list(dict.fromkeys(k for r in rows for k in r))
     table = md_table(fields, [["" if r.get(f) is None else str(r.get(f)) for f in fields] for r in rows])
-    head = f"{summary['ok']} of {len(rows)} jobs ok, {len(failed)} failed\n\n"
+    head = f"{summary['ok']} of {len(rows)} jobs ok, {len(failed)} failed"
+    head += f"; the sweep stopped early: {interrupted}\n\n" if interrupted else "\n\n"
     atomic_write(sweep_dir / f"{SUMMARY}.md", lambda p: p.write_text(head + table + "\n"))
     return summary
 

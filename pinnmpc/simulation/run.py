@@ -28,6 +28,7 @@ from pinnmpc.simulation.setup import (
     system_reference,
     warn_jumps,
     warn_limit_margin,
+    warn_long_horizon,
 )
 from pinnmpc.systems.base import System
 from pinnmpc.util.io import save_json, save_npz
@@ -52,6 +53,7 @@ def run_closed_loop(
     its status is "ok" only when everything before it was written; a write that fails raises OutputError."""
     system: System = job_system(cfg, validate_closed_loop)
     start = checked_start(cfg, system)
+    warn_long_horizon(cfg)
     controller, domain, tau = build_controller(cfg, system)
     differs = arm_differences(getattr(getattr(controller, "surrogate", None), "meta", None), cfg)
     if differs:  # before the run: a network of another arm tracks whatever it tracks

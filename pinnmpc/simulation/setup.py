@@ -38,6 +38,19 @@ def build_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box |
     return build_nmpc(cfg.controller, surrogate, system), surrogate.domain, surrogate.tau
 
 
+def warn_long_horizon(cfg: DictConfig) -> None:
+    """A horizon far beyond the usual few steps makes every solve slow and often unconverged (a plan the loop
+    still applies): say so before the run rather than after minutes of it."""
+    horizon, limit = int(cfg.controller.horizon), cfg.get("long_horizon")
+    if limit is not None and horizon > int(limit):
+        log.warning(
+            "controller.horizon=%d is above long_horizon=%d: each solve costs H^2 to H^3 and may stop at its "
+            "iteration cap unconverged; expected a horizon of a few to a few dozen steps (raise long_horizon to "
+            "silence this)",
+            horizon, int(limit),
+        )  # fmt: skip
+
+
 def arm_differences(meta: dict[str, Any] | None, cfg: DictConfig) -> list[str]:
     """system.dynamics keys whose value in the network's training config differs from this run's (names alone do
     not tell two arms apart: a checkpoint of a j1/j2 arm loads on any other); empty where the meta has none."""

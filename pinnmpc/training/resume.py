@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.surrogate.checkpoint import FORMAT
+from pinnmpc.surrogate.checkpoint import FORMAT, load_surrogate
 from pinnmpc.training.pipeline import seconds
+from pinnmpc.util.io import save_json
+
+log = logging.getLogger(__name__)
 
 EXPECTED_CKPT = "expected a Lightning .ckpt written by pinnmpc.train (e.g. <run dir>/checkpoints/last.ckpt)"
 
@@ -67,9 +71,27 @@ def recorded_best(ckpt: dict[str, Any]) -> float | None:
     return None
 
 
+def spent_budget(cfg: DictConfig, ckpt: dict[str, Any], label: str) -> str | None:
+    """Why this configuration has no budget left to train the checkpoint on (None: it has), as a one-line error:
+    a spent trainer.max_time or max_epochs runs no epoch and would rewrite the run's results from nothing."""
+    spent = ((ckpt.get("callbacks") or {}).get("Timer") or {}).get("time_elapsed", {}).get("train")
+    budget = cfg.trainer.get("max_time")
+    if budget and spent is not None and spent >= seconds(str(budget)):
+        return (
+            f"{label} has trained {spent / 60:.1f} min, so trainer.max_time={budget} is spent; expected a longer "
+            "trainer.max_time to continue"
+        )
+    limit, done = cfg.trainer.get("max_epochs"), int(ckpt.get("epoch", -1)) + 1
+    if limit is not None and limit != -1 and done >= limit:
+        return (
+            f"{label} has trained {done} epochs, so trainer.max_epochs={limit} is reached; expected a larger "
+            "trainer.max_epochs to continue"
+        )
+    return None
+
+
 def check_continuable(cfg: DictConfig, ckpt: dict[str, Any], label: str) -> None:
-    """A checkpoint this configuration can train on: the same optimizer (its state is restored), and budget left
-    (a spent trainer.max_time or max_epochs runs no epoch and would rewrite the run's results from nothing)."""
+    """A checkpoint this configuration can train on: the same optimizer (its state is restored), and budget left."""
     have, want = (ckpt.get("hyper_parameters") or {}).get("optimizer"), cfg.module.get("optimizer")
     if have is not None and have != want:
         raise ValueError(
@@ -77,19 +99,41 @@ def check_continuable(cfg: DictConfig, ckpt: dict[str, Any], label: str) -> None
             "expected the same (its optimizer state is restored, as far as it is saved), or "
             "init_from=<its surrogate.pt> to start anew"
         )
-    spent = ((ckpt.get("callbacks") or {}).get("Timer") or {}).get("time_elapsed", {}).get("train")
-    budget = cfg.trainer.get("max_time")
-    if budget and spent is not None and spent >= seconds(str(budget)):
-        raise ValueError(
-            f"{label} has trained {spent / 60:.1f} min, so trainer.max_time={budget} is spent; expected a longer "
-            "trainer.max_time to continue"
-        )
-    limit, done = cfg.trainer.get("max_epochs"), int(ckpt.get("epoch", -1)) + 1
-    if limit is not None and limit != -1 and done >= limit:
-        raise ValueError(
-            f"{label} has trained {done} epochs, so trainer.max_epochs={limit} is reached; expected a larger "
-            "trainer.max_epochs to continue"
-        )
+    spent = spent_budget(cfg, ckpt, label)
+    if spent:
+        raise ValueError(spent)
+
+
+def finish_spent_run(cfg: DictConfig, run_dir: Path, ckpt: dict[str, Any], command: str) -> dict[str, Any]:
+    """A run killed after its budget was spent but before it wrote surrogate.pt: write its best network and
+    train_metrics.json from its checkpoints, training nothing (what resume=true does for such a run)."""
+    ckpt_dir = run_dir / "checkpoints"
+    source = next((p for p in (ckpt_dir / "best.ckpt", ckpt_dir / "last.ckpt") if p.is_file()), None)
+    if source is None:
+        raise FileNotFoundError(f"{ckpt_dir} holds neither best.ckpt nor last.ckpt; expected a training run dir")
+    timer = ((ckpt.get("callbacks") or {}).get("Timer") or {}).get("time_elapsed", {}).get("train") or 0.0
+    base = float((ckpt.get("pinnmpc") or {}).get("base_training_time_s") or 0.0)
+    meta = {
+        "trained_with": command,
+        "config": OmegaConf.to_container(cfg, resolve=True),
+        "status": "ok",
+        "finished_from_checkpoint": True,  # its budget was spent when it was killed: nothing trained on resume
+        "wall_time_s": 0.0,
+        "training_time_s": float(timer) + base,
+        "base_training_time_s": base,
+        "epochs": int(ckpt.get("epoch", -1)) + 1,
+        "best_val_rmse_position": recorded_best(ckpt),
+        "resumed_best_val_rmse_position": recorded_best(ckpt),
+        "final_metrics": {},
+    }
+    surrogate = load_surrogate(str(source))
+    surrogate.meta = meta
+    surrogate.save(run_dir / "surrogate.pt")
+    summary = {**meta, "best_checkpoint": str(source)}
+    summary.pop("config")
+    save_json(run_dir / "train_metrics.json", summary)
+    log.info("resume=true: the budget was already spent; wrote %s from %s", run_dir / "surrogate.pt", source.name)
+    return summary
 
 
 def check_fits(ckpt: dict[str, Any], label: str, module: L.LightningModule) -> None:

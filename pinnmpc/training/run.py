@@ -27,7 +27,15 @@ from pinnmpc.training.data import CollocationDataModule
 from pinnmpc.training.models import build_model
 from pinnmpc.training.pipeline import base_training_time, train_in_stages
 from pinnmpc.training.progress import BudgetBar, EpochLog, TrainingClock, quiet_lightning, timer_of
-from pinnmpc.training.resume import check_continuable, check_fits, read_ckpt, recorded_best, resolve_ckpt
+from pinnmpc.training.resume import (
+    check_continuable,
+    check_fits,
+    finish_spent_run,
+    read_ckpt,
+    recorded_best,
+    resolve_ckpt,
+    spent_budget,
+)
 from pinnmpc.util.commands import command_line, override
 from pinnmpc.util.io import save_json
 from pinnmpc.util.settings import validate_train
@@ -130,6 +138,9 @@ def train(
     ckpt_path = resolve_ckpt(cfg, run_dir)
     label = f"ckpt_path={ckpt_path}" if cfg.ckpt_path else f"resume=true: {ckpt_path}"
     ckpt = None if ckpt_path is None else read_ckpt(ckpt_path, label)
+    unfinished = ckpt is not None and cfg.resume and not cfg.ckpt_path and not (run_dir / "surrogate.pt").is_file()
+    if unfinished and spent_budget(cfg, ckpt, label):  # killed after its budget but before it wrote its network
+        return finish_spent_run(cfg, run_dir, ckpt, command)
     if ckpt is not None:
         check_continuable(cfg, ckpt, label)
     elif (run_dir / "checkpoints" / "last.ckpt").is_file():

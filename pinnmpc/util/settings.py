@@ -69,6 +69,7 @@ CLOSED_LOOP: dict[str, Check] = {
     "progress": boolean(),
     "plots": boolean(),
     "animate": boolean(),
+    "long_horizon": integer(1),
     "allow_inputs_outside_box": boolean(),
     "failure.max_fallback_fraction": real(0.0, 1.0),
     **PLANT,
