@@ -23,6 +23,7 @@ from pinnmpc.simulation.metrics import verdict
 from pinnmpc.simulation.run import run_closed_loop
 from pinnmpc.surrogate import SHIPPED, load_surrogate
 from pinnmpc.systems import load_system
+from pinnmpc.training.resume import portable_ckpt
 from pinnmpc.training.run import train
 from pinnmpc.util.settings import SettingError, validate_train
 from tests.conftest import ROOT, TINY_TRAIN
@@ -158,6 +159,25 @@ def test_a_run_killed_after_its_budget_resumes_to_write_its_network(make_cfg, tm
     # with its network written, a spent budget is refused again
     with pytest.raises(ValueError, match="trainer.max_epochs=2 is reached"):
         train(make_cfg("train", [*TINY, "trainer.max_epochs=2", "resume=true"]), run_dir)
+
+
+def test_shipped_training_checkpoints_hold_no_absolute_path_and_still_resume(make_cfg, tmp_path):
+    shipped = sorted((ROOT / "checkpoints" / "train").glob("*.ckpt"))
+    assert shipped
+    for f in shipped:
+        ckpt = torch.load(f, map_location="cpu", weights_only=True)
+        paths = [v for state in ckpt["callbacks"].values() if isinstance(state, dict) for v in state.values()
+                 if isinstance(v, str) and "/" in v]  # fmt: skip
+        assert paths and not any(Path(v).is_absolute() for v in paths), (f.name, paths)
+    first = tmp_path / "first"
+    train(make_cfg("train", [*TINY, "trainer.max_epochs=1"]), first)
+    ckpt = portable_ckpt(torch.load(first / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True))
+    assert ckpt["callbacks"] and str(first) not in repr(ckpt["callbacks"])
+    torch.save(ckpt, tmp_path / "shipped.ckpt")
+    done = train(make_cfg("train", [*TINY, "trainer.max_epochs=2", f"ckpt_path={tmp_path / 'shipped.ckpt'}"]),
+                 tmp_path / "second")  # fmt: skip
+    assert done["status"] == "ok" and done["epochs"] == 2
+    assert done["resumed_best_val_rmse_position"] is not None
 
 
 def test_sigint_during_a_closed_loop_keeps_what_was_reached(tmp_path):

@@ -55,6 +55,28 @@ def test_closed_loop_sweep_of_good_jobs_exits_0(tmp_path):
     assert "sweep: all 2 jobs ok" in r.stdout
 
 
+@pytest.mark.parametrize(
+    "key, values, good",
+    [
+        ("controller.horizon", "5,0,-1,abc,2.5,1e9,null", {"5"}),
+        ("noise_sigma", "0,nan,inf,-1,'[1,2]',1e-3", {"0", "0.001"}),
+    ],
+)
+def test_fuzz_sweep_values_each_job_ends_clean_or_in_one_line(tmp_path, key, values, good):
+    r = _sweep(["pinnmpc.closed_loop", "-m", f"{key}={values}", "max_steps=2", "progress=false", "plots=false",
+                f"hydra.sweep.dir={tmp_path}"])  # fmt: skip
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    s = _summary(tmp_path)
+    assert s["jobs"] == len(values.replace("'[1,2]'", "x").split(","))
+    for row in s["rows"]:
+        value = row["overrides"].split("=", 1)[1]
+        if value in good:
+            assert row["verdict"] == "ok" and row["status"] == "ok", row
+        else:  # bad input: exit 2 and one line naming the key
+            assert row["verdict"] == "failed" and row["exit_code"] == 2, row
+            assert key in row["message"] and "\n" not in row["message"], row
+
+
 def test_sigint_stops_the_sweep_and_still_writes_its_summary(tmp_path):
     slow = ["controller.solver=rmsprop", "controller.solvers.rmsprop.max_iter=400", "controller.solvers.rmsprop.tol=0"]
     cmd = [sys.executable, "-m", "pinnmpc.closed_loop", "-m", "seed=0,1,2", *slow, "plots=false"]

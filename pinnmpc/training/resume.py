@@ -165,3 +165,23 @@ def check_fits(ckpt: dict[str, Any], label: str, module: L.LightningModule) -> N
             f"{label} holds a network whose prior is the arm {arms[0]!r}, this configuration's is {arms[1]!r}; "
             "expected the same system"
         )
+
+
+def portable_ckpt(ckpt: dict[str, Any]) -> dict[str, Any]:
+    """A training checkpoint to ship: its checkpoint callbacks' absolute paths (the developer's run dir, which
+    Lightning prints on resume) become run-relative `checkpoints/<file>`; weights and scores stay."""
+
+    def rel(path: Any) -> Any:
+        """`checkpoints/<name>` for a path string, other values as they are."""
+        return f"checkpoints/{Path(path).name}" if isinstance(path, str) and path else path
+
+    for state in (ckpt.get("callbacks") or {}).values():
+        if not isinstance(state, dict) or "dirpath" not in state:
+            continue
+        state["dirpath"] = "checkpoints"
+        for key in ("best_model_path", "kth_best_model_path", "last_model_path"):
+            if key in state:
+                state[key] = rel(state[key])
+        if isinstance(state.get("best_k_models"), dict):
+            state["best_k_models"] = {rel(k): v for k, v in state["best_k_models"].items()}
+    return ckpt
