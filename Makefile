@@ -79,10 +79,10 @@ tensorboard: install  ## TensorBoard over every run in outputs/
 	$(VENV)/bin/tensorboard --logdir outputs
 
 test: install  ## the default test run (a few minutes)
-	$(PY) -m pytest -m "not slow" -q
+	$(PY) -m pytest -m "not slow" -q -n auto
 
 test-all: install  ## every test, the slow ones too
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto
 
 lint: install
 	$(VENV)/bin/ruff check pinnmpc tests

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pinnmpc import load_surrogate, load_system
-from pinnmpc.capacity import one_step_data, run_capacity
+from pinnmpc.training.capacity import one_step_data, run_capacity
 from pinnmpc.util.settings import SettingError
 
 TINY = ["points=256", "val_points=64", "max_steps=4", "model.hidden=[16,16]", "model.auto_scale.samples=64"]

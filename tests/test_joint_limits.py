@@ -194,7 +194,9 @@ def test_inactive_limits_change_nothing(panda: Any, surrogate: Surrogate) -> Non
     np.testing.assert_array_equal(Jl[r.size :], 0.0)
 
 
-@pytest.mark.parametrize("solver", ["lifted_gauss_newton", "gauss_newton", "lbfgs"])
+@pytest.mark.parametrize(
+    "solver", ["lifted_gauss_newton", "gauss_newton", pytest.param("lbfgs", marks=pytest.mark.slow)]
+)
 def test_plans_stay_within_the_limits(panda: Any, surrogate: Surrogate, solver: str) -> None:
     """A reference 0.4 rad beyond two limits: the plan stops short of them (and would not without the limits)."""
     x0 = near_limits()

@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from pinnmpc import load_surrogate, load_system
-from pinnmpc.capacity import one_step_data, run_capacity
 from pinnmpc.surrogate import Surrogate
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.surrogate.prior import EIGEN_FROM_JOINTS, MEMO_SIZE, FrozenArmPrior
 from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian, divided_differences
+from pinnmpc.training.capacity import one_step_data, run_capacity
 from pinnmpc.training.data import CollocationDataModule
 from pinnmpc.training.module import PINNModule
 from pinnmpc.training.run import train

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from pinnmpc.systems.registry import build_system
-from pinnmpc.time_basis import _summary, basis_report, run_time_basis
+from pinnmpc.time_basis import _summary
+from pinnmpc.training.time_basis import basis_report, run_time_basis
 from pinnmpc.util.settings import SettingError
 
 
