@@ -11,6 +11,10 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
+from pinnmpc.controller.solvers import register_configs
+
+register_configs()  # the solvers' structured configs, before any test composes (the commands do the same)
+
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
 SHARED = ROOT.parent / "shared" / "powercube"

@@ -197,7 +197,7 @@ def test_exact_values_track_like_the_classical_controller(make_cfg, tmp_path):
         (["controller.model=exact"], "controller.model='exact'; expected one of \\['surrogate', 'exact_values'\\]"),
         (["controller.model=exact_values", "controller.solver=rmsprop"], "needs a Gauss-Newton solver"),
         (["controller.model=exact_values", "controller.exact_rk4_steps=0"], "controller.exact_rk4_steps=0; expected"),
-        (["controller.solvers.lifted_gauss_newton.rti_steps=0"], "rti_steps must be a whole number >= 1, got 0"),
+        (["controller.solvers.lifted_gauss_newton.rti_steps=0"], "rti_steps=0; expected a whole number >= 1"),
     ],
 )
 def test_bad_prediction_model_settings_are_one_clear_error(make_cfg, tmp_path, overrides, message):

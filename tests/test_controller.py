@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 from scipy.optimize import minimize
 from torch import Tensor
@@ -39,8 +41,7 @@ torch.set_num_threads(1)  # a training job shares this 2-core machine
 # RMSprop/L-BFGS call float() on a cost that requires grad; harmless here.
 pytestmark = pytest.mark.filterwarnings("ignore:Converting a tensor with requires_grad=True to a scalar")
 
-NMPC_YAML = Path(__file__).resolve().parents[1] / "conf" / "controller" / "nmpc.yaml"
-SYSTEM_YAML = Path(__file__).resolve().parents[1] / "conf" / "system" / "powercube.yaml"
+CONF = Path(__file__).resolve().parents[1] / "conf"
 NX, NU = 4, 2
 F64 = torch.float64
 ASYMMETRIC = ([-0.2, -0.5], [0.3, 0.1])
@@ -780,6 +781,21 @@ def test_make_solver_builds_each_solver() -> None:
     assert isinstance(make_solver("lbfgs"), LBFGSSolver)
 
 
+def test_the_solver_settings_are_their_dataclasses_and_checked_when_built() -> None:
+    cfg = _config()
+    for name, cls in SOLVERS.items():  # one source: the composed settings are the dataclass defaults
+        assert OmegaConf.to_container(cfg.solvers[name]) == {
+            f.name: list(f.default) if isinstance(f.default, tuple) else f.default for f in dataclasses.fields(cls)
+        }
+    with pytest.raises(ValueError, match=r"controller.solvers.gauss_newton: GaussNewtonSolver.max_iter='30'; "
+                                         r"expected a whole number >= 0"):  # fmt: skip
+        make_solver("gauss_newton", max_iter="30")
+    with pytest.raises(ValueError, match=r"RMSpropSolver.lr=nan; expected a finite number >= 0"):
+        make_solver("rmsprop", lr=float("nan"))
+    with pytest.raises(ValueError, match=r"LiftedGaussNewtonSolver.rti=1; expected true or false"):
+        make_solver("lifted_gauss_newton", rti=1)
+
+
 def test_make_solver_unknown_name() -> None:
     with pytest.raises(ValueError, match="unknown solver 'newton'") as err:
         make_solver("newton")
@@ -796,10 +812,13 @@ def test_make_solver_unknown_option() -> None:
 
 
 def _config(**overrides: object) -> DictConfig:
-    """conf/controller/nmpc.yaml with the PowerCube's defaults (its ${system.*} values) resolved."""
-    root = OmegaConf.create({"system": OmegaConf.load(SYSTEM_YAML), "controller": OmegaConf.load(NMPC_YAML)})
+    """conf/controller/nmpc.yaml as the commands compose it, with the PowerCube's defaults (its ${system.*}
+    values) resolved."""
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        root = compose(config_name="closed_loop", overrides=["system=powercube"])
     OmegaConf.resolve(root)
-    cfg = root.controller
+    cfg = OmegaConf.create(OmegaConf.to_container(root.controller))  # untyped: a Python caller's dict may hold
+    #   any key and value, which build_nmpc checks
     for key, value in overrides.items():
         OmegaConf.update(cfg, key, value, merge=False)
     return cfg

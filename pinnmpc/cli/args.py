@@ -3,6 +3,7 @@ config dirs a command line adds travel into printed resume commands."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import sys
 from pathlib import Path
@@ -82,6 +83,53 @@ def check_keys(prog: str, args: list[str]) -> None:
             sys.exit(EXIT_BAD_INPUT)
 
 
+TYPED = re.compile(r"^\+{0,2}controller\.solvers\.([A-Za-z_]+)\.([A-Za-z_]+)=")  # a solver setting
+
+
+def _values(arg: str) -> list[object]:
+    """The value(s) an override sets, as Hydra parses them (a sweep's every value); [] where Hydra cannot parse
+    it (Hydra's own error follows) or a value is an interpolation (checked when it resolves)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        override = OverridesParser.create().parse_overrides([arg])[0]
+        values = list(override.sweep_iterator()) if override.is_sweep_override() else [override.value()]
+    except Exception:  # noqa: BLE001  (Hydra's grammar errors have several types; Hydra reports them itself)
+        return []
+    return [v for v in values if not (isinstance(v, str) and "${" in v)]
+
+
+def check_typed(prog: str, args: list[str]) -> None:
+    """A solver setting (`controller.solvers.<name>.<field>=value`, a structured config) that names no field of
+    that solver, or a value its type or range refuses, ends in one line before Hydra composes (Hydra's own message
+    is several lines); in a sweep, before any job runs."""
+    from pinnmpc.controller.solvers import SOLVERS, make_solver
+
+    for arg in args:
+        match = TYPED.match(arg)
+        if match is None:
+            continue
+        name, key = match[1], match[2]
+        setting = arg.split("=", 1)[0].lstrip("+")
+        if name not in SOLVERS:
+            _refuse(prog, f"{setting}: no solver {name!r}; expected one of {sorted(SOLVERS)}")
+        fields = [f.name for f in dataclasses.fields(SOLVERS[name])]
+        if key not in fields:
+            _refuse(prog, f"unknown setting {setting!r}; expected one of {fields} (the fields of {name})")
+        for value in _values(arg):
+            try:
+                make_solver(name, **{key: tuple(value) if isinstance(value, list) else value})
+            except ValueError as e:
+                said = str(e)
+                _refuse(prog, f"{setting}={value!r}: {said[said.find('expected'):] if 'expected' in said else said}")
+
+
+def _refuse(prog: str, message: str) -> None:
+    """One line on stderr and the bad-input exit code."""
+    print(f"{prog}: error: {message}", file=sys.stderr)
+    sys.exit(EXIT_BAD_INPUT)
+
+
 def check_choices(prog: str, argv: list[str] | None = None) -> None:
     """Before Hydra composes: a `group=option` override whose group/option.yaml exists in no config dir (conf/,
     --config-dir, hydra.searchpath) ends the process with one line naming it and the options there (Hydra's own
@@ -92,6 +140,7 @@ def check_choices(prog: str, argv: list[str] | None = None) -> None:
         return
     if len(dirs) == 1:  # a user's config dir may hold another primary config: its keys are not known here
         check_keys(prog, args)
+    check_typed(prog, args)
     for arg in args:
         match = CHOICE.match(arg)
         if match is None or not any((d / match[1]).is_dir() for d in dirs):

@@ -7,6 +7,9 @@ receding-horizon solve to the next is explicit and typed instead of probed for o
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import typing
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -103,3 +106,23 @@ class Solver(Protocol):
     def solve(self, problem: Problem, U0: Array, warm: Any = NO_WARM) -> tuple[Array, SolveInfo, Any]:
         """The optimised inputs, their statistics and the warm state for the next (shifted) problem."""
         ...
+
+
+def check_fields(settings: Any) -> None:
+    """A solver's settings against their annotated types (its __post_init__): whole numbers and non-negative
+    finite reals, flags as booleans, so that a bad value is one line when the solver is built, not a failed solve."""
+    hints = typing.get_type_hints(type(settings))
+    for f in dataclasses.fields(settings):
+        value, kind = getattr(settings, f.name), hints.get(f.name)
+        if kind is bool:
+            ok, expected = isinstance(value, bool), "true or false"
+        elif kind is int:
+            ok, expected = isinstance(value, int) and not isinstance(value, bool) and value >= 0, "a whole number >= 0"
+        elif kind is float:
+            real = isinstance(value, (int, float)) and not isinstance(value, bool)
+            ok, expected = real and math.isfinite(value) and value >= 0, "a finite number >= 0"
+        else:
+            continue
+        if not ok:
+            name = type(settings).__name__
+            raise ValueError(f"{name}.{f.name}={value!r}; expected {expected}")

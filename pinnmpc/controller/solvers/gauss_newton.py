@@ -22,6 +22,7 @@ from pinnmpc.controller.solvers.base import (
     Problem,
     SolveInfo,
     SolveResult,
+    check_fields,
     project,
     result,
     wrong_warm,
@@ -49,21 +50,32 @@ class GaussNewtonSolver:
     batched rollout. numpy, because batch-1 solves are dominated by per-op overhead.
     """
 
-    max_iter: int = 30  # iteration cap
-    tol_grad: float = 1e-9  # converged when the projected gradient's max-norm is below this
-    tol_cost: float = 1e-10  # ... or the relative cost decrease predicted (or achieved) is below this
-    tol_gap: float = 1e-8  # ... or the decrease still to come, extrapolated from the last two, is below this x cost
-    damping: float = 1e-9  # Levenberg-Marquardt damping, relative to the mean diagonal of J^T J
-    step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.01)  # tried first alone, then the rest at once
-    reuse_jacobian: bool = True  # receding horizon: the first step reuses the last solve's sensitivities, shifted
+    max_iter: int = 30
+    """Iteration cap (`controller.solvers.gauss_newton.max_iter`)."""
+    tol_grad: float = 1e-9
+    """Converged when the projected gradient's max-norm is below this."""
+    tol_cost: float = 1e-10
+    """... or when the relative cost decrease predicted (or achieved) by a step is below this."""
+    tol_gap: float = 1e-8
+    """... or when the decrease still to come, extrapolated from the last two steps, is below this x the cost."""
+    damping: float = 1e-9
+    """Levenberg-Marquardt damping, relative to the mean diagonal of J^T J."""
+    step_lengths: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.01)
+    """Line search: the first tried alone, then the rest at once in one batched rollout."""
+    reuse_jacobian: bool = True
+    """Receding horizon: the first step reuses the last solve's sensitivities, shifted by one step."""
     array_api: ClassVar[str] = "numpy"  # also accepts torch tensors (and then returns them)
     warm_type: ClassVar[type] = GaussNewtonWarm  # the warm state this solver hands on and takes back
     warm_field: ClassVar[str] = "sensitivities"  # ... and its array
 
     def __post_init__(self) -> None:
+        check_fields(self)
         self.alphas = np.asarray(self.step_lengths, dtype=np.float64)
         if self.alphas.ndim != 1 or self.alphas.size == 0 or np.any(self.alphas <= 0):
-            raise ValueError(f"step_lengths must be a non-empty list of positive numbers, got {self.step_lengths}")
+            raise ValueError(
+                f"{type(self).__name__}.step_lengths={list(self.step_lengths)}; expected a non-empty list of "
+                "positive numbers"
+            )
 
     def solve(
         self, problem: Problem, U0: Array, warm: GaussNewtonWarm | NoWarm = NO_WARM

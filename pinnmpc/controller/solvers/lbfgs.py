@@ -8,17 +8,23 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, cold_inputs
+from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, check_fields, cold_inputs
 
 
 @dataclass
 class LBFGSSolver:
     """Quasi-Newton with strong Wolfe line search: a generic reference that needs only autograd gradients."""
 
-    max_iter: int = 20  # L-BFGS iterations per round
-    rounds: int = 5  # projection rounds
-    tol: float = 1e-12  # stop when a round changes the summed cost less than this
+    max_iter: int = 20
+    """L-BFGS iterations per projection round."""
+    rounds: int = 5
+    """Projection rounds."""
+    tol: float = 1e-12
+    """Stop when a round changes the summed cost relatively less than this."""
     array_api: ClassVar[str] = "torch"
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
     def solve(self, problem: Problem, U0: Tensor, warm: NoWarm = NO_WARM) -> tuple[Tensor, SolveInfo, NoWarm]:
         """Optimised inputs and statistics; no warm state, since the curvature pairs belong to the last problem."""

@@ -47,22 +47,34 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
 
     warm_type: ClassVar[type] = LiftedWarm  # the states its solution reaches, one step on
     warm_field: ClassVar[str] = "states"
-    tol_defect: float = 1e-10  # converged also needs every state defect F(s_i, u_i) - s_{i+1} below this
-    fast_ratio: float = 1e-3  # a full step whose predicted decrease fell below this x the one before: see _remaining
-    lifted_max_iter: int = 5  # lifted iterations before single shooting (max_iter more) takes over
-    tol_final_defect: float = 1e-8  # the cost reached is measured by a full rollout where a defect exceeds this
-    rti: bool = False  # real-time iteration: one step from the last plan's states per solve (see _rti_steps)
-    rti_steps: int = 1  # lifted steps per sample in the real-time iteration (more: closer to converged, slower)
-    tol_promise_inexact: float = 1e-3  # relative slack of the promise check when the model's Jacobians are not the
-    #   derivatives of its values (flow.approximate_jacobians, controller.model=exact_values)
-    lifted_max_iter_inexact: int = 20  # lifted_max_iter for such a model: inexact Jacobians converge linearly
+    tol_defect: float = 1e-10
+    """Converged also needs every state defect F(s_i, u_i) - s_{i+1} below this."""
+    fast_ratio: float = 1e-3
+    """Two full steps in a row, the latest cutting the predicted decrease below this x the one before: the
+    superlinear phase, extrapolated from that ratio alone (0: always from two ratios)."""
+    lifted_max_iter: int = 5
+    """Lifted iterations; an unconverged problem (saturated inputs, slow) then goes to single shooting with
+    max_iter more."""
+    tol_final_defect: float = 1e-8
+    """The final states come from one batched call plus the last linearisation where every defect is below
+    this, else from a full rollout."""
+    rti: bool = False
+    """Real-time iteration: rti_steps lifted steps per sample from the last plan's states, no convergence test
+    (the first solve, and any after a fallback, solves fully): the counterpart of the classical rti."""
+    rti_steps: int = 1
+    """Lifted steps per sample of the real-time iteration (more: closer to converged, slower)."""
+    tol_promise_inexact: float = 1e-3
+    """controller.model=exact_values: relative slack of the check that a stop's cost keeps the model's promise
+    (the Jacobians are the PINN's, not the derivatives of the values, so promises are inexact)."""
+    lifted_max_iter_inexact: int = 20
+    """controller.model=exact_values: lifted_max_iter for it (inexact Jacobians converge linearly)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         for name in ("rti_steps", "lifted_max_iter", "lifted_max_iter_inexact"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a whole number >= 1, got {value!r}")
+                raise ValueError(f"LiftedGaussNewtonSolver.{name}={value!r}; expected a whole number >= 1")
 
     def solve(
         self, problem: Problem, U0: Array, warm: LiftedWarm | NoWarm = NO_WARM

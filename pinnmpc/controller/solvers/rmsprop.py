@@ -8,17 +8,23 @@ from typing import ClassVar
 import torch
 from torch import Tensor
 
-from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, cold_inputs
+from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, check_fields, cold_inputs
 
 
 @dataclass
 class RMSpropSolver:
     """Projected first-order descent: the paper's baseline, slow but needing nothing beyond autograd."""
 
-    lr: float = 0.01  # RMSprop learning rate
-    max_iter: int = 1000  # iteration cap (paper: 1000)
-    tol: float = 1e-8  # stop when the summed cost changes less than this (paper: 1e-8)
+    lr: float = 0.01
+    """RMSprop learning rate."""
+    max_iter: int = 1000
+    """Iteration cap (the paper's 1000)."""
+    tol: float = 1e-8
+    """Stop when the summed cost changes less than this (the paper's 1e-8)."""
     array_api: ClassVar[str] = "torch"
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
     def solve(self, problem: Problem, U0: Tensor, warm: NoWarm = NO_WARM) -> tuple[Tensor, SolveInfo, NoWarm]:
         """Optimised inputs and statistics; no warm state, since the optimiser's moments start afresh each solve."""
