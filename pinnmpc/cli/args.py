@@ -121,7 +121,7 @@ def check_typed(prog: str, args: list[str]) -> None:
                 make_solver(name, **{key: tuple(value) if isinstance(value, list) else value})
             except ValueError as e:
                 said = str(e)
-                _refuse(prog, f"{setting}={value!r}: {said[said.find('expected'):] if 'expected' in said else said}")
+                _refuse(prog, f"{setting}={value!r}: {said[said.find('expected') :] if 'expected' in said else said}")
 
 
 def _refuse(prog: str, message: str) -> None:

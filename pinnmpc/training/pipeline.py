@@ -108,9 +108,7 @@ def base_training_time(base: str | None) -> float:
 
         ckpt = torch.load(base, map_location="cpu", weights_only=True)
         timer = (ckpt.get("callbacks") or {}).get("Timer") or {}
-        before = (ckpt.get("pinnmpc") or {}).get(
-            "base_training_time_s"
-        ) or 0.0  # its own base (0: none)
+        before = (ckpt.get("pinnmpc") or {}).get("base_training_time_s") or 0.0  # its own base (0: none)
         return float(timer.get("time_elapsed", {}).get("train") or 0.0) + float(before)
     from pinnmpc.surrogate.checkpoint import load_surrogate
 
