@@ -11,9 +11,9 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
-from pinnmpc.controller.solvers import register_configs
+from pinnmpc.util.structured import register_configs
 
-register_configs()  # the solvers' structured configs, before any test composes (the commands do the same)
+register_configs()  # the structured configs, before any test composes (the commands do the same)
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"

@@ -16,7 +16,17 @@ import numpy as np
 import pytest
 import torch
 
-from pinnmpc.cli import LOCK_NAME, USER_ERRORS, StopSignal, acquire, clean, discard_own_files, guard, release
+from pinnmpc.cli import (
+    LOCK_NAME,
+    USER_ERRORS,
+    StopSignal,
+    acquire,
+    check_choices,
+    clean,
+    discard_own_files,
+    guard,
+    release,
+)
 from pinnmpc.robustness import run_robustness
 from pinnmpc.self_loop import run_self_loop
 from pinnmpc.simulation.metrics import verdict
@@ -534,7 +544,7 @@ def _bounded_run(run_dir: Path, low: list[float], high: list[float]) -> None:
     assert np.all(np.isfinite(u)) and np.all(u >= np.array(low) - 1e-12) and np.all(u <= np.array(high) + 1e-12)
 
 
-def test_fuzz_malformed_references_and_settings(make_cfg, tmp_path):
+def test_fuzz_malformed_references_and_settings(make_cfg, tmp_path, capsys):
     rng = np.random.default_rng(7)
     refs = _malformed_references(tmp_path, rng)
     cases = [[f"reference.path={p}"] for p in refs]
@@ -542,6 +552,13 @@ def test_fuzz_malformed_references_and_settings(make_cfg, tmp_path):
     outcomes = {"refused": 0, "ran": 0}
     for i, overrides in enumerate(cases):
         run_dir = tmp_path / f"run{i}"
+        try:  # what the CLI checks before Hydra composes: a structured setting (plant.*) of a wrong type or range
+            check_choices("pinnmpc.closed_loop", overrides)
+        except SystemExit as stop:
+            said = capsys.readouterr().err.strip().splitlines()
+            assert stop.code == 2 and len(said) == 1 and said[0].startswith("pinnmpc.closed_loop: error: "), said
+            outcomes["refused"] += 1
+            continue
         try:
             run_closed_loop(make_cfg("closed_loop", [*QUICK, *overrides]), run_dir)
         except USER_ERRORS as e:  # run_cli turns these into one line and exit code 2

@@ -98,9 +98,9 @@ def test_plant_settings_reach_the_plant():
     )
     plant = make_plant(ARM, cfg, TAU)
     assert plant.chatter_flips is None and plant.stick_slip_tighten == 10.0 and plant.max_switches == 7
-    with pytest.raises(ValueError, match="chatter_flips must be >= 1 or null, got 0"):
+    with pytest.raises(ValueError, match="plant.chatter_flips=0: expected a whole number >= 1"):
         ScipyPlant(ARM, TAU, chatter_flips=0)
-    with pytest.raises(ValueError, match="stick_slip_tighten must be >= 1, got 0.5"):
+    with pytest.raises(ValueError, match="plant.stick_slip_tighten=0.5: expected a finite number >= 1"):
         ScipyPlant(ARM, TAU, stick_slip_tighten=0.5)
 
 

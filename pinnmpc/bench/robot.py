@@ -6,7 +6,6 @@ did not hold."""
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -16,13 +15,13 @@ from pinnmpc.bench.classical import classical_cfg, classical_solvers
 from pinnmpc.bench.common import bench_reference, controller_cfg
 from pinnmpc.bench.loops import loop_row
 from pinnmpc.controller.build import build_nmpc
+from pinnmpc.plant.settings import ScipyPlantSettings
 from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import load_system
 from pinnmpc.util.tables import fmt, md_table
 
 log = logging.getLogger(__name__)
-NOMINAL_PLANT = Path(__file__).resolve().parents[2] / "conf" / "plant" / "scipy.yaml"  # the model as the plant
 
 
 def estimator(cfg: DictConfig) -> dict[str, Any]:
@@ -74,7 +73,7 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
             log.info("robot: %s on %s done in %.1f s", label, ref.name, row["wall_s"])
     nominal = cfg.copy()
     with open_dict(nominal):
-        nominal.plant = OmegaConf.load(NOMINAL_PLANT)
+        nominal.plant = OmegaConf.structured(ScipyPlantSettings)  # the model as the plant, default settings
     pinn = build_nmpc(OmegaConf.merge(controller_cfg(cfg), estimator(cfg)), shipped, system)
     for ref in refs:
         row = loop_row(nominal, system, pinn, shipped.domain, system.tau, ref)

@@ -84,6 +84,7 @@ def check_keys(prog: str, args: list[str]) -> None:
 
 
 TYPED = re.compile(r"^\+{0,2}controller\.solvers\.([A-Za-z_]+)\.([A-Za-z_]+)=")  # a solver setting
+PLANT_KEY = re.compile(r"^\+{0,2}plant\.([A-Za-z_]+)=")  # a plant setting
 
 
 def _values(arg: str) -> list[object]:
@@ -124,6 +125,50 @@ def check_typed(prog: str, args: list[str]) -> None:
                 _refuse(prog, f"{setting}={value!r}: {said[said.find('expected') :] if 'expected' in said else said}")
 
 
+def _default_choice(name: str, group: str) -> str | None:
+    """The option conf/<name>.yaml's defaults list picks for a group (following the configs it extends)."""
+    from omegaconf import OmegaConf
+
+    path = CONF / f"{name}.yaml"
+    if not path.is_file():
+        return None
+    for entry in OmegaConf.load(path).get("defaults") or []:
+        if isinstance(entry, str):
+            found = None if entry == "_self_" else _default_choice(entry, group)
+            if found:
+                return found
+        elif group in entry:
+            return str(entry[group])
+    return None
+
+
+def check_plant(prog: str, args: list[str]) -> None:
+    """A plant setting (`plant.<field>=value`, a structured config) that names no field of the chosen plant, or a
+    value its type or range refuses, ends in one line before Hydra composes; in a sweep before any job runs."""
+    from pinnmpc.plant.settings import PLANTS
+
+    chosen = [m[2] for m in map(CHOICE.match, args) if m is not None and m[1] == "plant"]
+    kind = chosen[-1] if chosen else _default_choice(prog.rsplit(".", 1)[-1], "plant") or "scipy"
+    if kind not in PLANTS:
+        return  # a plant of a user's config dir: Hydra checks it
+    cls = PLANTS[kind]
+    names = [f.name for f in dataclasses.fields(cls)]
+    for arg in args:
+        match = PLANT_KEY.match(arg)
+        if match is None:
+            continue
+        key = match[1]
+        if key not in names:
+            other = [k for k, c in PLANTS.items() if key in {f.name for f in dataclasses.fields(c)}]
+            hint = f" (a setting of plant={other[0]}: add plant={other[0]})" if other else ""
+            _refuse(prog, f"unknown setting 'plant.{key}' of plant={kind}; expected one of {names}{hint}")
+        for value in _values(arg):
+            try:
+                cls(**{key: value})
+            except ValueError as e:
+                _refuse(prog, str(e))
+
+
 def _refuse(prog: str, message: str) -> None:
     """One line on stderr and the bad-input exit code."""
     print(f"{prog}: error: {message}", file=sys.stderr)
@@ -141,6 +186,7 @@ def check_choices(prog: str, argv: list[str] | None = None) -> None:
     if len(dirs) == 1:  # a user's config dir may hold another primary config: its keys are not known here
         check_keys(prog, args)
     check_typed(prog, args)
+    check_plant(prog, args)
     for arg in args:
         match = CHOICE.match(arg)
         if match is None or not any((d / match[1]).is_dir() for d in dirs):

@@ -9,12 +9,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.plant.base import Plant
 from pinnmpc.plant.scipy_plant import ScipyPlant
+from pinnmpc.plant.settings import MujocoPlantSettings, plant_settings
 from pinnmpc.systems.base import System
 
-KINDS = ("scipy", "mujoco")  # conf/plant/<kind>.yaml
 
-
-def plant_system(system: System, cfg: DictConfig) -> System:
+def plant_system(system: System, cfg: Any) -> System:
     """The simulated robot: the model with optional friction/mass mismatch (never seen by the controller)."""
     if cfg.friction_scale == 1.0 and cfg.mass_scale == 1.0:
         return system
@@ -32,11 +31,14 @@ def simulated_arm(system: System, system_cfg: Any) -> System:
     return load_system(str(origin["system"]))
 
 
-def make_plant(system: System, cfg: DictConfig, tau: float, robots: Mapping[str, Any] | None = None) -> Plant:
-    """The simulated robot of every closed loop (and of the bench's plant rows) from the plant settings: scipy's
-    solve_ivp on the model, or MuJoCo on the arm's URDF as one of the system's `robots` (read here alone)."""
-    kind = cfg.get("kind", "scipy")
-    if kind == "mujoco":
+def make_plant(system: System, cfg: Any, tau: float, robots: Mapping[str, Any] | None = None) -> Plant:
+    """The simulated robot of every closed loop (and of the bench's plant rows) from the plant settings (a config
+    node or dict, checked: pinnmpc/plant/settings.py): scipy's solve_ivp on the model, or MuJoCo on the arm's
+    URDF as one of the system's `robots` (read here alone)."""
+    if isinstance(cfg, DictConfig):
+        cfg = OmegaConf.to_container(cfg, resolve=True)
+    settings = plant_settings(cfg)
+    if isinstance(settings, MujocoPlantSettings):
         from pinnmpc.plant.mujoco_robot import make_mujoco_plant  # MuJoCo loads only for its plant
 
         if isinstance(robots, DictConfig):
@@ -45,20 +47,19 @@ def make_plant(system: System, cfg: DictConfig, tau: float, robots: Mapping[str,
             system,
             tau,
             robots,
-            cfg.get("robot"),
-            friction_scale=cfg.friction_scale,
-            mass_scale=cfg.mass_scale,
-            substeps=int(cfg.substeps),
+            settings.robot,
+            friction_scale=settings.friction_scale,
+            mass_scale=settings.mass_scale,
+            substeps=settings.substeps,
         )
-    if kind != "scipy":
-        raise ValueError(f"plant.kind={kind!r}; expected one of {list(KINDS)} (conf/plant/)")
+    scaled = plant_system(system, settings)
     return ScipyPlant(
-        plant_system(system, cfg),
+        scaled,
         tau,
-        cfg.method,
-        cfg.rtol,
-        cfg.atol,
-        cfg.chatter_flips,
-        cfg.stick_slip_tighten,
-        int(cfg.max_switches),
+        settings.method,
+        settings.rtol,
+        settings.atol,
+        settings.chatter_flips,
+        settings.stick_slip_tighten,
+        settings.max_switches,
     )

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from pinnmpc.plant.scipy_plant import PlantError
+from pinnmpc.plant.settings import MujocoPlantSettings
 from pinnmpc.systems import RigidArm
 from pinnmpc.systems.urdf import locked_urdf
 
@@ -202,7 +203,7 @@ class MujocoPlant:
     system: RigidArm
     tau: float
     robot: Mapping[str, Any] | None = None  # None: the nominal model; else {payload, armature, frictionloss}
-    substeps: int = 50  # RK4 steps per control period, the input held (conf/plant/mujoco.yaml says why 50)
+    substeps: int = MujocoPlantSettings.substeps  # RK4 steps per control period (pinnmpc/plant/settings.py)
     step_times: list[float] = field(default_factory=list)
     stick_slip_steps: int = 0  # no stick-slip redo here: kept so callers read every plant alike
 

@@ -13,6 +13,7 @@ from scipy.integrate import solve_ivp
 
 from pinnmpc.plant.base import Plant as Plant  # re-exported: the protocol beside its first plant
 from pinnmpc.plant.base import PlantError as PlantError
+from pinnmpc.plant.settings import ScipyPlantSettings
 from pinnmpc.plant.stick_slip import ChatterError, coulomb_joints, flip_counter, stick_slip_step
 from pinnmpc.systems.base import System
 
@@ -23,25 +24,22 @@ class ScipyPlant:
 
     system: System
     tau: float
-    method: str = "RK45"
-    rtol: float = 1e-3  # scipy's default, as the paper
-    atol: float = 1e-6  # scipy's default, as the paper
-    chatter_flips: int | None = 20  # sign flips of a sign(v) joint's velocity in one plain step before it is redone
-    #   with the switches located (None: never; only systems that name coulomb_joints have such a term)
-    stick_slip_tighten: float = 100.0  # the redone step runs at rtol and atol divided by this: between its switches the
-    #   rhs is smooth, so tighter tolerances cost little, and it comes out closer to the exact solution than the
-    #   chattering step it replaces
-    max_switches: int = 1000  # stick-slip switches allowed in one period before the step fails
+    method: str = ScipyPlantSettings.method  # the settings and their defaults: pinnmpc/plant/settings.py
+    rtol: float = ScipyPlantSettings.rtol
+    atol: float = ScipyPlantSettings.atol
+    chatter_flips: int | None = ScipyPlantSettings.chatter_flips
+    stick_slip_tighten: float = ScipyPlantSettings.stick_slip_tighten
+    max_switches: int = ScipyPlantSettings.max_switches
     step_times: list[float] = field(default_factory=list)
     stick_slip_steps: int = 0  # steps redone with the switches located
 
     def __post_init__(self) -> None:
         if not self.tau > 0:
             raise ValueError(f"plant tau must be > 0, got {self.tau}")
-        if self.chatter_flips is not None and self.chatter_flips < 1:
-            raise ValueError(f"plant chatter_flips must be >= 1 or null, got {self.chatter_flips}")
-        if not self.stick_slip_tighten >= 1:
-            raise ValueError(f"plant stick_slip_tighten must be >= 1, got {self.stick_slip_tighten}")
+        ScipyPlantSettings(  # the settings' own checks: one line naming the bad one
+            method=self.method, rtol=self.rtol, atol=self.atol, chatter_flips=self.chatter_flips,
+            stick_slip_tighten=self.stick_slip_tighten, max_switches=self.max_switches,
+        )  # fmt: skip
         joints = coulomb_joints(self.system)
         self._velocities = [self.system.nq + j for j in joints]
         box, inputs = self.system.state_box, self.system.input_box

@@ -7,6 +7,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from pinnmpc.plant.settings import plant_settings
 from pinnmpc.surrogate.prior import KINDS as PRIOR_KINDS
 from pinnmpc.util.checks import (  # noqa: F401 (SettingError re-exported: every job's setting error)
     _ABSENT,
@@ -29,7 +30,6 @@ from pinnmpc.util.checks import (  # noqa: F401 (SettingError re-exported: every
     weight,
 )
 
-SCIPY_METHODS = ("RK45", "RK23", "DOP853", "Radau", "BDF", "LSODA")
 SEED = integer(0, 2**32 - 1)  # what numpy and Lightning accept
 
 SYSTEM: dict[str, Check] = {  # the per-joint lists of conf/system/<name>.yaml that only some jobs read
@@ -42,20 +42,6 @@ SYSTEM: dict[str, Check] = {  # the per-joint lists of conf/system/<name>.yaml t
     "system.control.Q": weight("nx"),  # the NMPC's weights: checked before a training the controller comes after
     "system.control.R": weight("nu"),
     "system.control.disturbance_max": optional(vector("nx", real(0.0))),
-}
-
-PLANT: dict[str, Check] = {  # conf/plant/<kind>.yaml, in every job that simulates the robot
-    "plant.kind": one_of("scipy", "mujoco"),
-    "plant.robot": optional(text()),
-    "plant.substeps": integer(1),
-    "plant.method": one_of(*SCIPY_METHODS),
-    "plant.rtol": positive(),
-    "plant.atol": positive(),
-    "plant.chatter_flips": optional(integer(1)),
-    "plant.stick_slip_tighten": real(1.0),
-    "plant.max_switches": integer(1),
-    "plant.friction_scale": real(0.0),
-    "plant.mass_scale": positive(),
 }
 
 CLOSED_LOOP: dict[str, Check] = {
@@ -72,7 +58,6 @@ CLOSED_LOOP: dict[str, Check] = {
     "long_horizon": integer(1),
     "allow_inputs_outside_box": boolean(),
     "failure.max_fallback_fraction": real(0.0, 1.0),
-    **PLANT,
     "reference.path": optional(text()),
     "reference.name": text(),
     # the keys every controller kind shares; the rest is each controller's own to check
@@ -207,7 +192,6 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
     "scaling.step_batch_sizes": listof(integer(1)),
     "scaling.step_repeats": integer(1),
     "scaling.step_warmup": integer(0),
-    **PLANT,
 }
 BENCH_SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "robot")
 
@@ -230,7 +214,6 @@ COLLECT: dict[str, Check] = {  # conf/collect.yaml
     "excitation.hold": integer(1),
     "excitation.target_every": positive(),
     "excitation.speed": real(0.0, 1.0),
-    **PLANT,
     "controller.horizon": integer(1),
     "controller.Q": weight("nx"),
     "controller.R": weight("nu"),
@@ -314,6 +297,16 @@ def validate_closed_loop(cfg: DictConfig, system: Any, table: Mapping[str, Check
     """closed_loop (and robustness) settings, before the surrogate is loaded."""
     validate(cfg, table, system_dims(system))
     _pair(cfg, "controller.u_low", "controller.u_high")
+    validate_plant(cfg)
+
+
+def validate_plant(cfg: DictConfig) -> None:
+    """The plant's settings by their own checks (pinnmpc/plant/settings.py), in every job that simulates one."""
+    if "plant" in cfg:
+        try:
+            plant_settings(OmegaConf.to_container(cfg.plant, resolve=True))
+        except ValueError as e:
+            raise SettingError(str(e)) from None
 
 
 def validate_robustness(cfg: DictConfig, system: Any) -> None:
@@ -375,6 +368,7 @@ def validate_train(cfg: DictConfig, system: Any) -> None:
 def validate_bench(cfg: DictConfig, system: Any) -> None:
     """bench settings: the sections' sizes, and at least one section to run."""
     validate(cfg, BENCH, system_dims(system))
+    validate_plant(cfg)
     if not any(OmegaConf.select(cfg, f"{name}.enabled", default=False) for name in BENCH_SECTIONS):
         keys = ", ".join(f"{name}.enabled" for name in BENCH_SECTIONS)
         raise SettingError(f"every bench section is off ({keys} all false); expected at least one enabled")
@@ -384,6 +378,7 @@ def validate_collect(cfg: DictConfig, system: Any) -> None:
     """collect settings, before the robot or the controller is built."""
     validate(cfg, COLLECT, system_dims(system))
     _pair(cfg, "controller.u_low", "controller.u_high")
+    validate_plant(cfg)
     if cfg.plant.get("kind") == "mujoco" and int(cfg.plant.substeps) % int(cfg.fine):
         raise SettingError(
             f"plant.substeps={cfg.plant.substeps} is not a multiple of fine={cfg.fine}: expected a multiple, so the "

@@ -1,0 +1,14 @@
+"""Hydra's structured configs of pinnmpc: the dataclasses whose fields, types, defaults and field docstrings are
+the settings of the solvers (controller.solvers.<name>) and of the plant (plant). The commands register them
+before they compose; call register_configs() before a hydra.compose of your own."""
+
+from __future__ import annotations
+
+
+def register_configs() -> None:
+    """Put every structured config into Hydra's ConfigStore (idempotent)."""
+    from pinnmpc.controller.solvers import register_configs as solvers
+    from pinnmpc.plant.settings import register_configs as plants
+
+    solvers()
+    plants()
