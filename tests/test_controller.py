@@ -33,7 +33,7 @@ from pinnmpc.controller import (
 from pinnmpc.controller.build import build_nmpc, prediction_model
 from pinnmpc.controller.ocp import psd_sqrt
 from pinnmpc.controller.shooting import chain_solve, linearise
-from pinnmpc.surrogate import Surrogate, load_surrogate
+from pinnmpc.surrogate import SHIPPED, Surrogate, load_surrogate
 from pinnmpc.surrogate.network import PINN
 
 torch.set_num_threads(1)  # a training job shares this 2-core machine
@@ -794,6 +794,21 @@ def test_the_solver_settings_are_their_dataclasses_and_checked_when_built() -> N
         make_solver("rmsprop", lr=float("nan"))
     with pytest.raises(ValueError, match=r"LiftedGaussNewtonSolver.rti=1; expected true or false"):
         make_solver("lifted_gauss_newton", rti=1)
+
+
+@pytest.mark.parametrize(
+    "network, rti, real_time",
+    [("planar3", None, True), ("planar3-lab", None, False), ("planar3", False, False), ("planar3-lab", True, True)],
+)
+def test_the_real_time_iteration_is_the_default_for_networks_of_the_model(network: str, rti, real_time) -> None:
+    """rti=null: one lifted step per sample for a network trained on the model, the converged solve for one
+    fine-tuned on robot logs (its learnt dry friction: measured 13x worse as a real-time iteration)."""
+    surrogate = load_surrogate(SHIPPED.parent / f"{network}.pt")
+    cfg = _config(**{"solvers.lifted_gauss_newton.rti": rti})
+    cfg.Q, cfg.R, cfg.disturbance.max_abs = [1.0] * 6, [1e-4] * 3, None  # planar3's sizes
+    nmpc = build_nmpc(cfg, surrogate)
+    assert nmpc.solver.rti is real_time and nmpc.describe()["real_time"] is real_time
+    assert ("robot_logs" in surrogate.meta) is (network == "planar3-lab")
 
 
 def test_make_solver_unknown_name() -> None:

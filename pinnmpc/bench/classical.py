@@ -78,21 +78,25 @@ def mismatch_rows(
 EXACT = "exact values (true model's values, PINN's Jacobians)"  # label of controller.model=exact_values rows
 
 
-def pinn_variants(cfg: DictConfig, solver: str, rti: bool) -> list[tuple[str, str, dict[str, Any]]]:
-    """The PINN rows beside the configured controller, as (key suffix, label tail, controller changes): its
-    real-time iteration (classical.rti) and the true model's values, converged and as a real-time iteration
-    (classical.exact_values) with the system's steps per sample, as controller=exact runs it."""
+def pinn_variants(cfg: DictConfig, solver: str, rti: bool, fast: bool) -> list[tuple[str, str, dict[str, Any]]]:
+    """The PINN rows beside the configured controller (fast: whether it runs as a real-time iteration), as (key
+    suffix, label tail, controller changes): its other mode, converged or real-time (classical.rti), and the true
+    model's values, converged and as a real-time iteration (classical.exact_values) with the system's steps per
+    sample, as controller=exact runs it."""
     lifted = solver == "lifted_gauss_newton"
     out = []
-    if rti and lifted and not cfg.controller.solvers[solver].get("rti", False):
-        out.append(("_rti", ", real-time iteration", {"solvers": {solver: {"rti": True}}}))
+    if rti and lifted:
+        other = ("_converged", ", converged") if fast else ("_rti", ", real-time iteration")
+        out.append((*other, {"solvers": {solver: {"rti": not fast}}}))
     if cfg.classical.get("exact_values", False):
-        for fast in (False, True) if rti and lifted else (False,):
+        for real_time in (False, True) if rti and lifted else (False,):
             suffix, tail = (
-                ("_exact_values_rti", f", {EXACT}, real-time iteration") if fast else ("_exact_values", f", {EXACT}")
+                ("_exact_values_rti", f", {EXACT}, real-time iteration")
+                if real_time
+                else ("_exact_values", f", {EXACT}")
             )
-            steps = {"rti_steps": int(cfg.system.control.get("rti_steps", 1))} if fast else {}
-            out.append((suffix, tail, {"model": "exact_values", "solvers": {solver: {"rti": fast, **steps}}}))
+            steps = {"rti_steps": int(cfg.system.control.get("rti_steps", 1))} if real_time else {}
+            out.append((suffix, tail, {"model": "exact_values", "solvers": {solver: {"rti": real_time, **steps}}}))
     return out
 
 
@@ -131,9 +135,11 @@ def bench_classical(
     if pinn is None:
         pinn, _ = run_controller(cfg, system, surrogate, ref, solver, record=False)
         log.info("classical: PINN %s done in %.1f s", solver, pinn["wall_s"])
-    rows = {f"pinn_{solver}": {**pinn, "label": f"PINN-MPC, {solver}", "model": "pinn"}}
+    fast = bool(pinn.get("real_time"))  # the configured controller's mode (rti=null: decided by its network)
+    tag = ", real-time iteration" if fast else ""
+    rows = {f"pinn_{solver}": {**pinn, "label": f"PINN-MPC, {solver}{tag}", "model": "pinn"}}
     rti = bool(cfg.classical.get("rti", False))
-    for suffix, tail, changes in pinn_variants(cfg, solver, rti):  # e.g. both controllers at their cheapest too
+    for suffix, tail, changes in pinn_variants(cfg, solver, rti, fast):  # e.g. both controllers at their cheapest too
         row, _ = run_controller(cfg, system, surrogate, ref, solver, record=False, **changes)
         rows[f"pinn_{solver}{suffix}"] = {**row, "label": f"PINN-MPC, {solver}{tail}", "model": "pinn"}
         log.info("classical: PINN %s%s done in %.1f s", solver, tail, row["wall_s"])

@@ -66,6 +66,11 @@ class RecordingSolver:
         """The wrapped solver's array library, so the controller hands it its own kind of arrays."""
         return self.inner.array_api
 
+    @property
+    def rti(self) -> bool:
+        """Whether the wrapped solver is a real-time iteration (the row's label and metrics say so)."""
+        return bool(getattr(self.inner, "rti", False))
+
     def solve(self, problem: Problem, U0: Array, warm: Any = NO_WARM) -> tuple[Array, SolveInfo, Any]:
         """Delegate (the warm state passes through untouched), then record each problem with its projected solution."""
         U, info, next_warm = self.inner.solve(problem, U0, warm)
@@ -114,6 +119,7 @@ def loop_row(
         "solver": str(m["solver"]),
         "disturbance_gain": float(m["disturbance_gain"]),
         "prediction": str(m["prediction"]),
+        "real_time": bool(m.get("real_time")),  # one step per sample (a real-time iteration), not converged
         "status": m["status"],
         "steps": int(m["steps"]),
         "mae": m["mae"],
@@ -218,5 +224,6 @@ def mode(row: dict[str, Any], off: str = "") -> str:
 
 
 def _label(solver: str, row: dict[str, Any]) -> str:
-    """Row label: the solver and the controller mode."""
-    return f"PINN-MPC, {solver}" + mode(row, ", paper's controller")
+    """Row label: the solver, a real-time iteration or not, and the controller mode."""
+    fast = ", real-time iteration" if row.get("real_time") else ""
+    return f"PINN-MPC, {solver}{fast}" + mode(row, ", paper's controller")

@@ -72,6 +72,7 @@ def bench_optimality(cfg: DictConfig, surrogate: Surrogate, solver: str, problem
     within = (gap <= float(oc.rel_tol)) | (gap_abs <= float(oc.abs_tol))
     return {
         "solver": solver,
+        "real_time": bool(getattr(nmpc.solver, "rti", False)),  # one step per sample: near the optimum, not at it
         "n_states": len(picks),
         "starts": start_names,
         "rel_gap": {

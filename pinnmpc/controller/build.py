@@ -56,6 +56,16 @@ def prediction_model(cfg: dict[str, Any], surrogate: Surrogate, system: System |
     return ExactValues(surrogate, CompiledRK4(system, surrogate.tau, surrogate.tau / steps))
 
 
+def real_time_default(surrogate: Surrogate) -> bool:
+    """controller.solvers.lifted_gauss_newton.rti=null: the real-time iteration (one lifted step per sample) for a
+    network trained on the model alone, whose flow is smooth: it tracks within 1.1x of the converged solve at a
+    fraction of its time (docs/results.md); the converged solve for a network fine-tuned on robot logs (`robot_logs`
+    in its meta), whose learnt dry friction one step per sample does not follow, and for any other flow map (a
+    true model given as the model)."""
+    meta = getattr(surrogate, "meta", None)
+    return isinstance(meta, dict) and not meta.get("robot_logs")
+
+
 def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> NMPC:
     """NMPC from conf/controller: horizon, weights, soft joint limits, bounds (null: the surrogate's input box),
     solver, prediction model (exact_values needs the system)."""
@@ -67,7 +77,10 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
         what = f"lacks {missing}" if missing else f"has unknown keys {unknown}"
         raise ValueError(f"the controller config {what}; expected {list(REQUIRED)} and any of {list(OPTIONAL)}")
     cfg = {**OPTIONAL, **cfg}
-    solver = make_solver(cfg["solver"], **((cfg["solvers"] or {}).get(cfg["solver"]) or {}))
+    options = dict((cfg["solvers"] or {}).get(cfg["solver"]) or {})
+    if cfg["solver"] == "lifted_gauss_newton" and options.get("rti") is None:
+        options["rti"] = real_time_default(surrogate)
+    solver = make_solver(cfg["solver"], **options)
     ocp = HorizonOCP(
         prediction_model(cfg, surrogate, system), cfg["horizon"], cfg["Q"], cfg["R"], cfg["R_rate"], cfg["joint_limits"]
     )

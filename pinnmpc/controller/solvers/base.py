@@ -108,14 +108,19 @@ class Solver(Protocol):
         ...
 
 
+OPTIONAL_FLAGS = (bool | None,)  # a flag whose null means "decided elsewhere"
+
+
 def check_fields(settings: Any) -> None:
     """A solver's settings against their annotated types (its __post_init__): whole numbers and non-negative
     finite reals, flags as booleans, so that a bad value is one line when the solver is built, not a failed solve."""
     hints = typing.get_type_hints(type(settings))
     for f in dataclasses.fields(settings):
         value, kind = getattr(settings, f.name), hints.get(f.name)
-        if kind is bool:
-            ok, expected = isinstance(value, bool), "true or false"
+        if value is None and kind in OPTIONAL_FLAGS:
+            continue
+        if kind is bool or kind in OPTIONAL_FLAGS:
+            ok, expected = isinstance(value, bool), "true or false" + (" or null" if kind in OPTIONAL_FLAGS else "")
         elif kind is int:
             ok, expected = isinstance(value, int) and not isinstance(value, bool) and value >= 0, "a whole number >= 0"
         elif kind is float:

@@ -58,9 +58,11 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     tol_final_defect: float = 1e-8
     """The final states come from one batched call plus the last linearisation where every defect is below
     this, else from a full rollout."""
-    rti: bool = False
+    rti: bool | None = None
     """Real-time iteration: rti_steps lifted steps per sample from the last plan's states, no convergence test
-    (the first solve, and any after a fallback, solves fully): the counterpart of the classical rti."""
+    (the first solve, and any after a fallback, solves fully): the counterpart of the classical rti. null (auto):
+    the controller decides from its model (pinnmpc.controller.build.real_time_default); false: every sample
+    solved to convergence; a solver built without a controller treats null as false."""
     rti_steps: int = 1
     """Lifted steps per sample of the real-time iteration (more: closer to converged, slower)."""
     tol_promise_inexact: float = 1e-3
