@@ -112,8 +112,9 @@ def test_training_with_ssbfgs_lowers_the_loss(tmp_path):
     system = PowerCube()
     model = PINN(system.state_box.low, system.state_box.high, system.input_box.low, system.input_box.high,
                  t_max=0.25, hidden=[16, 16], activation="silu", ic="gated", time_basis=[0.02, 0.045])  # fmt: skip
-    dm = CollocationDataModule(system, tau=0.2, t_max=0.25, n_collocation=256, n_data=16, n_val=64, val_h=1e-3)
-    module = PINNModule(system, model, tau=0.2, lbfgs_max_iter=5, optimizer="ssbfgs")
+    sizes = dict(n_collocation=256, n_data=16, n_val=64, val_h=1e-3, resample_every=0, n_anchor=0)
+    dm = CollocationDataModule(system, tau=0.2, t_max=0.25, **sizes)
+    module = PINNModule(system, model, tau=0.2, lbfgs_max_iter=5, optimizer="ssbfgs", kinematic_weight=1.0)
     dm.setup()
     before = float(module.losses(dm.batch)["total"].detach())
     trainer = L.Trainer(max_epochs=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,

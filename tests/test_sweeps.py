@@ -26,23 +26,36 @@ def _summary(sweep_dir) -> dict:
 
 
 def test_closed_loop_sweep_runs_every_job_and_names_the_failed_one(tmp_path):
+    # reference.name=nope: a value only the job can refuse (a plant or solver setting of the wrong type or range
+    # is refused for the whole sweep before any job runs: test_cli_help)
     r = _sweep([
-        "pinnmpc.closed_loop", "-m", "plant.friction_scale=1,-1,0.5", "max_steps=3", "progress=false", "plots=false",
-        f"hydra.sweep.dir={tmp_path}",
+        "pinnmpc.closed_loop", "-m", "reference.name=default,nope,sine", "max_steps=3", "progress=false",
+        "plots=false", f"hydra.sweep.dir={tmp_path}",
     ])  # fmt: skip
     assert r.returncode == 1, r.stderr[-2000:]
     s = _summary(tmp_path)
     assert (s["jobs"], s["ok"], s["failed"], s["exit_code"]) == (3, 2, 1, 1)
     bad = [row for row in s["rows"] if row["verdict"] != "ok"]
-    assert len(bad) == 1 and bad[0]["overrides"] == "plant.friction_scale=-1" and bad[0]["exit_code"] == 2
-    assert "friction_scale" in bad[0]["message"]
-    assert "job 1 (plant.friction_scale=-1) failed, exit 2" in r.stderr
+    assert len(bad) == 1 and bad[0]["overrides"] == "reference.name=nope" and bad[0]["exit_code"] == 2
+    assert "nope" in bad[0]["message"]
+    assert "job 1 (reference.name=nope) failed, exit 2" in r.stderr
     for job in ("0", "2"):  # the jobs before and after the bad one ran to the end
         m = json.loads((tmp_path / job / "metrics.json").read_text())
         assert m["status"] == "ok" and m["steps"] == 3
         assert json.loads((tmp_path / job / "job_status.json").read_text())["verdict"] == "ok"
     assert json.loads((tmp_path / "1" / "job_status.json").read_text())["exit_code"] == 2
     assert not (tmp_path / "1" / ".pinnmpc.lock").exists()  # no lock left behind to block or kill another job
+
+
+def test_a_bad_structured_value_in_a_sweep_is_refused_before_any_job(tmp_path):
+    r = _sweep([
+        "pinnmpc.closed_loop", "-m", "plant.friction_scale=1,-1,0.5", "max_steps=3", "progress=false",
+        "plots=false", f"hydra.sweep.dir={tmp_path / 'sweep'}",
+    ])  # fmt: skip
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        "pinnmpc.closed_loop: error: plant.friction_scale=-1: expected a finite number >= 0"
+    ]
+    assert not (tmp_path / "sweep").exists()  # nothing ran
 
 
 def test_closed_loop_sweep_of_good_jobs_exits_0(tmp_path):
@@ -103,20 +116,20 @@ def test_sigint_stops_the_sweep_and_still_writes_its_summary(tmp_path):
 
 
 def _tiny_train(bad: str, *more: str) -> list[str]:
-    """A tiny training multirun over data.n_collocation, one value bad."""
-    fixed = [a for a in TINY_TRAIN if not a.startswith("data.n_collocation")]
-    sweep = f"data.n_collocation=256,{bad}"
-    return ["pinnmpc.train", "-m", *fixed, "trainer.max_epochs=1", "progress=false", sweep, *more]
+    """A tiny training multirun over data.t_high, one value bad: beyond t_max, which only the job can tell (a value
+    that its setting's own check refuses stops the whole sweep before any job runs)."""
+    sweep = f"data.t_high=null,{bad}"
+    return ["pinnmpc.train", "-m", *TINY_TRAIN, "trainer.max_epochs=1", "progress=false", sweep, *more]
 
 
 def test_train_sweep_with_a_bad_value_keeps_the_good_run(tmp_path):
-    r = _sweep([*_tiny_train("-5"), f"hydra.sweep.dir={tmp_path}"])
+    r = _sweep([*_tiny_train("0.3"), f"hydra.sweep.dir={tmp_path}"])
     assert r.returncode == 1, r.stderr[-2000:]
     s = _summary(tmp_path)
     assert (s["ok"], s["failed"]) == (1, 1)
     good, bad = s["rows"]
-    assert good["overrides"] == "data.n_collocation=256" and good["best_val_rmse_position"] is not None
-    assert bad["overrides"] == "data.n_collocation=-5" and bad["exit_code"] == 2 and "n_collocation" in bad["message"]
+    assert good["overrides"] == "data.t_high=null" and good["best_val_rmse_position"] is not None
+    assert bad["overrides"] == "data.t_high=0.3" and bad["exit_code"] == 2 and "t_high" in bad["message"]
     assert (tmp_path / "0" / "surrogate.pt").is_file()
     assert (tmp_path / "0" / "train.log").read_text().strip()  # the good run's log is whole
 
@@ -124,12 +137,12 @@ def test_train_sweep_with_a_bad_value_keeps_the_good_run(tmp_path):
 @pytest.mark.slow
 def test_joblib_grid_with_a_bad_value_runs_every_good_job_and_writes_both_tables(tmp_path):
     r = _sweep([
-        *_tiny_train("-5", "hparams_search=grid"), "hydra.sweeper.params={model.ic:'hard,soft'}",
+        *_tiny_train("0.3", "hparams_search=grid"), "hydra.sweeper.params={model.ic:'hard,soft'}",
         f"hydra.sweep.dir={tmp_path}",
     ], timeout=900)  # fmt: skip
     assert r.returncode == 1, r.stderr[-2000:]
     s = _summary(tmp_path)
-    assert s["failed"] == 4 and s["ok"] == 4  # model.ic x module.residual_form x n_collocation: the -5 ones failed
+    assert s["failed"] == 4 and s["ok"] == 4  # model.ic x module.residual_form x t_high: the 0.3 ones failed
     assert all(row["exit_code"] == 2 for row in s["rows"] if row["verdict"] != "ok")
     assert (tmp_path / "sweep_results.md").is_file()  # the training table of the good runs
     for row in s["rows"]:

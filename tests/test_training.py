@@ -28,14 +28,17 @@ from pinnmpc.training.run import build_datamodule, sha256, train
 from tests.conftest import ROOT, TINY_TRAIN
 
 TINY = [*TINY_TRAIN, "self_loop_figure.every_n_epochs=1", "self_loop_figure.steps=3"]
+# the paper's L-BFGS training, which these tests were written against; the classes' defaults are conf/module/pinn.yaml's
+PAPER_LBFGS = dict(optimizer="lbfgs", kinematic_weight=1.0, weight_anchor=1.0, lbfgs_history=100)
 
 
 def _tiny_module(make_cfg, *overrides: str) -> tuple[PINNModule, CollocationDataModule]:
     cfg = make_cfg("train", [*TINY, *overrides])
     system = PowerCube()
     model = build_model(cfg, system)
-    dm = CollocationDataModule(system, tau=0.2, t_max=0.25, n_collocation=256, n_data=16, n_val=64, val_h=1e-3)
-    module = PINNModule(system, model, tau=0.2, lbfgs_max_iter=5, residual_form=cfg.module.residual_form)
+    sizes = dict(n_collocation=256, n_data=16, n_val=64, val_h=1e-3)
+    dm = CollocationDataModule(system, tau=0.2, t_max=0.25, **sizes, resample_every=0, n_anchor=0)
+    module = PINNModule(system, model, tau=0.2, lbfgs_max_iter=5, residual_form=cfg.module.residual_form, **PAPER_LBFGS)
     return module, dm
 
 
@@ -103,16 +106,18 @@ def test_huber_loss_is_squares_below_delta_and_linear_above(make_cfg):
     cfg = make_cfg("train", TINY)
     system = PowerCube()
     model = build_model(cfg, system)
-    plain = PINNModule(system, model, tau=0.2)
-    dm = CollocationDataModule(system, tau=0.2, t_max=0.25, n_collocation=256, n_data=0, n_val=8, val_h=1e-2)
+    plain = PINNModule(system, model, tau=0.2, kinematic_weight=1.0)
+    dm = CollocationDataModule(
+        system, tau=0.2, t_max=0.25, n_collocation=256, n_data=0, n_val=8, val_h=1e-2, n_anchor=0
+    )
     dm.setup()
     r = plain._scaled_residual(plain._cast(dm.batch)).detach().abs()
     delta = float(r.quantile(0.7))  # a third of the residuals beyond it
-    robust = PINNModule(system, model, tau=0.2, robust_delta=delta)
+    robust = PINNModule(system, model, tau=0.2, robust_delta=delta, kinematic_weight=1.0)
     expected = torch.where(r <= delta, r.square(), 2 * delta * r - delta**2).mean()
     torch.testing.assert_close(robust.losses(dm.batch)["physics"].detach(), expected)
     assert robust.losses(dm.batch)["physics"] < plain.losses(dm.batch)["physics"]
-    huge = PINNModule(system, model, tau=0.2, robust_delta=10 * float(r.max()))  # no residual beyond: squares
+    huge = PINNModule(system, model, tau=0.2, robust_delta=10 * float(r.max()), kinematic_weight=1.0)  # squares
     torch.testing.assert_close(huge.losses(dm.batch)["physics"], plain.losses(dm.batch)["physics"])
 
 
@@ -126,8 +131,8 @@ def test_bad_robust_delta_is_refused(make_cfg, bad):
 def test_soft_initial_condition_has_a_data_loss(make_cfg):
     cfg = make_cfg("train", [*TINY, "experiment=paper"])
     system = PowerCube()
-    module = PINNModule(system, build_model(cfg, system), tau=0.2, residual_form="mass")
-    dm = CollocationDataModule(system, tau=0.2, t_max=0.25, n_collocation=64, n_data=8, n_val=8, val_h=1e-2)
+    module = PINNModule(system, build_model(cfg, system), tau=0.2, residual_form="mass", kinematic_weight=1.0)
+    dm = CollocationDataModule(system, tau=0.2, t_max=0.25, n_collocation=64, n_data=8, n_val=8, val_h=1e-2, n_anchor=0)
     dm.setup()
     parts = module.losses(dm.batch)
     assert set(parts) == {"physics", "data", "total"}
@@ -136,8 +141,9 @@ def test_soft_initial_condition_has_a_data_loss(make_cfg):
 
 def test_resampling_changes_points_and_is_reproducible():
     system = PowerCube()
-    a = CollocationDataModule(system, 0.2, 0.25, n_collocation=128, n_data=8, n_val=8, val_h=1e-2, seed=5)
-    b = CollocationDataModule(system, 0.2, 0.25, n_collocation=128, n_data=8, n_val=8, val_h=1e-2, seed=5)
+    sizes = dict(n_collocation=128, n_data=8, n_val=8, val_h=1e-2, seed=5, n_anchor=0, resample_every=0)
+    a = CollocationDataModule(system, 0.2, 0.25, **sizes)
+    b = CollocationDataModule(system, 0.2, 0.25, **sizes)
     a.setup(), b.setup()
     first = {k: v.clone() for k, v in a.batch.items()}
     assert all(torch.equal(first[k], b.batch[k]) for k in first)
@@ -154,14 +160,14 @@ def test_adaptive_redraw_gathers_points_where_the_residual_is_large(make_cfg, tm
     system = PowerCube()
     dm = CollocationDataModule(
         system, 0.2, 0.25, n_collocation=256, n_data=16, n_val=64, val_h=1e-3, resample_every=1,
-        adaptive_pool=8, adaptive_k=2.0, adaptive_c=0.0,
+        adaptive_pool=8, adaptive_k=2.0, adaptive_c=0.0, n_anchor=0,
     )  # fmt: skip
     _quiet_trainer(tmp_path, max_epochs=3, reload_dataloaders_every_n_epochs=1).fit(module, datamodule=dm)
     assert dm.draws == 3  # the first draw plus two adaptive redraws during training
     dm.draw()  # one more with the trained model frozen, so the score below is the one the draw used
     b = dm.batch
     adaptive = module.pointwise_residual(b["t"], b["x0"], b["u"]).mean()
-    plain = CollocationDataModule(system, 0.2, 0.25, n_collocation=256, seed=dm.seed + 7919 * 3)
+    plain = CollocationDataModule(system, 0.2, 0.25, n_collocation=256, seed=dm.seed + 7919 * 3, n_anchor=0)
     plain.draw()  # the plain LHS draw of the same size and seed
     p = plain.batch
     uniform = module.pointwise_residual(p["t"], p["x0"], p["u"]).mean()
@@ -175,8 +181,9 @@ def test_adaptive_redraw_gathers_points_where_the_residual_is_large(make_cfg, tm
 
 def test_adaptive_without_a_trainer_is_plain_lhs():
     system = PowerCube()
-    a = CollocationDataModule(system, 0.2, 0.25, n_collocation=64, n_data=8, n_val=8, val_h=1e-2, adaptive_pool=4)
-    b = CollocationDataModule(system, 0.2, 0.25, n_collocation=64, n_data=8, n_val=8, val_h=1e-2)
+    sizes = dict(n_collocation=64, n_data=8, n_val=8, val_h=1e-2, n_anchor=0)
+    a = CollocationDataModule(system, 0.2, 0.25, **sizes, adaptive_pool=4)
+    b = CollocationDataModule(system, 0.2, 0.25, **sizes)
     a.draw(), b.draw(), a.draw(), b.draw()
     assert all(torch.equal(a.batch[k], b.batch[k]) for k in a.batch)
 
@@ -192,19 +199,21 @@ def test_bad_adaptive_settings_are_refused(bad):
 
 def test_t_high_keeps_collocation_times_up_to_tau():
     system = PowerCube()
-    dm = CollocationDataModule(system, 0.2, 0.25, n_collocation=256, n_data=8, n_val=8, val_h=1e-2, t_high=0.2)
+    sizes = dict(n_collocation=256, n_data=8, n_val=8, val_h=1e-2, n_anchor=0)
+    dm = CollocationDataModule(system, 0.2, 0.25, **sizes, t_high=0.2)
     dm.draw()
     t = dm.batch["t"]
     assert float(t.min()) >= 0.0 and float(t.max()) <= 0.2
     assert float(t.max()) > 0.19  # still covers the whole period (LHS: one point per 1/256 of it)
-    full = CollocationDataModule(system, 0.2, 0.25, n_collocation=256, n_data=8, n_val=8, val_h=1e-2)
+    full = CollocationDataModule(system, 0.2, 0.25, **sizes)
     full.draw()
     assert float(full.batch["t"].max()) > 0.24
 
 
 def test_anchors_carry_the_accurate_flow_to_their_own_times_and_enter_the_loss(make_cfg, tmp_path):
     system = PowerCube()
-    dm = CollocationDataModule(system, 0.2, 0.25, n_collocation=64, n_data=8, n_val=8, val_h=1e-2, n_anchor=32)
+    sizes = dict(n_collocation=64, n_data=8, n_val=8, val_h=1e-2, resample_every=0)
+    dm = CollocationDataModule(system, 0.2, 0.25, **sizes, n_anchor=32)
     dm.setup()
     b = dm.batch
     t, x0, u = b["anchor_t"], b["anchor_x0"], b["anchor_u"]
@@ -213,7 +222,7 @@ def test_anchors_carry_the_accurate_flow_to_their_own_times_and_enter_the_loss(m
     alone = reference_flow(system, x0[row : row + 1], u[row : row + 1], float(t[row]), 1e-4) - x0[row]
     torch.testing.assert_close(b["anchor_dx"][row : row + 1], alone, rtol=0.0, atol=1e-6)  # two RK4 step sizes
     assert float(b["anchor_dx"].abs().max()) > 1e-2  # the flow moves: the anchors are not x0
-    module = PINNModule(system, build_model(make_cfg("train", TINY), system), tau=0.2, lbfgs_max_iter=5)
+    module = PINNModule(system, build_model(make_cfg("train", TINY), system), tau=0.2, lbfgs_max_iter=5, **PAPER_LBFGS)
     before = float(module.losses(b)["anchor"].detach())
     _quiet_trainer(tmp_path, max_epochs=3).fit(module, datamodule=dm)
     assert float(module.losses(dm.batch)["anchor"].detach()) < 0.5 * before
@@ -375,8 +384,9 @@ def test_a_correction_stage_trains_on_a_frozen_base_and_exports_one_network(make
     cfg = make_cfg("train", [*stage, "trainer.max_epochs=3"])
     model = build_model(cfg, PowerCube())
     assert not any(p.requires_grad for p in model.base.parameters())
-    module = PINNModule(PowerCube(), model, tau=0.2, lbfgs_max_iter=5)
-    dm = CollocationDataModule(PowerCube(), 0.2, 0.25, n_collocation=256, n_data=0, n_val=8, val_h=1e-2, seed=1)
+    module = PINNModule(PowerCube(), model, tau=0.2, lbfgs_max_iter=5, **PAPER_LBFGS)
+    sizes = dict(n_collocation=256, n_data=0, n_val=8, val_h=1e-2, seed=1, resample_every=0, n_anchor=0)
+    dm = CollocationDataModule(PowerCube(), 0.2, 0.25, **sizes)
     dm.setup()
     before = float(module.losses(dm.batch)["total"].detach())
     assert 0.1 < before < 10  # residuals in units of the base's residual level

@@ -34,7 +34,7 @@ from pinnmpc.util.signals import StopSignal as StopSignal  # re-exported for the
 from pinnmpc.util.structured import register_configs
 
 T = TypeVar("T")
-register_configs()  # the solvers' and plants' structured configs, before any command composes
+register_configs()  # the structured configs (solvers, plant, module, data), before any command composes
 
 USER_ERRORS = (ValueError, FileNotFoundError, KeyError, OmegaConfBaseException)  # bad input, not a bug of ours
 RUN_FAILURES = (FloatingPointError, OSError)  # a run that started and went wrong (a NaN training loss, a disk full)

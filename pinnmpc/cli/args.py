@@ -84,7 +84,7 @@ def check_keys(prog: str, args: list[str]) -> None:
 
 
 TYPED = re.compile(r"^\+{0,2}controller\.solvers\.([A-Za-z_]+)\.([A-Za-z_]+)=")  # a solver setting
-PLANT_KEY = re.compile(r"^\+{0,2}plant\.([A-Za-z_]+)=")  # a plant setting
+STRUCTURED_KEY = re.compile(r"^\+{0,2}(plant|module|data)\.([A-Za-z_]+)=")  # a setting of a structured config
 
 
 def _values(arg: str) -> list[object]:
@@ -142,26 +142,38 @@ def _default_choice(name: str, group: str) -> str | None:
     return None
 
 
-def check_plant(prog: str, args: list[str]) -> None:
-    """A plant setting (`plant.<field>=value`, a structured config) that names no field of the chosen plant, or a
-    value its type or range refuses, ends in one line before Hydra composes; in a sweep before any job runs."""
-    from pinnmpc.plant.settings import PLANTS
+def _options(group: str) -> dict[str, type]:
+    """The structured configs of a group by option: plant=scipy|mujoco, module=pinn, data=collocation."""
+    if group == "plant":
+        from pinnmpc.plant.settings import PLANTS
 
-    chosen = [m[2] for m in map(CHOICE.match, args) if m is not None and m[1] == "plant"]
-    kind = chosen[-1] if chosen else _default_choice(prog.rsplit(".", 1)[-1], "plant") or "scipy"
-    if kind not in PLANTS:
-        return  # a plant of a user's config dir: Hydra checks it
-    cls = PLANTS[kind]
-    names = [f.name for f in dataclasses.fields(cls)]
+        return dict(PLANTS)
+    from pinnmpc.training.settings import SECTIONS
+
+    return SECTIONS[group]
+
+
+def check_structured(prog: str, args: list[str]) -> None:
+    """A setting of a structured config group (`plant.<field>=value`, `module.<field>=value`, `data.<field>=value`)
+    that names no field of the chosen option, or a value its type or range refuses, ends in one line before Hydra
+    composes; in a sweep before any job runs."""
+    config = prog.rsplit(".", 1)[-1]
     for arg in args:
-        match = PLANT_KEY.match(arg)
+        match = STRUCTURED_KEY.match(arg)
         if match is None:
             continue
-        key = match[1]
+        group, key = match[1], match[2]
+        options = _options(group)
+        chosen = [m[2] for m in map(CHOICE.match, args) if m is not None and m[1] == group]
+        option = chosen[-1] if chosen else _default_choice(config, group) or ("scipy" if group == "plant" else None)
+        if option not in options:
+            continue  # no such group in this command, or an option of a user's config dir: Hydra checks it
+        cls = options[option]
+        names = [f.name for f in dataclasses.fields(cls)]
         if key not in names:
-            other = [k for k, c in PLANTS.items() if key in {f.name for f in dataclasses.fields(c)}]
-            hint = f" (a setting of plant={other[0]}: add plant={other[0]})" if other else ""
-            _refuse(prog, f"unknown setting 'plant.{key}' of plant={kind}; expected one of {names}{hint}")
+            other = [k for k, c in options.items() if key in {f.name for f in dataclasses.fields(c)}]
+            hint = f" (a setting of {group}={other[0]}: add {group}={other[0]})" if other else ""
+            _refuse(prog, f"unknown setting '{group}.{key}' of {group}={option}; expected one of {names}{hint}")
         for value in _values(arg):
             try:
                 cls(**{key: value})
@@ -186,7 +198,7 @@ def check_choices(prog: str, argv: list[str] | None = None) -> None:
     if len(dirs) == 1:  # a user's config dir may hold another primary config: its keys are not known here
         check_keys(prog, args)
     check_typed(prog, args)
-    check_plant(prog, args)
+    check_structured(prog, args)
     for arg in args:
         match = CHOICE.match(arg)
         if match is None or not any((d / match[1]).is_dir() for d in dirs):

@@ -15,6 +15,7 @@ from torch.utils.data import DataLoader
 
 from pinnmpc.plant.integrators import n_steps, rk4_fixed, rk4_step
 from pinnmpc.systems.base import System
+from pinnmpc.training.settings import DataSettings
 
 Scorer = Callable[[Tensor, Tensor, Tensor], Tensor]  # (t, x0, u) -> residual per point, as PINNModule provides
 MIN_ROBOT_TRANSITIONS = 2000  # logged transitions below which a fine-tuning fits noise, not the robot
@@ -74,7 +75,8 @@ class CollocationDataModule(L.LightningDataModule):
     weighted physics loss the mean over all points. The anchors are sharded the same way (`anchor_share`). The data
     points at t = 0 and the validation set are the same on every process.
 
-    The keyword defaults are the paper's data (one draw, no anchors); the project's are conf/data/collocation.yaml.
+    The keyword defaults are DataSettings' (pinnmpc/training/settings.py), the structured config behind
+    conf/data/collocation.yaml; seed is the run's (the top-level `seed` of conf/train.yaml).
     """
 
     def __init__(
@@ -82,22 +84,22 @@ class CollocationDataModule(L.LightningDataModule):
         system: System,
         tau: float,
         t_max: float,
-        n_collocation: int = 20000,
-        n_data: int = 100,
-        resample_every: int = 0,
-        resample_epochs: Sequence[int] = (),
-        n_val: int = 1000,
-        val_h: float = 1e-4,
+        n_collocation: int = DataSettings.n_collocation,
+        n_data: int = DataSettings.n_data,
+        resample_every: int = DataSettings.resample_every,
+        resample_epochs: Sequence[int] = (),  # DataSettings' empty list (a list field has no class default)
+        n_val: int = DataSettings.n_val,
+        val_h: float = DataSettings.val_h,
         seed: int = 0,
-        adaptive_pool: int = 0,
-        adaptive_k: float = 1.0,
-        adaptive_c: float = 1.0,
-        t_high: float | None = None,
-        n_anchor: int = 0,
-        anchor_h: float = 1e-4,
-        logs: Sequence[str] = (),
-        n_robot: int = 0,
-        val_episodes: float = 0.2,
+        adaptive_pool: int = DataSettings.adaptive_pool,
+        adaptive_k: float = DataSettings.adaptive_k,
+        adaptive_c: float = DataSettings.adaptive_c,
+        t_high: float | None = DataSettings.t_high,
+        n_anchor: int = DataSettings.n_anchor,
+        anchor_h: float = DataSettings.anchor_h,
+        logs: Sequence[str] = (),  # as resample_epochs
+        n_robot: int = DataSettings.n_robot,
+        val_episodes: float = DataSettings.val_episodes,
     ) -> None:
         super().__init__()
         if n_collocation < 1 or n_data < 0 or n_val < 1 or n_anchor < 0:

@@ -12,12 +12,12 @@ from torch import Tensor
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.surrogate.prior import tensor_key
 from pinnmpc.systems.base import System
+from pinnmpc.training.settings import OPTIMIZERS, ModuleSettings
 from pinnmpc.training.ssbfgs import SSBFGS
 from pinnmpc.util.checks import positive, vector
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 CAST_MEMO = 32  # training-dtype copies kept (a draw has up to ~10 tensors: collocation, anchors, data, validation)
-OPTIMIZERS = ("lbfgs", "ssbfgs")  # limited-memory BFGS (the paper's) | dense self-scaled BFGS (ssbfgs.py)
 
 
 def lbfgs_evals(opt: torch.optim.Optimizer) -> int:
@@ -41,8 +41,8 @@ class PINNModule(L.LightningModule):
     stall test sees is the mean over the processes (so all of them take the same line-search and stall decisions)
     and DDP averages the gradients in manual_backward: the parameters stay identical on every process.
 
-    The keyword defaults are the paper's training (L-BFGS, residual only); the project's defaults are
-    conf/module/pinn.yaml, which `python -m pinnmpc.train` instantiates.
+    The keyword defaults are ModuleSettings' (pinnmpc/training/settings.py), the structured config behind
+    conf/module/pinn.yaml that `python -m pinnmpc.train` instantiates; experiment=paper is the paper's training.
     """
 
     def __init__(
@@ -50,30 +50,30 @@ class PINNModule(L.LightningModule):
         system: System,
         model: PINN,
         tau: float,
-        residual_form: str = "explicit",
-        residual_scale: Sequence[float] | str = "auto",
-        kinematic_weight: float = 1.0,
-        weight_physics: float = 1.0,
-        weight_data: float = 1.0,
-        weight_anchor: float = 1.0,
-        weight_robot: float = 1.0,
-        anchor_state_weight: Sequence[float] | None = None,
-        dtype: str = "float32",
-        adam_epochs: int = 0,
-        adam_lr: float = 1e-3,
-        lbfgs_lr: float = 1.0,
-        lbfgs_max_iter: int = 100,
-        lbfgs_history: int = 100,
-        lbfgs_tolerance_grad: float = 1e-9,
-        lbfgs_tolerance_change: float = 1e-12,
-        stall_min_evals: int = 3,
-        stall_rel_tol: float = 0.0,
-        stall_redraw: bool = True,
-        robust_delta: float | None = None,
-        optimizer: str = "lbfgs",
-        ssbfgs_variant: str = "ssbfgs",
-        hessian_dtype: str = "float32",
-        hessian_buffer: int = 16,
+        residual_form: str = ModuleSettings.residual_form,
+        residual_scale: Sequence[float] | str = ModuleSettings.residual_scale,
+        kinematic_weight: float = ModuleSettings.kinematic_weight,
+        weight_physics: float = ModuleSettings.weight_physics,
+        weight_data: float = ModuleSettings.weight_data,
+        weight_anchor: float = ModuleSettings.weight_anchor,
+        weight_robot: float = ModuleSettings.weight_robot,
+        anchor_state_weight: Sequence[float] | None = ModuleSettings.anchor_state_weight,
+        dtype: str = ModuleSettings.dtype,
+        adam_epochs: int = ModuleSettings.adam_epochs,
+        adam_lr: float = ModuleSettings.adam_lr,
+        lbfgs_lr: float = ModuleSettings.lbfgs_lr,
+        lbfgs_max_iter: int = ModuleSettings.lbfgs_max_iter,
+        lbfgs_history: int = ModuleSettings.lbfgs_history,
+        lbfgs_tolerance_grad: float = ModuleSettings.lbfgs_tolerance_grad,
+        lbfgs_tolerance_change: float = ModuleSettings.lbfgs_tolerance_change,
+        stall_min_evals: int = ModuleSettings.stall_min_evals,
+        stall_rel_tol: float = ModuleSettings.stall_rel_tol,
+        stall_redraw: bool = ModuleSettings.stall_redraw,
+        robust_delta: float | None = ModuleSettings.robust_delta,
+        optimizer: str = ModuleSettings.optimizer,
+        ssbfgs_variant: str = ModuleSettings.ssbfgs_variant,
+        hessian_dtype: str = ModuleSettings.hessian_dtype,
+        hessian_buffer: int = ModuleSettings.hessian_buffer,
     ) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["system", "model"])

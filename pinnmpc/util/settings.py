@@ -9,6 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.plant.settings import plant_settings
 from pinnmpc.surrogate.prior import KINDS as PRIOR_KINDS
+from pinnmpc.training.settings import section_settings
 from pinnmpc.util.checks import (  # noqa: F401 (SettingError re-exported: every job's setting error)
     _ABSENT,
     Check,
@@ -148,20 +149,7 @@ TRAIN: dict[str, Check] = {
     "stage.samples": integer(1),
     "stage.h": positive(),
     "model.prior": optional(one_of(*PRIOR_KINDS)),
-    "module.anchor_state_weight": optional(vector("nx", positive())),
-    "module.weight_physics": real(0.0),
-    "module.weight_data": real(0.0),
-    "module.weight_anchor": real(0.0),
-    "module.weight_robot": real(0.0),
-    "data.logs": listof(text(), empty=True),
-    "data.n_robot": integer(0),
-    "data.val_episodes": real(0.0, 1.0, lo_open=True),
-    "module.adam_epochs": integer(0),
-    "module.adam_lr": positive(),
-    "module.lbfgs_lr": positive(),
-    "module.lbfgs_max_iter": integer(1),
-    "module.lbfgs_history": integer(1),
-    "data.resample_every": integer(0),
+    "module.anchor_state_weight": optional(vector("nx", positive())),  # its length; the rest: validate_module_data
     "trainer.max_epochs": epochs(),
     "trainer.max_time": optional(duration()),
     "trainer.check_val_every_n_epoch": optional(integer(1)),
@@ -309,6 +297,17 @@ def validate_plant(cfg: DictConfig) -> None:
             raise SettingError(str(e)) from None
 
 
+def validate_module_data(cfg: DictConfig) -> None:
+    """The training's module and data settings by their own checks (pinnmpc/training/settings.py), in every job
+    that trains."""
+    for section in ("module", "data"):
+        if section in cfg:
+            try:
+                section_settings(section, OmegaConf.to_container(cfg[section], resolve=True))
+            except ValueError as e:
+                raise SettingError(str(e)) from None
+
+
 def validate_robustness(cfg: DictConfig, system: Any) -> None:
     """The closed-loop settings plus the grid."""
     validate_closed_loop(cfg, system, ROBUSTNESS)
@@ -351,6 +350,7 @@ def validate_train(cfg: DictConfig, system: Any) -> None:
     the closed loop that comes after the training)."""
     validate_system(cfg, system)
     validate(cfg, TRAIN, system_dims(system))
+    validate_module_data(cfg)
     if cfg.get("init_from") and (cfg.stage.base or cfg.stage.get("split") is not None):
         raise SettingError(
             f"init_from={cfg.init_from} starts one network from a trained one; expected stage.base=null and "
