@@ -3,29 +3,32 @@ defaults are the settings and whose field docstrings document them; the plants t
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields
 from typing import Any
+
+from pinnmpc.util.checks import Check, check_settings, one_of, positive, real, whole
 
 SCIPY_METHODS = ("RK45", "RK23", "DOP853", "Radau", "BDF", "LSODA")  # scipy.integrate.solve_ivp's methods
 
 
 def _refuse(key: str, value: Any, expected: str) -> None:
-    """One line naming the setting, its value and what was expected."""
+    """One line naming the setting, its value and what was expected (the checks of several keys or of a kind)."""
     raise ValueError(f"plant.{key}={value!r}: expected {expected}")
 
 
-def _whole(key: str, value: Any, least: int) -> None:
-    """A whole number >= least (not a bool)."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < least:
-        _refuse(key, value, f"a whole number >= {least}")
-
-
-def _real(key: str, value: Any, least: float, strict: bool = False) -> None:
-    """A finite number >= least (> least when strict)."""
-    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-    if not ok or value < least or (strict and value == least):
-        _refuse(key, value, f"a finite number {'>' if strict else '>='} {least:g}")
+MISMATCH_CHECKS: dict[str, Check] = {"friction_scale": real(0.0), "mass_scale": positive()}
+SCIPY_CHECKS: dict[str, Check] = {
+    "method": one_of(*SCIPY_METHODS),
+    "rtol": positive(),
+    "atol": positive(),
+    "chatter_flips": lambda v, d: None if v is None else whole(1)(v, d),  # null: never redone
+    "stick_slip_tighten": real(1.0),
+    "max_switches": whole(1),
+}
+MUJOCO_CHECKS: dict[str, Check] = {
+    "robot": lambda v, _d: None if v is None or isinstance(v, str) else "null or a name from system.robots",
+    "substeps": whole(1),
+}
 
 
 @dataclass
@@ -39,8 +42,7 @@ class MismatchSettings:
     are not scaled)."""
 
     def __post_init__(self) -> None:
-        _real("friction_scale", self.friction_scale, 0.0)
-        _real("mass_scale", self.mass_scale, 0.0, strict=True)
+        check_settings("plant", self, MISMATCH_CHECKS)
 
 
 @dataclass
@@ -69,14 +71,7 @@ class ScipyPlantSettings(MismatchSettings):
         super().__post_init__()
         if self.kind != "scipy":
             _refuse("kind", self.kind, "scipy with plant=scipy (choose the plant with plant=<kind>)")
-        if self.method not in SCIPY_METHODS:
-            _refuse("method", self.method, f"one of {', '.join(SCIPY_METHODS)}")
-        _real("rtol", self.rtol, 0.0, strict=True)
-        _real("atol", self.atol, 0.0, strict=True)
-        if self.chatter_flips is not None:
-            _whole("chatter_flips", self.chatter_flips, 1)
-        _real("stick_slip_tighten", self.stick_slip_tighten, 1.0)
-        _whole("max_switches", self.max_switches, 1)
+        check_settings("plant", self, SCIPY_CHECKS)
 
 
 @dataclass
@@ -97,9 +92,7 @@ class MujocoPlantSettings(MismatchSettings):
         super().__post_init__()
         if self.kind != "mujoco":
             _refuse("kind", self.kind, "mujoco with plant=mujoco (choose the plant with plant=<kind>)")
-        if self.robot is not None and not isinstance(self.robot, str):
-            _refuse("robot", self.robot, "null or a name from system.robots")
-        _whole("substeps", self.substeps, 1)
+        check_settings("plant", self, MUJOCO_CHECKS)
 
 
 PLANTS: dict[str, type[MismatchSettings]] = {"scipy": ScipyPlantSettings, "mujoco": MujocoPlantSettings}

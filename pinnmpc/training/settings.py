@@ -5,7 +5,6 @@ setting (t_high against tau and t_max) is checked where that is known (pinnmpc/u
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -13,6 +12,7 @@ from pinnmpc.util.checks import (
     Check,
     Dims,
     boolean,
+    check_settings,
     integer,
     listof,
     one_of,
@@ -49,15 +49,6 @@ def _pool(v: Any, d: Dims) -> str | None:
 def _fraction(v: Any, d: Dims) -> str | None:
     """A fraction strictly inside (0, 1): some episodes train, some validate."""
     return None if real(0.0, 1.0, lo_open=True)(v, d) is None and v < 1 else "a finite number in (0, 1)"
-
-
-def _check(section: str, settings: Any, checks: Mapping[str, Check]) -> None:
-    """Each field by its check; the first bad one raises one line naming it, its value and what is allowed."""
-    for key, check in checks.items():
-        value = getattr(settings, key)
-        allowed = check(value, {})
-        if allowed is not None:
-            raise ValueError(f"{section}.{key}={value!r}: expected {allowed}")
 
 
 @dataclass
@@ -128,7 +119,7 @@ class ModuleSettings:
     """On a stall also redraw the collocation points (false: only reset the history)."""
 
     def __post_init__(self) -> None:
-        _check("module", self, MODULE_CHECKS)
+        check_settings("module", self, MODULE_CHECKS)
 
 
 MODULE_CHECKS: dict[str, Check] = {
@@ -208,7 +199,7 @@ class DataSettings:
     checkpoint) is the one-step error at tau on the robot, not on the model."""
 
     def __post_init__(self) -> None:
-        _check("data", self, DATA_CHECKS)
+        check_settings("data", self, DATA_CHECKS)
 
 
 DATA_CHECKS: dict[str, Check] = {

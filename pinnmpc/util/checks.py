@@ -53,6 +53,11 @@ def integer(lo: int | None = None, hi: int | None = None) -> Check:
     return lambda v, _d: None if _is_int(v) and _inside(v, lo, hi, False) else allowed
 
 
+def whole(lo: int) -> Check:
+    """A whole number >= lo: a count a settings dataclass holds (iterations, sub-steps)."""
+    return lambda v, _d: None if _is_int(v) and v >= lo else f"a whole number >= {lo}"
+
+
 def real(lo: float | None = None, hi: float | None = None, lo_open: bool = False) -> Check:
     """A finite number in the range (lo excluded with lo_open)."""
     allowed = "a finite number" + _range(lo, hi, lo_open)
@@ -178,3 +183,13 @@ def duration() -> Check:
 def epochs() -> Check:
     """Lightning's max_epochs: -1 (no limit) or at least one epoch (0 trains nothing and writes no network)."""
     return lambda v, _d: None if _is_int(v) and (v == -1 or v >= 1) else "-1 (no limit) or an integer >= 1"
+
+
+def check_settings(section: str, settings: Any, checks: Mapping[str, Check]) -> None:
+    """A settings dataclass's fields by their checks (its __post_init__); the first bad one raises one line naming
+    `section.key`, its value and what is allowed."""
+    for key, check in checks.items():
+        value = getattr(settings, key)
+        allowed = check(value, {})
+        if allowed is not None:
+            raise ValueError(f"{section}.{key}={value!r}: expected {allowed}")

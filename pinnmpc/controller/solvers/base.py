@@ -8,7 +8,6 @@ receding-horizon solve to the next is explicit and typed instead of probed for o
 from __future__ import annotations
 
 import dataclasses
-import math
 import typing
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -19,6 +18,7 @@ from torch import Tensor
 from pinnmpc.controller.arrays import Array
 from pinnmpc.controller.box_step import BOUND_TOL
 from pinnmpc.controller.ocp import HorizonOCP
+from pinnmpc.util.checks import boolean, real, whole
 
 __all__ = ["BOUND_TOL", "NO_WARM", "NoWarm", "Problem", "SolveInfo", "Solver", "project", "result", "wrong_warm"]
 
@@ -120,14 +120,16 @@ def check_fields(settings: Any) -> None:
         if value is None and kind in OPTIONAL_FLAGS:
             continue
         if kind is bool or kind in OPTIONAL_FLAGS:
-            ok, expected = isinstance(value, bool), "true or false" + (" or null" if kind in OPTIONAL_FLAGS else "")
+            check = boolean()
         elif kind is int:
-            ok, expected = isinstance(value, int) and not isinstance(value, bool) and value >= 0, "a whole number >= 0"
+            check = whole(0)
         elif kind is float:
-            real = isinstance(value, (int, float)) and not isinstance(value, bool)
-            ok, expected = real and math.isfinite(value) and value >= 0, "a finite number >= 0"
+            check = real(0.0)
         else:
             continue
-        if not ok:
+        expected = check(value, {})
+        if expected is not None and kind in OPTIONAL_FLAGS:
+            expected += " or null"
+        if expected is not None:
             name = type(settings).__name__
             raise ValueError(f"{name}.{f.name}={value!r}; expected {expected}")
