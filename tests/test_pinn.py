@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from pinnmpc.surrogate.network import ACTIVATIONS, PINN
+from pinnmpc.surrogate.activations import TANGENTS as ACTIVATIONS
+from pinnmpc.surrogate.network import PINN
 from pinnmpc.surrogate.numpy_flow import BlockDiagonal, NumpyFlow
 from pinnmpc.surrogate.staged import StagedPINN
 from pinnmpc.systems import PowerCube

@@ -13,6 +13,8 @@ import casadi as ca
 import numpy as np
 import torch
 
+from pinnmpc.surrogate import mlp
+from pinnmpc.surrogate.activations import Ops
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.surrogate.prior import TAYLOR_DEGREE, FrozenArmPrior
@@ -25,17 +27,14 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().double().cpu().numpy().copy()
 
 
-def _activation(name: str, a: ca.MX) -> ca.MX:
-    """The network's activation written as torch computes it."""
-    if name == "tanh":
-        return ca.tanh(a)
-    if name == "sin":
-        return ca.sin(a)
-    if name == "silu":
-        return a / (1 + ca.exp(-a))
-    if name == "softplus":
-        return ca.if_else(a > SOFTPLUS_THRESHOLD, a, ca.log1p(ca.exp(a)))
-    raise ValueError(f"activation {name!r} has no CasADi form; expected tanh, sin, silu or softplus")
+CASADI = Ops(
+    "casadi", ca.tanh, ca.sin, ca.cos,
+    sigmoid=lambda a: 1 / (1 + ca.exp(-a)),
+    softplus=lambda a: ca.if_else(a > SOFTPLUS_THRESHOLD, a, ca.log1p(ca.exp(a))),  # as torch computes it
+    affine=lambda z, w, b: ca.mtimes(w, z) + b,  # column vectors, nn.Linear's (out, in) weight as a DM
+    linear=lambda z, w: ca.mtimes(w, z),
+    widen=lambda s: s,  # one direction per column: CasADi takes its own derivatives
+)  # fmt: skip
 
 
 def _network(model: PINN, t: ca.MX, x0: ca.MX, u: ca.MX) -> ca.MX:
@@ -50,11 +49,8 @@ def _network(model: PINN, t: ca.MX, x0: ca.MX, u: ca.MX) -> ca.MX:
         if len(model.sum_map):
             total = ca.mtimes(ca.DM(_np(model.sum_map)), x0)
             z = ca.vertcat(z, ca.sin(total), ca.cos(total))
-    layers = list(model.net.layers)
-    activation = model.config["activation"]
-    for layer in layers[:-1]:
-        z = _activation(activation, ca.mtimes(ca.DM(_np(layer.weight)), z) + _np(layer.bias))
-    return ca.mtimes(ca.DM(_np(layers[-1].weight)), z) + _np(layers[-1].bias)
+    layers = [(ca.DM(_np(w)), _np(b)) for w, b in model.net.pairs()]
+    return mlp.value(CASADI, layers, model.config["activation"], z)
 
 
 def _expm1(x: ca.MX, squarings: int) -> ca.MX:

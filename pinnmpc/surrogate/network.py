@@ -14,8 +14,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from pinnmpc.surrogate.activations import ACTIVATIONS as ACTIVATIONS  # re-exported: the choices of model.activation
-from pinnmpc.surrogate.activations import CURVATURES
+from pinnmpc.surrogate import mlp
+from pinnmpc.surrogate.activations import TORCH, check_activation
 from pinnmpc.surrogate.prior import FrozenArmPrior, check_prior
 
 IC_MODES = ("hard", "gated", "soft")  # exact x(0) = x0; exact with relaxation gates; the paper's data loss
@@ -55,64 +55,39 @@ def _checked_sums(angle_sums: Sequence[Sequence[int]], periodic: Sequence[int]) 
 
 
 class TangentMLP(nn.Module):
-    """MLP that can carry tangents along: y, dy = f(z), Df(z) dz for dz (..., k, in)."""
+    """MLP that can carry tangents along: y, dy = f(z), Df(z) dz for dz (..., k, in); the passes are
+    pinnmpc.surrogate.mlp's, over torch."""
 
     def __init__(self, n_in: int, n_out: int, hidden: Sequence[int], activation: str) -> None:
         super().__init__()
-        if activation not in ACTIVATIONS:
-            raise ValueError(f"unknown activation {activation!r}; expected one of {sorted(ACTIVATIONS)} (smooth)")
+        self.activation = check_activation(activation)
         if not hidden or any(int(w) < 1 for w in hidden):
             raise ValueError(f"hidden layer widths must be positive integers, got {list(hidden)}")
         widths = [n_in, *[int(w) for w in hidden], n_out]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(widths[:-1], widths[1:]))
-        self.act = ACTIVATIONS[activation]
-        self.curvature = CURVATURES[activation]
         for layer in self.layers:
             nn.init.xavier_normal_(layer.weight)
             nn.init.zeros_(layer.bias)
 
+    def pairs(self) -> list[tuple[Tensor, Tensor]]:
+        """The layers as (W, b) pairs, as the passes take them."""
+        return [(layer.weight, layer.bias) for layer in self.layers]
+
     def forward(self, z: Tensor) -> Tensor:
         """Plain evaluation, the cheapest path."""
-        for layer in self.layers[:-1]:
-            z = self.act(layer(z))[0]
-        return self.layers[-1](z)
+        return mlp.value(TORCH, self.pairs(), self.activation, z)
 
     def forward_tangent(self, z: Tensor, dz: Tensor) -> tuple[Tensor, Tensor]:
         """Value and directional derivatives; dz is (..., k, n_in) for k directions."""
-        for layer in self.layers[:-1]:
-            a = layer(z)
-            da = dz @ layer.weight.T
-            z, slope = self.act(a)
-            dz = da * slope.unsqueeze(-2)
-        last = self.layers[-1]
-        return last(z), dz @ last.weight.T
+        return mlp.tangent(TORCH, self.pairs(), self.activation, z, dz)
 
     def forward_second(self, z: Tensor, dz: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Value, first and second derivative along one direction dz (..., n_in) in which the input is linear."""
-        ddz = None
-        for layer in self.layers[:-1]:
-            a = layer(z)
-            da = dz @ layer.weight.T
-            z, slope = self.act(a)
-            bend = self.curvature(a, z, slope) * da * da
-            dz = slope * da
-            ddz = bend if ddz is None else bend + slope * (ddz @ layer.weight.T)
-        last = self.layers[-1]
-        return last(z), dz @ last.weight.T, ddz @ last.weight.T
+        return mlp.second(TORCH, self.pairs(), self.activation, z, dz)
 
     def forward_mixed(self, z: Tensor, dt: Tensor, dd: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Value, derivative along dt (..., n_in), along each of dd (..., k, n_in), and the mixed second ones."""
-        mixed = None
-        for layer in self.layers[:-1]:
-            a = layer(z)
-            at, ad = dt @ layer.weight.T, dd @ layer.weight.T
-            z, slope = self.act(a)
-            bend = (self.curvature(a, z, slope) * at).unsqueeze(-2) * ad
-            slope_k = slope.unsqueeze(-2)
-            mixed = bend if mixed is None else bend + slope_k * (mixed @ layer.weight.T)
-            dt, dd = slope * at, slope_k * ad
-        w = self.layers[-1].weight.T
-        return self.layers[-1](z), dt @ w, dd @ w, mixed @ w
+        return mlp.mixed(TORCH, self.pairs(), self.activation, z, dt, dd)
 
 
 def time_gates(t: Tensor, t_max: float, time_basis: Tensor) -> tuple[Tensor, Tensor]:

@@ -1,16 +1,20 @@
 """The trained network as plain numpy: batch-1 controller calls are dominated by per-op overhead, which
-numpy has less of than torch. Same weights, same math as pinn.PINN."""
+numpy has less of than torch. Same weights and activations as pinnmpc.surrogate.network.PINN, with what is
+constant at t = tau folded in, and the tangents riding in the values' GEMM (pinnmpc.surrogate.mlp.tangent is the
+plain pass it is tested against)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import ClassVar
 
 import numpy as np
 import torch
 
-from pinnmpc.surrogate.activations import FUSED, NUMPY_ACTIVATIONS, NUMPY_CURVATURES, VALUE_ACTIVATIONS
+from pinnmpc.surrogate import mlp
+from pinnmpc.surrogate.activations import NUMPY, TANGENTS, VALUES, with_curvature
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.surrogate.prior import CompiledPrior
 from pinnmpc.systems.base import Box
@@ -140,8 +144,8 @@ class NumpyFlow:
         self.input_box = self.input_box or Box([-np.inf] * self.nu, [np.inf] * self.nu)
         self.w_trig = np.concatenate((self.w_sin, self.w_cos)) if self.periodic.size else None  # (sin, cos) @ w_trig
         self.eye = np.eye(self.nx)  # dx/dx0 of the skip connection x0 + ...
-        self.act = NUMPY_ACTIVATIONS[self.activation]
-        self.value = VALUE_ACTIVATIONS[self.activation]
+        self.act = partial(TANGENTS[self.activation], NUMPY)
+        self.value = partial(VALUES[self.activation], NUMPY)
 
     @classmethod
     def from_pinn(
@@ -215,9 +219,7 @@ class NumpyFlow:
         """x(tau) for x0 (..., nx), u (..., nu)."""
         self._check(x0, u)
         z = self.value(self._first_layer(x0, u)[0])
-        for w, b in self.hidden:
-            z = self.value(z @ w + b)
-        n = z @ self.w_out + self.b_out
+        n = mlp.value(NUMPY, [*self.hidden, (self.w_out, self.b_out)], self.activation, z)
         if self.start is not None:
             lead = x0.shape[:-1]
             return self.start.value(x0.reshape(-1, self.nx), u.reshape(-1, self.nu))[0].reshape(*lead, self.nx) + n
@@ -276,8 +278,7 @@ class SecondOrderNumpyFlow(NumpyFlow):
         super().__post_init__()
         self.nq = self.nx // 2
         self.w_time = np.ascontiguousarray(self.w_out[:, : self.nq])  # W_G: the time block's velocity increment
-        self.curvature = NUMPY_CURVATURES[self.activation]
-        self.full = FUSED.get(self.activation, self._composed)
+        self.full = partial(with_curvature, NUMPY, self.activation)
         self.kinematic = np.zeros((self.nx, self.nx + self.nu))  # d(q0 + v0 tau, v0)/d(x0, u)
         self.kinematic[:, : self.nx] = np.eye(self.nx)
         self.kinematic[: self.nq, self.nq : self.nx] = self.tau * np.eye(self.nq)
@@ -296,11 +297,6 @@ class SecondOrderNumpyFlow(NumpyFlow):
             hidden=_hidden(model), w_out=np.hstack((w_big, w_g)), b_out=np.concatenate((b_big, b_g)), hard_ic=True,
             activation=model.config["activation"], nx=model.nx, nu=model.nu, t_in=t_in, **first, **facts,
         )  # fmt: skip
-
-    def _composed(self, a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Value, slope and curvature for activations without a fused form."""
-        y, slope = self.act(a)
-        return y, slope, self.curvature(a, y, slope)
 
     def _propagate(self, z: np.ndarray) -> np.ndarray:
         """Carry z (2, batch, rows, width) through the hidden layers; row 0 is the value, rows 1: its tangents."""
