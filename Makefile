@@ -79,10 +79,10 @@ tensorboard: install  ## TensorBoard over every run in outputs/
 	$(VENV)/bin/tensorboard --logdir outputs
 
 test: install  ## the default test run (a few minutes)
-	$(PY) -m pytest -m "not slow" -q -n auto
+	$(PY) -m pytest -m "not slow" -q -n auto --dist worksteal  # worksteal: no core idles while the other ends a long test
 
 test-all: install  ## every test, the slow ones too
-	$(PY) -m pytest -q -n auto
+	$(PY) -m pytest -q -n auto --dist worksteal
 
 lint: install
 	$(VENV)/bin/ruff check pinnmpc tests

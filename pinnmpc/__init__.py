@@ -8,8 +8,16 @@ import os
 # must be set before torch loads OpenMP, so here; it is only a default: set GOMP_SPINCOUNT yourself to override.
 os.environ.setdefault("GOMP_SPINCOUNT", "10000")
 
-from pinnmpc.surrogate.checkpoint import CheckpointError, Surrogate, load_surrogate  # noqa: E402 (after the OpenMP default)
-from pinnmpc.systems import load_system  # noqa: E402
+from pinnmpc.util.lazy import lazy_exports  # noqa: E402 (after the OpenMP default)
 
 __version__ = "0.1.0"
 __all__ = ["CheckpointError", "Surrogate", "__version__", "load_surrogate", "load_system"]
+__getattr__, __dir__ = lazy_exports(  # imported on first use: a command's --help does not wait for torch
+    __name__,
+    {
+        "CheckpointError": "pinnmpc.surrogate.checkpoint",
+        "Surrogate": "pinnmpc.surrogate.checkpoint",
+        "load_surrogate": "pinnmpc.surrogate.checkpoint",
+        "load_system": "pinnmpc.systems",
+    },
+)

@@ -9,7 +9,6 @@ import hydra
 from omegaconf import DictConfig
 
 from pinnmpc.cli import check_choices, run_job, say
-from pinnmpc.training.capacity import run_capacity
 
 
 def _summary(m: dict[str, Any], run_dir: Path) -> str:
@@ -31,6 +30,9 @@ def _summary(m: dict[str, Any], run_dir: Path) -> str:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="capacity")
 def main(cfg: DictConfig) -> None:
     """CLI: the one-step error the configured network reaches by direct fitting, and where the outputs went."""
+    # imported here: --help and a refused setting answer before torch loads
+    from pinnmpc.training.capacity import run_capacity
+
     overrides = hydra.core.hydra_config.HydraConfig.get().overrides.task
     command = " ".join(["python -m pinnmpc.capacity", *overrides])
     prog = "pinnmpc.capacity"

@@ -9,13 +9,15 @@ import hydra
 from omegaconf import DictConfig
 
 from pinnmpc.cli import StopSignal, check_choices, end_job, exit_stopped, run_cli, say
-from pinnmpc.simulation.metrics import headline
-from pinnmpc.simulation.run import run_closed_loop
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="closed_loop")
 def main(cfg: DictConfig) -> None:
     """CLI: print the headline numbers and where the outputs went."""
+    # imported here: --help and a refused setting answer before torch loads
+    from pinnmpc.simulation.metrics import headline
+    from pinnmpc.simulation.run import run_closed_loop
+
     run_dir = Path(hydra.core.hydra_config.HydraConfig.get().runtime.output_dir)
     prog = "pinnmpc.closed_loop"
     announce = lambda m: say(headline(m, run_dir), run_dir, prog)  # noqa: E731  (the log line, before metrics.json)

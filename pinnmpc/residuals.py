@@ -12,14 +12,9 @@ from pathlib import Path
 from typing import Any
 
 import hydra
-import numpy as np
 from omegaconf import DictConfig
 
 from pinnmpc.cli import check_choices, run_job
-from pinnmpc.surrogate.checkpoint import load_surrogate
-from pinnmpc.training.residuals import residual_table
-from pinnmpc.util.io import save_json
-from pinnmpc.util.settings import job_system, validate_residuals
 
 
 def _summary(m: dict[str, Any], run_dir: Path) -> str:
@@ -28,26 +23,12 @@ def _summary(m: dict[str, Any], run_dir: Path) -> str:
     return f"RMS scaled residual (share of the sum of squares): {rms}; outputs in {run_dir}"
 
 
-def run_residuals(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """The table of a surrogate as residuals.json, and residuals.png (a heat map)."""
-    system = job_system(cfg, validate_residuals)
-    surrogate = load_surrogate(
-        cfg.checkpoint, system=system.name if cfg.checkpoint is None else None, state_names=system.state_names
-    )
-    result = residual_table(system, surrogate.model, int(cfg.points), int(cfg.bins), int(cfg.seed))
-    save_json(run_dir / "residuals.json", result)
-    if cfg.plots:  # matplotlib only when a figure is wanted
-        from pinnmpc.util.plots import residual_figure, save_figure
-
-        edges, rms = np.asarray(result["t_edges_s"]), np.asarray(result["rms_by_bin"])
-        title = f"{system.name}: RMS scaled ODE residual by time in the step ({cfg.points} LHS points)"
-        save_figure(residual_figure(edges, rms, result["state_names"], title), run_dir / "residuals.png")
-    return result
-
-
 @hydra.main(version_base="1.3", config_path="../conf", config_name="residuals")
 def main(cfg: DictConfig) -> None:
     """CLI: the per-state RMS and where the outputs went."""
+    # imported here: --help and a refused setting answer before torch loads
+    from pinnmpc.training.residuals import run_residuals
+
     run_job(lambda run_dir: run_residuals(cfg, run_dir), "pinnmpc.residuals", _summary)
 
 

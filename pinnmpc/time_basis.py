@@ -9,7 +9,6 @@ import hydra
 from omegaconf import DictConfig
 
 from pinnmpc.cli import check_choices, run_job
-from pinnmpc.training.time_basis import run_time_basis
 
 
 def _summary(m: dict[str, Any], run_dir: Path) -> str:
@@ -43,6 +42,9 @@ def _verdict(m: dict[str, Any]) -> str:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="time_basis")
 def main(cfg: DictConfig) -> None:
     """CLI: the misfit of the basis and of its best extension, and where the outputs went."""
+    # imported here: --help and a refused setting answer before torch loads
+    from pinnmpc.training.time_basis import run_time_basis
+
     run_job(lambda run_dir: run_time_basis(cfg, run_dir), "pinnmpc.time_basis", _summary)
 
 

@@ -10,12 +10,14 @@ import hydra
 from omegaconf import DictConfig
 
 from pinnmpc.cli import StopSignal, check_choices, config_dir_args, exit_stopped, run_cli, say
-from pinnmpc.training.run import train_command
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 def main(cfg: DictConfig) -> float:
     """CLI: returns the best validation position RMSE, so Optuna sweeps can minimise it."""
+    # imported here: --help and a refused setting answer before torch loads
+    from pinnmpc.training.run import train_command
+
     hydra_cfg = hydra.core.hydra_config.HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)
     overrides = [*config_dir_args(), *hydra_cfg.overrides.task]  # a user's own config dir travels along

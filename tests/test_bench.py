@@ -38,6 +38,7 @@ TINY = [
     "closed_loop.more_references=[rest,sine]",
     "controller.solvers.rmsprop.max_iter=30",
     "optimality.n_states=5",
+    "optimality.random_starts=0",  # zeros and the solver's own solution: the starts that count here
     "scaling.horizons=[2,3]",
     "scaling.batch_sizes=[1,4]",
     "scaling.step_batch_sizes=[1,8]",
@@ -341,8 +342,8 @@ def test_rk4_model_jacobians_agree_on_a_urdf_arm_in_a_batch() -> None:
     g = torch.Generator().manual_seed(4)
     x0 = (torch.rand(3, 6, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([3.0, 3.0, 3.0, 2.0, 2.0, 2.0])
     u = (torch.rand(3, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([20.0, 8.0, 2.0])
-    fwd = RK4Model(system, system.tau, 0.002, "jacfwd").step_with_jacobian(x0, u)
-    rev = RK4Model(system, system.tau, 0.002, "reverse").step_with_jacobian(x0, u)
+    fwd = RK4Model(system, system.tau, 0.0125, "jacfwd").step_with_jacobian(x0, u)
+    rev = RK4Model(system, system.tau, 0.0125, "reverse").step_with_jacobian(x0, u)
     torch.testing.assert_close(fwd, rev, rtol=1e-10, atol=1e-12)
 
 

@@ -151,3 +151,29 @@ def test_a_misspelt_setting_is_named_in_one_line(module: str, capsys) -> None:
         capsys.readouterr().err
     )
     check_choices(f"pinnmpc.{module}", ["threads=1", "hydra.run.dir=x", "+new_key=1", "system.tau=0.1"])  # all fine
+
+
+@pytest.mark.parametrize("module", sorted(COMMANDS))
+def test_the_help_page_is_the_template_hydra_composes(module: str) -> None:
+    """check_choices prints the template Hydra's own config for the command holds (its `override hydra/help`),
+    resolved as Hydra resolves it, so the page is the same without the seconds Hydra spends listing config groups."""
+    from hydra import compose, initialize_config_dir
+
+    from pinnmpc.cli.args import help_text
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose(config_name=COMMANDS[module], return_hydra_config=True)
+    assert help_text(f"pinnmpc.{module}") == cfg.hydra.help.template
+    assert _help(module) == cfg.hydra.help.template + "\n"
+
+
+def test_the_help_page_answers_before_torch_loads() -> None:
+    """--help and a refused group option are instant: no command imports torch before its checks pass."""
+    for args in (["--help"], ["system=nope"]):
+        timed = subprocess.run(
+            [sys.executable, "-X", "importtime", "-m", "pinnmpc.closed_loop", *args],
+            capture_output=True, text=True, cwd=ROOT, timeout=120,
+        )  # fmt: skip
+        assert timed.returncode == (0 if args == ["--help"] else 2)
+        loaded = {line.rsplit("|", 1)[-1].strip() for line in timed.stderr.splitlines() if "|" in line}
+        assert "torch" not in loaded and "lightning" not in loaded, args

@@ -27,9 +27,9 @@ from pinnmpc.cli import (
     guard,
     release,
 )
-from pinnmpc.robustness import run_robustness
-from pinnmpc.self_loop import run_self_loop
 from pinnmpc.simulation.metrics import verdict
+from pinnmpc.simulation.open_loop import run_self_loop
+from pinnmpc.simulation.robustness import run_robustness
 from pinnmpc.simulation.run import run_closed_loop
 from pinnmpc.surrogate import SHIPPED, load_surrogate
 from pinnmpc.systems import load_system

@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from pinnmpc import load_surrogate, load_system
-from pinnmpc.residuals import run_residuals
-from pinnmpc.training.residuals import residual_table
+from pinnmpc.training.residuals import residual_table, run_residuals
 from pinnmpc.util.settings import SettingError
 
 

@@ -208,7 +208,7 @@ def test_a_short_collect_run_writes_a_log_read_log_accepts(make_cfg, tmp_path: P
     """6 s of the lab robot (a closed loop of the shipped NMPC on random-0), noise on the logged states."""
     pytest.importorskip("mujoco")
     from pinnmpc import load_system
-    from pinnmpc.collect import run_collect
+    from pinnmpc.robot_data.collect import run_collect
 
     cfg = make_cfg(
         "collect", ["system=planar3", "plant.robot=lab", "robot_time=6", "noise_sigma=1e-4", "progress=false"]

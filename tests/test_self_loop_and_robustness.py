@@ -7,9 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from pinnmpc.robustness import run_robustness
-from pinnmpc.self_loop import run_self_loop
-from pinnmpc.simulation.open_loop import sine_inputs
+from pinnmpc.simulation.open_loop import run_self_loop, sine_inputs
+from pinnmpc.simulation.robustness import run_robustness
 
 
 def test_sine_inputs_are_the_papers():

@@ -14,7 +14,9 @@ timing measures, report writes bench.md, run ties them together; bench.json, ben
 (atomically) into the run dir.
 """
 
-from pinnmpc.bench.loops import run_controller
-from pinnmpc.bench.run import run_bench
+from pinnmpc.util.lazy import lazy_exports
 
 __all__ = ["run_bench", "run_controller"]
+__getattr__, __dir__ = lazy_exports(  # imported on first use: `python -m pinnmpc.bench --help` does not wait for torch
+    __name__, {"run_bench": "pinnmpc.bench.run", "run_controller": "pinnmpc.bench.loops"}
+)

@@ -31,10 +31,8 @@ from pinnmpc.cli.jobs import in_multirun
 from pinnmpc.util.io import append_log as append_log  # re-exported for the tasks
 from pinnmpc.util.io import atomic_write
 from pinnmpc.util.signals import StopSignal as StopSignal  # re-exported for the tasks
-from pinnmpc.util.structured import register_configs
 
 T = TypeVar("T")
-register_configs()  # the structured configs (solvers, plant, module, data), before any command composes
 
 USER_ERRORS = (ValueError, FileNotFoundError, KeyError, OmegaConfBaseException)  # bad input, not a bug of ours
 RUN_FAILURES = (FloatingPointError, OSError)  # a run that started and went wrong (a NaN training loss, a disk full)

@@ -104,12 +104,12 @@ def check_typed(prog: str, args: list[str]) -> None:
     """A solver setting (`controller.solvers.<name>.<field>=value`, a structured config) that names no field of
     that solver, or a value its type or range refuses, ends in one line before Hydra composes (Hydra's own message
     is several lines); in a sweep, before any job runs."""
-    from pinnmpc.controller.solvers import SOLVERS, make_solver
+    typed = [(arg, match) for arg in args if (match := TYPED.match(arg)) is not None]
+    if not typed:
+        return
+    from pinnmpc.controller.solvers import SOLVERS, make_solver  # only now: torch loads with the solvers
 
-    for arg in args:
-        match = TYPED.match(arg)
-        if match is None:
-            continue
+    for arg, match in typed:
         name, key = match[1], match[2]
         setting = arg.split("=", 1)[0].lstrip("+")
         if name not in SOLVERS:
@@ -187,14 +187,37 @@ def _refuse(prog: str, message: str) -> None:
     sys.exit(EXIT_BAD_INPUT)
 
 
+def help_text(prog: str) -> str | None:
+    """The command's --help page from conf/hydra/help/<command>.yaml (None where it has none), rendered as Hydra
+    renders a template that lists no config groups, without the seconds Hydra spends listing them anyway."""
+    from omegaconf import OmegaConf
+
+    path = CONF / "hydra" / "help" / f"{prog.rsplit('.', 1)[-1]}.yaml"
+    if not path.is_file():
+        return None
+    page = OmegaConf.create({"hydra": {"help": OmegaConf.load(path)}})
+    return str(page.hydra.help.template)
+
+
 def check_choices(prog: str, argv: list[str] | None = None) -> None:
-    """Before Hydra composes: a `group=option` override whose group/option.yaml exists in no config dir (conf/,
-    --config-dir, hydra.searchpath) ends the process with one line naming it and the options there (Hydra's own
-    message is a multi-line search-path dump)."""
-    args = sys.argv[1:] if argv is None else argv
+    """What every command runs before Hydra composes: --help prints the command's page and exits; a `group=option`
+    override whose group/option.yaml exists in no config dir (conf/, --config-dir, hydra.searchpath) ends the
+    process with one line naming it and the options there (Hydra's own message is a multi-line search-path dump);
+    then the structured configs are registered for Hydra to compose with."""
+    from pinnmpc.util.structured import register_configs
+
+    _check_command_line(prog, sys.argv[1:] if argv is None else argv)
+    register_configs()
+
+
+def _check_command_line(prog: str, args: list[str]) -> None:
+    """check_choices' checks of the command line, in the order that answers --help before anything else."""
     dirs = _config_dirs(args)
     if dirs is None:
         return
+    if len(dirs) == 1 and ("--help" in args or "-h" in args) and (page := help_text(prog)) is not None:
+        print(page)
+        sys.exit(0)
     if len(dirs) == 1:  # a user's config dir may hold another primary config: its keys are not known here
         check_keys(prog, args)
     check_typed(prog, args)

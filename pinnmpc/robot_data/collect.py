@@ -4,6 +4,7 @@ Episodes cycle through closed loops of the shipped controller on random-<seed> a
 input excitation (random steps held over whole periods around a weak stabilising feedback). The robot is stepped as
 a plant of period tau / fine with the input held over the control period, so the fine samples and the control-rate
 ones lie on one zero-hold trajectory; the controller sees the control rate only.
+run_collect is the job `python -m pinnmpc.collect` runs: check the settings, collect, write the log.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -22,9 +24,12 @@ from tqdm.auto import tqdm
 
 from pinnmpc.plant.base import Plant, PlantError
 from pinnmpc.plant.build import make_plant
-from pinnmpc.robot_data.logs import RobotLog
+from pinnmpc.robot_data.logs import RobotLog, write_log
 from pinnmpc.simulation.loop import run_loop
+from pinnmpc.simulation.setup import build_controller, system_reference
 from pinnmpc.systems.base import System
+from pinnmpc.util.settings import job_system, validate_collect
+from pinnmpc.util.signals import StopSignal
 
 log = logging.getLogger(__name__)
 
@@ -228,3 +233,42 @@ def assemble(
         "robot_time_s": robot_time,
     }
     return RobotLog(cat(t), cat(x), cat(u), cat(ep), cat(tf), cat(xf), cat(ef), meta)
+
+
+def run_collect(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = None) -> dict[str, Any]:
+    """Check the settings, build the robot first (a bad robot fails before the controller loads), collect, write."""
+    start = time.perf_counter()
+    system = job_system(cfg, validate_collect)
+    fine_plant(system, cfg.plant, int(cfg.fine), cfg.system.get("robots"))  # refuses an unknown or bad robot
+    controller, _, tau = build_controller(cfg, system)
+    if abs(tau - system.tau) > 1e-12 * system.tau:
+        raise ValueError(f"the controller's tau={tau} differs from system.tau={system.tau}; expected one period")
+
+    def reference(name: str) -> Any:
+        """A built-in reference of the system by name."""
+        return system_reference(OmegaConf.merge(cfg, {"reference": {"name": name, "path": None}}), system, tau)
+
+    plant = OmegaConf.to_container(cfg.plant, resolve=True)
+    robots = OmegaConf.to_container(cfg.system.get("robots") or {}, resolve=True)
+    meta = {
+        "robot": cfg.plant.get("robot"),
+        "robot_effects": robots.get(cfg.plant.get("robot")) if cfg.plant.get("robot") else None,
+        "seed": int(cfg.seed),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "command": " ".join(["python -m pinnmpc.collect", *sys.argv[1:]]),
+        "sources": {"plant": plant, "controller": cfg.controller.get("kind", "pinn"), "checkpoint": cfg.checkpoint,
+                    "episodes": list(cfg.episodes.kinds), "excitation": OmegaConf.to_container(cfg.excitation)},
+    }  # fmt: skip
+    log = collect(
+        cfg, system, controller, reference, stop=None if stop is None else (lambda: stop.requested), meta=meta
+    )
+    files = write_log(run_dir / str(cfg.out), log)
+    return {
+        "robot_time_s": log.meta["robot_time_s"],
+        "episodes": len(log.episodes),
+        "samples": len(log.t),
+        "fine_samples": len(log.t_fine),
+        "wall_s": time.perf_counter() - start,
+        "files": [str(f) for f in files],
+        "interrupted": bool(stop is not None and stop.requested),
+    }

@@ -1,18 +1,23 @@
-"""The identified arm as a system config: conf/system/<arm>.yaml's structure with the fitted dynamics values."""
+"""The identified arm as a system config: conf/system/<arm>.yaml's structure with the fitted dynamics values, and
+run_identify, the job `python -m pinnmpc.identify` runs (read the logs, fit, write that config)."""
 
 from __future__ import annotations
 
 import copy
 import json
 import re
+import time
 from pathlib import Path
 from typing import Any
 
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.robot_data.identify import Fit
-from pinnmpc.systems.urdf import portable_urdf
-from pinnmpc.util.io import atomic_write
+from pinnmpc.robot_data.identify import Fit, identify
+from pinnmpc.robot_data.logs import read_logs
+from pinnmpc.systems.registry import load_system
+from pinnmpc.systems.urdf import Payload, RigidArm, portable_urdf
+from pinnmpc.util.io import atomic_write, save_json
+from pinnmpc.util.settings import job_system, validate_identify
 
 NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
@@ -82,3 +87,49 @@ def system_yaml(nominal: dict[str, Any], fit: Fit, logs_meta: list[dict[str, Any
 def write_system(path: str | Path, text: str) -> Path:
     """The system .yaml, atomically."""
     return atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
+
+
+def run_identify(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """Read and check the logs, fit, write the system .yaml (read back as a system) and fit.json."""
+    start = time.perf_counter()
+    system = job_system(cfg, validate_identify)
+    if not isinstance(system, RigidArm):
+        raise ValueError(f"system={system.name}: identify fits URDF arms (RigidArm); expected planar3, panda or such")
+    nominal = cfg.system.dynamics.name
+    name = system_name(cfg.name, cfg.out, nominal)
+    out = Path(cfg.out) if cfg.out else run_dir / "system" / f"{name}.yaml"
+    if out.suffix not in (".yaml", ".yml"):
+        raise ValueError(f"out={cfg.out!r}; expected a .yaml file path (or null: the run dir)")
+    logs = read_logs([str(p) for p in cfg.logs], system)
+    pos = None if cfg.payload.pos is None else tuple(float(v) for v in cfg.payload.pos)
+    fit = identify(
+        system,
+        logs,
+        [k for k, on in cfg.fit.items() if on],
+        Payload(0.0, pos, cfg.payload.link),
+        name=name,
+        max_samples=cfg.max_samples,
+        min_speed=float(cfg.min_speed),
+        validation_periods=int(cfg.validation_periods),
+        rk4_steps=int(cfg.rk4_steps),
+        seed=int(cfg.seed),
+    )
+    composed = OmegaConf.to_container(cfg.system, resolve=True)
+    text = system_yaml(composed, fit, [lg.meta for lg in logs], [str(p) for p in cfg.logs])
+    write_system(out, text)
+    load_system(out)  # what closed_loop will build from it
+    result = {
+        "system": name,
+        "out": str(out),
+        "values": fit.values,
+        "fitted": fit.fitted,
+        "samples": fit.samples,
+        "torque_rms": fit.torque_rms,
+        "nominal_torque_rms": fit.nominal_torque_rms,
+        "prediction_rmse": fit.prediction_rmse,
+        "nominal_prediction_rmse": fit.nominal_prediction_rmse,
+        "robot_time_s": float(sum(lg.robot_time for lg in logs)),
+        "wall_s": time.perf_counter() - start,
+    }
+    save_json(run_dir / "fit.json", result)
+    return result

@@ -1,6 +1,7 @@
 """Export a trained flow map x(tau) = f(x0, u) and its Jacobian for use outside pinnmpc: a serialised CasADi
 function, C source from CasADi's code generator, or an ONNX graph. Every export is checked against the torch
-network on held-out points before anything is written, and lands in its folder all at once or not at all."""
+network on held-out points before anything is written, and lands in its folder all at once or not at all.
+run_export is the job `python -m pinnmpc.export` runs."""
 
 from __future__ import annotations
 
@@ -18,10 +19,13 @@ from typing import Any
 import casadi as ca
 import numpy as np
 import torch
+from omegaconf import DictConfig
 from torch import Tensor, nn
 
 from pinnmpc.surrogate.casadi_network import casadi_flow
-from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
+from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate, shipped
+from pinnmpc.systems.base import System
+from pinnmpc.util.settings import job_system, validate_export
 
 FORMATS = ("casadi", "c", "onnx")
 FLOAT64_FORMATS = ("casadi", "c")  # evaluated in float64; onnx runs in float32
@@ -241,3 +245,16 @@ def export(
         (staged / "export.json").write_text(json.dumps(info, indent=2) + "\n")
         _publish(staged, out)
     return info
+
+
+def run_export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """Export, check and write the files; the returned dict is the export.json written next to them."""
+    system: System = job_system(cfg, validate_export)
+    checkpoint = shipped(system.name) if cfg.checkpoint is None else Path(cfg.checkpoint)
+    out = run_dir if cfg.out is None else Path(cfg.out)
+    tol = cfg.tolerance
+    return export(
+        checkpoint, cfg.format, out, points=cfg.points, jacobian_points=cfg.jacobian_points, seed=cfg.seed,
+        tolerances=Tolerances(tol.float64, tol.float32, tol.jacobian), compiler=cfg.compiler, opt=cfg.opt,
+        opset=cfg.opset,
+    )  # fmt: skip

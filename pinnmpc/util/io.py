@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -11,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 
 def _umask() -> int:
@@ -58,12 +58,15 @@ def save_npz(path: str | Path, **arrays: np.ndarray) -> Path:
 
 def save_torch(path: str | Path, obj: Any) -> Path:
     """torch.save, written atomically."""
+    import torch  # here: the commands' --help and refusals do not wait for torch
+
     return atomic_write(path, lambda p: torch.save(obj, p))
 
 
 def _plain(value: Any) -> Any:
     """numpy/torch scalars and arrays as plain JSON values."""
-    if isinstance(value, torch.Tensor):
+    torch = sys.modules.get("torch")  # a tensor can only be here if torch is loaded
+    if torch is not None and isinstance(value, torch.Tensor):
         value = value.detach().cpu().numpy()
     if isinstance(value, np.ndarray):
         return value.tolist()
