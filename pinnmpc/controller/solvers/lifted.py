@@ -6,7 +6,7 @@ within the box pinnmpc.controller.box_step's.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -58,6 +58,10 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     tol_final_defect: float = 1e-8
     """The final states come from one batched call plus the last linearisation where every defect is below
     this, else from a full rollout."""
+    warm_max_iter: int = 10
+    """max_iter for a warm-started solve (every sample after the first): the next sample goes on from its plan, and
+    the cap keeps a solve within the control period where a fine-tuned network's learnt stick-slip makes Gauss-Newton
+    crawl (docs/results.md); a cold solve keeps max_iter."""
     rti: bool | None = None
     """Real-time iteration: rti_steps lifted steps per sample from the last plan's states, no convergence test
     (the first solve, and any after a fallback, solves fully): the counterpart of the classical rti. null (auto):
@@ -167,7 +171,9 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             start = np.where(
                 (cost[rows] < start_cost[rows])[:, None], U[rows], np.clip(U0, low, high).reshape(-1, n)[rows]
             )
-            sub = super()._solve(
+            fallback = self if prior is None else replace(self, max_iter=min(self.max_iter, self.warm_max_iter))
+            sub = GaussNewtonSolver._solve(
+                fallback,
                 ocp,
                 x0b[rows],
                 start.reshape(-1, horizon, nu),
