@@ -354,3 +354,14 @@ def test_a_reference_within_the_joint_limit_margin_is_named(caplog):
     x[2, 3] = system.joint_limits.high[3]  # joint 4 on its upper limit, -0.0698 rad
     warn_limit_margin(Reference(t=np.arange(3) * 0.05, x=x, name="edge"), system, limits)
     assert "q_joint4 = -0.0698 at t=0.1 s lies within 0.01 rad of its joint limit" in caplog.text
+
+
+def test_solves_longer_than_the_control_period_are_counted_and_named(make_cfg, tmp_path) -> None:
+    """metrics.json's over_period counts the solves trajectory.npz timed above tau, and the headline names them:
+    the figure that says the controller was not real-time on this machine."""
+    m = run_closed_loop(make_cfg("closed_loop", ["progress=false", "plots=false", "max_steps=6"]), tmp_path / "run")
+    times = np.load(tmp_path / "run" / "trajectory.npz")["ocp_time_s"]
+    assert m["over_period"] == int((times > m["tau"]).sum())
+    assert ("longer than the control period" in headline(m, tmp_path)) == (m["over_period"] > 0)
+    slow = {**m, "over_period": 2}  # as metrics.json reads on a machine too slow for this controller
+    assert f"2 solves longer than the control period ({1e3 * m['tau']:g} ms)" in headline(slow, tmp_path)

@@ -57,6 +57,8 @@ def metrics(
         # where the run ends: the worst joint-angle error over its last FINAL_SAMPLES samples (did it follow?)
         "final_position_error_max": float(err[-FINAL_SAMPLES:, : len(names) // 2].max()) if len(err) else 0.0,
         "ocp_time_s": _stats(np.array([s.time_s for s in st])),
+        # solves that took longer than the control period: on this machine the controller was not real-time there
+        "over_period": sum(s.time_s > plant.tau for s in st),
         "plant_step_time_s": {
             k: v for k, v in _stats(np.array(plant.step_times)).items() if k in ("mean", "median", "p95", "max")
         },
@@ -179,6 +181,8 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
     followed = m.get("final_position_error_max", 0.0) <= m.get("tracking_bound", math.inf)
     if not m.get("followed", followed):  # metrics.json's `followed`
         trouble.append(f"did not follow: it ends {m['final_position_error_max']:.2g} rad off the reference")
+    if m.get("over_period"):
+        trouble.append(f"{m['over_period']} solves longer than the control period ({1e3 * m['tau']:g} ms)")
     if m.get("joint_limit_samples"):
         past = f"{m['joint_limit_samples']} samples past a joint limit"
         trouble.append(f"{past} (by up to {m['joint_limit_excess_max']:.1e} rad)")
