@@ -135,9 +135,18 @@ class GaussNewtonSolver:
         return (ocp.horizon, ocp.nx, ocp.horizon * ocp.nu)
 
     def _solve(
-        self, ocp: HorizonOCP, x0: Nd, U0: Nd, x_ref: Nd, u_prev: Nd, low: Nd, high: Nd, prior: Nd | None
+        self,
+        ocp: HorizonOCP,
+        x0: Nd,
+        U0: Nd,
+        x_ref: Nd,
+        u_prev: Nd,
+        low: Nd,
+        high: Nd,
+        prior: Nd | None,
+        max_iter: int | None = None,
     ) -> SolveResult:
-        """Iterate until every problem has converged or max_iter is reached.
+        """Iterate until every problem has converged or max_iter (the setting, unless a caller caps it) is reached.
 
         The first two line searches evaluate their candidates with Jacobians, so the accepted one's is
         there for the next step; later ones evaluate the cost only and take a Jacobian just for the
@@ -157,7 +166,7 @@ class GaussNewtonSolver:
         running = np.ones(batch, dtype=bool)
         iterations = np.zeros(batch, dtype=np.int64)
         decreases = np.full((batch, 2), np.nan)  # the two previous decreases, latest first
-        for k in range(self.max_iter):
+        for k in range(self.max_iter if max_iter is None else max_iter):
             # views while every problem runs (the batch-1 case), copies of the running rows otherwise
             idx = slice(None) if running.all() else np.flatnonzero(running)
             u_i, f = U[idx], cost[idx].copy()  # f must survive the update of cost below

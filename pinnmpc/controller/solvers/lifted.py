@@ -6,7 +6,7 @@ within the box pinnmpc.controller.box_step's.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
@@ -171,9 +171,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             start = np.where(
                 (cost[rows] < start_cost[rows])[:, None], U[rows], np.clip(U0, low, high).reshape(-1, n)[rows]
             )
-            fallback = self if prior is None else replace(self, max_iter=min(self.max_iter, self.warm_max_iter))
-            sub = GaussNewtonSolver._solve(
-                fallback,
+            sub = super()._solve(
                 ocp,
                 x0b[rows],
                 start.reshape(-1, horizon, nu),
@@ -182,6 +180,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
                 lo[rows].reshape(-1, horizon, nu),
                 hi[rows].reshape(-1, horizon, nu),
                 None,
+                max_iter=self.max_iter if prior is None else min(self.max_iter, self.warm_max_iter),
             )
             U[rows], iterations[rows], cost[rows] = sub[0].reshape(-1, n), iterations[rows] + sub[1], sub[2]
             running[rows] = ~sub[3]
