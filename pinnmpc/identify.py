@@ -28,8 +28,11 @@ def _summary(m: dict[str, Any], run_dir: Path) -> str:
     v = m["values"]
     friction = (
         f"servo gain {fmt(v['servo_gain'])}" if "servo_gain" in m["fitted"]
-        else f"viscous {fmt(v.get('viscous', []))}, coulomb {fmt(v.get('coulomb', []))}"
+        else f"viscous {fmt(v.get('viscous', []))}"
     )  # fmt: skip
+    if "coulomb" in m["fitted"]:
+        friction += f", coulomb {fmt(v['coulomb'])}"
+
     return (
         f"identified {m['system']} from {m['robot_time_s']:.0f} s of robot time in {m['wall_s']:.1f} s: payload "
         f"{v['payload_mass']:.4g} kg, armature {fmt(v['armature'])}, {friction}; torque residual RMS "

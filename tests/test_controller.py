@@ -811,6 +811,16 @@ def test_the_real_time_iteration_is_the_default_for_networks_of_the_model(networ
     assert ("robot_logs" in surrogate.meta) is (network == "planar3-lab")
 
 
+def test_a_network_fine_tuned_against_an_identified_model_runs_in_real_time() -> None:
+    """panda-lab.pt learnt the robot against an identified model's residual and anchors (`physics` in its meta): its
+    flow stays smooth, so rti=null gives the real-time iteration (measured: the converged solve's MAE)."""
+    surrogate = load_surrogate(SHIPPED.parent / "panda-lab.pt")
+    assert surrogate.meta["robot_logs"] and surrogate.meta["physics"]["identified_from"] == "panda"
+    cfg = _config()
+    cfg.Q, cfg.R, cfg.disturbance.max_abs = [1.0] * 14, [1e-4] * 7, None  # the Panda's sizes
+    assert build_nmpc(cfg, surrogate).solver.rti is True
+
+
 def test_make_solver_unknown_name() -> None:
     with pytest.raises(ValueError, match="unknown solver 'newton'") as err:
         make_solver("newton")

@@ -17,7 +17,8 @@ from pinnmpc.training.run import train
 from tests.conftest import TINY_TRAIN
 
 FINE = 5  # samples per control period in the test log
-TINY = [*TINY_TRAIN, "system=planar3", "model.auto_scale.h=1e-3", "progress=false"]  # RK4 at 1e-2 diverges here
+TINY = [*TINY_TRAIN, "system=planar3", "model.auto_scale.h=1e-3", "progress=false", "data.n_anchor=0"]
+# RK4 at 1e-2 diverges here; no anchors: with logs they need an identified model (physics=...)
 
 
 def _episode(system, controller, plant, ref: Reference, t0: float, ep: int) -> tuple[list, list]:
@@ -126,3 +127,68 @@ def test_a_warm_solve_of_the_fine_tuned_network_stays_within_its_iteration_cap(m
     cold, *warm = [s.iterations for s in nmpc.stats]
     assert cold == 35 and all(w <= 15 for w in warm), (cold, warm)
     assert not any(s.fallback for s in nmpc.stats)
+
+
+def _fitted_planar3(path, origin: str = "planar3"):
+    """A system config as pinnmpc.identify writes it: planar3 with a payload, identified from `origin`."""
+    cfg = OmegaConf.to_container(system_config("planar3"), resolve=True)
+    cfg["dynamics"]["name"] = "planar3_fit"
+    cfg["dynamics"]["joint_prefix"] = "planar3_"
+    cfg["dynamics"]["payload"] = {"mass": 0.5}
+    cfg["identified_from"] = {"system": origin, "logs": ["lab.npz"], "fitted": ["payload"]}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(OmegaConf.create(cfg), path)
+    return path
+
+
+def test_the_physics_residual_of_an_identified_model(make_cfg, tmp_path, lab_log):
+    """physics=<identified .yaml>: the same seeded fine-tuning with the fitted model's residual ends elsewhere than
+    with the nominal one's, and the network records which model it was; another arm's model is refused."""
+    fitted = _fitted_planar3(tmp_path / "fits" / "planar3_fit.yaml")
+    outs = []
+    for extra in ([], [f"physics={fitted}"]):
+        cfg = make_cfg("train", [*TINY, "trainer.max_epochs=2", f"data.logs=[{lab_log}]", *extra])
+        train(cfg, tmp_path / str(len(extra)))
+        outs.append(load_surrogate(tmp_path / str(len(extra)) / "surrogate.pt"))
+    assert "physics" not in outs[0].meta
+    physics = outs[1].meta["physics"]
+    assert physics["name"] == "planar3_fit" and physics["identified_from"] == "planar3"
+    assert physics["coefficients"]["payload"]["mass"] == 0.5 and physics["fitted"] == ["payload"]
+    x0, u = torch.zeros(4, 6, dtype=torch.float64), torch.full((4, 3), 0.5, dtype=torch.float64)
+    with torch.no_grad():
+        assert not torch.allclose(outs[0].step(x0, u), outs[1].step(x0, u))
+    other = _fitted_planar3(tmp_path / "other" / "planar3_fit.yaml", origin="powercube")
+    for bad, says in ((other, "identified from 'powercube'; expected a model of 'planar3'"),
+                      (tmp_path / "none.yaml", "no such file")):  # fmt: skip
+        cfg = make_cfg("train", [*TINY, "trainer.max_epochs=1", f"data.logs=[{lab_log}]", f"physics={bad}"])
+        with pytest.raises(ValueError, match=f"physics={bad}: {says}"):
+            train(cfg, tmp_path / "bad")
+    assert not (tmp_path / "bad").exists() or not any((tmp_path / "bad").iterdir())
+
+
+def test_anchors_with_logs_need_an_identified_model(make_cfg, tmp_path, lab_log):
+    """Nominal anchors beside robot logs are refused with the fix named; an identified model's anchors train."""
+    fitted = _fitted_planar3(tmp_path / "fits" / "planar3_fit.yaml")
+    base = [*TINY, "trainer.max_epochs=1", f"data.logs=[{lab_log}]", "data.n_anchor=32"]
+    with pytest.raises(ValueError, match=r"data.n_anchor=32 with data.logs and physics=null: anchors of the nominal"):
+        train(make_cfg("train", base), tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()
+    train(make_cfg("train", [*base, f"physics={fitted}"]), tmp_path / "ok")
+    assert load_surrogate(tmp_path / "ok" / "surrogate.pt").meta["physics"]["name"] == "planar3_fit"
+
+
+def test_held_out_rmse_of_networks_and_models(lab_log):
+    """The bench's held-out one-step RMSE: a model with the lab robot's payload and armature predicts its steps
+    closer than the nominal model, both by RK4, beside the shipped network's figure."""
+    import dataclasses
+
+    from pinnmpc.bench.robot import held_out_rmse
+
+    system = load_system("planar3")
+    lab = system_config("planar3").robots.lab
+    known = dataclasses.replace(system, payload=dict(lab.payload), armature=list(lab.armature))
+    out = held_out_rmse(system, {"pinn_shipped": load_surrogate(system="planar3")}, [lab_log],
+                        {"nominal": system, "known": known}, rk4_steps=25)  # fmt: skip
+    assert out["transitions"]["count"] > 100 and set(out) == {"pinn_shipped", "nominal", "known", "transitions"}
+    angles = list(system.state_names[:3])
+    assert all(out["known"][n] < 0.5 * out["nominal"][n] for n in angles), out

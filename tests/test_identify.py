@@ -128,3 +128,44 @@ def test_identify_recovers_a_known_robot(known_log: Path, tmp_path: Path) -> Non
     assert loaded.name == "known3" and loaded.payload.mass == pytest.approx(0.5, rel=0.01)
     x, u = states(system, 4)
     assert np.abs(loaded.rhs(x, u) - fit.system.rhs(x, u)).max() < 1e-3 * np.abs(fit.system.rhs(x, u)).max()
+
+
+PANDA_C = (3.0, 4.0, 1.5, 2.0, 0.1, 0.15, 0.02)  # N m: the Panda's servo joint friction a known robot has
+
+
+def test_servo_coulomb_law_in_every_backend() -> None:
+    """A servo's joint friction C tanh(s v): zeros give the nominal numbers bit for bit; otherwise torch, numpy
+    (Pinocchio) and CasADi agree and M dv/dt changes by exactly -C tanh(s v); a wrong length is refused."""
+    arm = load_system("panda")
+    x, u = states(arm, 6)
+    zero = dataclasses.replace(arm, coulomb=[0.0] * 7)
+    assert np.array_equal(zero.rhs(x, u), arm.rhs(x, u))
+    known = dataclasses.replace(arm, coulomb=PANDA_C)
+    ref = known.rhs(x, u)
+    assert np.abs(known.rhs(torch.from_numpy(x), torch.from_numpy(u)).numpy() - ref).max() <= 1e-10 * np.abs(ref).max()
+    f = known.casadi_rhs()
+    assert np.abs(np.asarray(f(x[0], u[0])).ravel() - ref[0]).max() <= 1e-10 * np.abs(ref).max()
+    m, _, _ = arm.dynamics_terms(torch.from_numpy(x[:, :7]), torch.from_numpy(x[:, 7:]))
+    change = np.einsum("bij,bj->bi", m.numpy(), ref[:, 7:] - arm.rhs(x, u)[:, 7:])
+    np.testing.assert_allclose(change, -np.asarray(PANDA_C) * np.tanh(arm.coulomb_slope * x[:, 7:]), atol=1e-9)
+    with pytest.raises(ValueError, match=r"coulomb=\[1.0\]; expected 7 finite numbers >= 0"):
+        dataclasses.replace(arm, coulomb=[1.0])
+
+
+def test_identify_recovers_a_servos_joint_friction(tmp_path: Path) -> None:
+    """A Panda whose servos fight known joint friction, excited for 8 s: the fit recovers the servo gains and that
+    friction within 3 % from the nominal model, which has none."""
+    from hydra import compose, initialize_config_dir
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    overrides = ["system=panda", "robot_time=8", "fine=20", "episodes.kinds=[excitation]", "excitation.duration=4",
+                 "progress=false"]  # fmt: skip
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose(config_name="collect", overrides=overrides)
+    nominal = load_system("panda")
+    log = collect(cfg, dataclasses.replace(nominal, coulomb=PANDA_C), None, None, meta={"robot": None})
+    write_log(tmp_path / "robot_log", log)
+    log = read_log(tmp_path / "robot_log.npz", nominal)
+    fit = identify(nominal, [log], ["servo_gain", "coulomb"], validation_periods=20, rk4_steps=20)
+    np.testing.assert_allclose(fit.values["servo_gain"], nominal.servo_gain, rtol=0.03)
+    np.testing.assert_allclose(fit.values["coulomb"], PANDA_C, rtol=0.03)

@@ -269,6 +269,16 @@ def test_save_load_round_trip(s: Surrogate, tmp_path: Path) -> None:
     assert all(torch.equal(a, b) for a, b in zip(s2.step_with_jacobian(x0, u), s.step_with_jacobian(x0, u)))
 
 
+def test_a_config_node_in_the_meta_is_saved_as_plain_data(s: Surrogate, tmp_path: Path) -> None:
+    """A meta holding OmegaConf nodes (a run's settings) still loads with weights_only: saved as plain lists."""
+    from omegaconf import OmegaConf
+
+    copy = load_surrogate(s.save(tmp_path / "a.pt"))
+    copy.meta = {**copy.meta, "physics": {"fitted": OmegaConf.create(["payload"]), "x": OmegaConf.create({"a": 1})}}
+    back = load_surrogate(copy.save(tmp_path / "b.pt"))
+    assert back.meta["physics"] == {"fitted": ["payload"], "x": {"a": 1}}
+
+
 def test_save_load_round_trip_with_time_gates(s: Surrogate, tmp_path: Path) -> None:
     torch.manual_seed(3)
     model = PINN(**{**s.model.config, "hidden": [16, 16], "ic": "gated", "time_basis": [0.02, 0.045]}).double()

@@ -82,7 +82,9 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
         rows[f"pinn_shipped_nominal@{ref.name}"]["reference"] = ref.name
     one_step = {}
     if cfg.robot.logs:
-        one_step = held_out_rmse(system, networks, [str(p) for p in cfg.robot.logs])
+        fitted = cfg.robot.identified
+        models = {} if fitted is None else {"classical_identified": load_system(str(fitted))}
+        one_step = held_out_rmse(system, networks, [str(p) for p in cfg.robot.logs], models, int(cfg.robot.rk4_steps))
     return {
         "one_step_rmse": one_step,
         "logs": [str(p) for p in cfg.robot.logs or []],
@@ -95,18 +97,29 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
     }
 
 
-def held_out_rmse(system: System, networks: dict[str, Surrogate], logs: list[str]) -> dict[str, dict[str, float]]:
-    """Each network's one-step RMSE per state on every one-period transition of the given logs (logs the fine-tuning
-    did not see: another collect run): how well it predicts the robot, the model monitor's figure offline."""
+def held_out_rmse(
+    system: System,
+    networks: dict[str, Surrogate],
+    logs: list[str],
+    models: dict[str, System] | None = None,
+    rk4_steps: int = 50,
+) -> dict[str, dict[str, float]]:
+    """Each network's (and each model's, by RK4 at rk4_steps per period) one-step RMSE per state on every one-period
+    transition of the given logs (logs the fine-tuning did not see: another collect run): how well it predicts the
+    robot, the model monitor's figure offline."""
+    from pinnmpc.plant.integrators import rk4_fixed
     from pinnmpc.robot_data.logs import read_log, transitions
 
     t, x0, u, x1 = transitions([read_log(path, system) for path in logs], system.tau)
     at_tau = (t[:, 0] - system.tau).abs() <= 1e-9 * system.tau
     x0, u, x1 = x0[at_tau], u[at_tau], x1[at_tau]
+    steps = {k: net.step for k, net in networks.items()}
+    for key, model in (models or {}).items():
+        steps[key] = lambda a, b, m=model: rk4_fixed(m.rhs, a, b, system.tau / rk4_steps, rk4_steps)
     out = {}
-    for key, net in networks.items():
+    for key, step in steps.items():
         with torch.no_grad():
-            err = net.step(x0, u) - x1
+            err = step(x0, u) - x1
         out[key] = {n: float(v) for n, v in zip(system.state_names, err.square().mean(dim=0).sqrt())}
     out["transitions"] = {"count": float(len(x0))}
     return out
@@ -115,6 +128,13 @@ def held_out_rmse(system: System, networks: dict[str, Surrogate], logs: list[str
 def worst_angle_mae(row: dict[str, Any], angles: list[str]) -> float:
     """The worst joint angle's MAE of a row: one number per closed loop."""
     return max(row["mae"][n] for n in angles)
+
+
+ONE_STEP_LABELS = {
+    "classical_identified": "identified model (RK4)",
+    "pinn_shipped": "shipped network",
+    "pinn_adapted": "fine-tuned network",
+}
 
 
 def md_robot(section: dict[str, Any], system: dict[str, Any]) -> str:
@@ -135,14 +155,14 @@ def md_robot(section: dict[str, Any], system: dict[str, Any]) -> str:
         table.append([mine[0]["label"], *(fmt(m) for m in maes), fmt(ratio), fmt(1e3 * ocp)])
     estimator = "with" if section["offset_free"] else "without"
     one_step, names = section.get("one_step_rmse") or {}, system["state_names"]
-    nets = [k for k in ("pinn_shipped", "pinn_adapted") if k in one_step]
+    nets = [k for k in ("classical_identified", "pinn_shipped", "pinn_adapted") if k in one_step]
     rmse = (
         [
             "",
             f"One-step RMSE on {int(one_step['transitions']['count'])} held-out robot transitions "
             f"({', '.join(section['logs'])}):",
             "",
-            md_table(["network", *names], [[k, *(fmt(one_step[k][n]) for n in names)] for k in nets]),
+            md_table(["model", *names], [[ONE_STEP_LABELS[k], *(fmt(one_step[k][n]) for n in names)] for k in nets]),
         ]
         if nets
         else []

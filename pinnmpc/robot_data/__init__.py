@@ -1,5 +1,5 @@
-"""Data from a robot: the log format (logs.py), collecting logs from a simulated robot (collect.py) and fitting the
-model's physical coefficients to them (identify.py)."""
+"""Data from a robot: the log format (logs.py), collecting logs from a simulated robot (collect.py), fitting the
+model's physical coefficients to them (identify.py) and that fitted model as a fine-tuning's physics (physics.py)."""
 
 from pinnmpc.robot_data.logs import (
     RobotLog,

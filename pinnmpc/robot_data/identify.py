@@ -1,8 +1,9 @@
 """Classical identification: the model's physical coefficients fitted to robot logs by bounded linear least squares.
 
 The arm's equation M(q) dv/dt + h(q, v) = torque is linear in every coefficient fitted here: per-joint viscous D and
-Coulomb C (torque = u - D v - C tanh(s v)) or servo gain K (torque = g0(q) + K (u - v)), a point mass m_p at a known
-place (M and h gain m_p times those of a unit mass) and per-joint armature A (on M's diagonal). The fit integrates
+Coulomb C (torque = u - D v - C tanh(s v)) or servo gain K and Coulomb C (torque = g0(q) + K (u - v) - C tanh(s v)),
+a point mass m_p at a known place (M and h gain m_p times those of a unit mass) and per-joint armature A (on M's
+diagonal). The fit integrates
 that equation over each fine interval of a hold period instead of differentiating the samples: the interval's
 velocity change carries the inertia (A dv exactly), its position change the viscous term (D dq exactly) and the input
 is held, so only the slowly varying M(q), h and the Coulomb term are averaged over the interval's two ends.
@@ -158,7 +159,7 @@ def identify(
     unknown = [k for k in fit if k not in KEYS]
     if unknown:
         raise ValueError(f"fit {unknown}; expected some of {list(KEYS)}")
-    friction = ("servo_gain",) if system.actuation == "velocity_servo" else ("viscous", "coulomb")
+    friction = ("servo_gain", "coulomb") if system.actuation == "velocity_servo" else ("viscous", "coulomb")
     fit = [k for k in fit if k in (*friction, "payload", "armature")]
     if not fit:
         raise ValueError(

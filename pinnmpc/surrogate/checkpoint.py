@@ -13,7 +13,7 @@ from pinnmpc.surrogate.network import PINN
 from pinnmpc.surrogate.numpy_flow import NumpyFlow
 from pinnmpc.surrogate.staged import pinn_from_state
 from pinnmpc.systems.base import Box
-from pinnmpc.util.io import save_torch
+from pinnmpc.util.io import plain, save_torch
 
 FORMAT = "pinnmpc-surrogate"
 FORMAT_VERSION = 1
@@ -145,7 +145,7 @@ class Surrogate(Dimensions):
                 "input_names": list(self.input_names),
                 "model": self.model.config,
                 "state_dict": self.model.state_dict(),
-                "meta": self.meta,
+                "meta": plain(self.meta),  # a config node in it would make the file unreadable with weights_only
             },
         )
 

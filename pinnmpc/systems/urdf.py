@@ -55,8 +55,9 @@ class RigidArm:
     """A fixed-base serial arm from a URDF with joint state x = (q, v) and one input per joint.
 
     actuation='torque': joint torque = u - D v - C tanh(s v) (viscous plus smoothed Coulomb friction).
-    actuation='velocity_servo': joint torque = g(q) + K (u - v), a gravity-compensated velocity servo.
-    mass_scale multiplies M and h (every link's mass and inertia) and friction_scale D and C, or K for a
+    actuation='velocity_servo': joint torque = g(q) + K (u - v) - C tanh(s v), a gravity-compensated velocity
+    servo (C optional: none in the nominal arms, a fitted model's joint friction the servo must overcome).
+    mass_scale multiplies M and h (every link's mass and inertia) and friction_scale D and C, or K and C for a
     servo: plant mismatch for robustness runs; 1.0 is the nominal arm the surrogate learns.
     payload (a point mass on a link) and armature (per joint, on M's diagonal) are what an identified model adds;
     neither is scaled by mass_scale, and a servo compensates the gravity of the arm without the payload.
@@ -118,7 +119,7 @@ class RigidArm:
         for key in ("viscous", "coulomb", "servo_gain"):
             value = tuple(float(v) for v in getattr(self, key))
             set_(key, value)
-            if key in need and (len(value) != n or any(not (math.isfinite(v) and v >= 0) for v in value)):
+            if (key in need or value) and (len(value) != n or any(not (math.isfinite(v) and v >= 0) for v in value)):
                 raise ValueError(f"{self.name}: {key}={list(value)}; expected {n} finite numbers >= 0, one per joint")
         for key in ("tau", "coulomb_slope", "mass_scale", "friction_scale"):
             v = getattr(self, key)
@@ -194,7 +195,10 @@ class RigidArm:
         if self.actuation == "torque":
             d, c = self._coeffs("viscous", v), self._coeffs("coulomb", v)
             return u - f * (d * v + c * xp.tanh(self.coulomb_slope * v))
-        return f * self._coeffs("servo_gain", v) * (u - v)
+        out = f * self._coeffs("servo_gain", v) * (u - v)
+        if self.coulomb:
+            out = out - f * self._coeffs("coulomb", v) * xp.tanh(self.coulomb_slope * v)
+        return out
 
     def _coeffs(self, key: str, like: Any) -> Any:
         """Per-joint coefficients in like's array type."""

@@ -100,6 +100,7 @@ class CollocationDataModule(L.LightningDataModule):
         logs: Sequence[str] = (),  # as resample_epochs
         n_robot: int = DataSettings.n_robot,
         val_episodes: float = DataSettings.val_episodes,
+        physics: System | None = None,  # the model anchors and the model's validation flow integrate (None: system)
     ) -> None:
         super().__init__()
         if n_collocation < 1 or n_data < 0 or n_val < 1 or n_anchor < 0:
@@ -122,6 +123,7 @@ class CollocationDataModule(L.LightningDataModule):
                 f"need tau ({tau}) <= t_high <= t_max ({t_max}) for the collocation times, got t_high={t_high}"
             )
         self.system, self.tau, self.t_max, self.t_high = system, float(tau), float(t_max), t_high
+        self.physics = physics or system
         self.n_collocation, self.n_data = int(n_collocation), int(n_data)
         self.resample_every, self.resample_epochs = int(resample_every), {int(e) for e in resample_epochs}
         self.n_val, self.val_h, self.seed = int(n_val), float(val_h), int(seed)
@@ -227,7 +229,7 @@ class CollocationDataModule(L.LightningDataModule):
         t, x0, u = pts[:, :1], pts[:, 1 : 1 + nx], pts[:, 1 + nx :]
         n = n_steps(self.t_high, self.anchor_h)
         with torch.no_grad():
-            dx = rk4_fixed(self.system.fast_rhs, x0, u, t / n, n) - x0
+            dx = rk4_fixed(self.physics.fast_rhs, x0, u, t / n, n) - x0
         out = {"anchor_t": t, "anchor_x0": x0, "anchor_u": u, "anchor_dx": dx}
         if share is not None:
             out["anchor_share"] = share
@@ -267,7 +269,7 @@ class CollocationDataModule(L.LightningDataModule):
             self.draw()
         if not self.val:
             x0, u = random_pairs(self.system, self.n_val, self.seed + 104729)
-            self.val = {"x0": x0, "u": u, "x1": reference_flow(self.system, x0, u, self.tau, self.val_h)}
+            self.val = {"x0": x0, "u": u, "x1": reference_flow(self.physics, x0, u, self.tau, self.val_h)}
 
     def due(self, epoch: int) -> bool:
         """Whether the schedule asks for new points at this epoch."""

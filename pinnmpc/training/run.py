@@ -18,6 +18,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import Timer
 from omegaconf import DictConfig, OmegaConf
 
+from pinnmpc.robot_data.physics import physics_model
 from pinnmpc.surrogate.checkpoint import load_surrogate
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems.base import System
@@ -115,12 +116,12 @@ def resume_command(cfg_overrides: list[str], run_dir: Path) -> str:
     return command_line(words)
 
 
-def build_datamodule(cfg: DictConfig, system: System) -> CollocationDataModule:
-    """The run's training points; module.weight_anchor=0 also switches the anchors off, so no integration is spent
-    on a term the loss ignores."""
+def build_datamodule(cfg: DictConfig, system: System, physics: System | None = None) -> CollocationDataModule:
+    """The run's training points (anchors of `physics`, the arm's own model by default); module.weight_anchor=0
+    also switches the anchors off, so no integration is spent on a term the loss ignores."""
     n_anchor = 0 if cfg.module.get("weight_anchor") == 0 else cfg.data.get("n_anchor", 0)
     return instantiate(cfg.data, _partial_=True, _convert_="all")(
-        system=system, tau=system.tau, t_max=cfg.t_max, seed=cfg.seed, n_anchor=n_anchor
+        system=system, tau=system.tau, t_max=cfg.t_max, seed=cfg.seed, n_anchor=n_anchor, physics=physics
     )
 
 
@@ -135,6 +136,14 @@ def train(
     SIGTERM/SIGINT ends training after the current (cut short) epoch with status "interrupted" and a resume command."""
     system: System = build_system(cfg.system)
     validate_train(cfg, system)
+    anchors = cfg.data.get("n_anchor", 0) and cfg.module.get("weight_anchor") != 0
+    if cfg.data.get("logs") and anchors and not cfg.get("physics"):
+        raise ValueError(
+            f"data.n_anchor={cfg.data.n_anchor} with data.logs and physics=null: anchors of the nominal model would "
+            "pull the fine-tuning towards the arm the robot is not; expected physics=<the .yaml of python -m "
+            f"pinnmpc.identify system={system.name} logs=[...] out=...> or data.n_anchor=0"
+        )
+    physics, physics_meta = physics_model(cfg.get("physics"), system)
     ckpt_path = resolve_ckpt(cfg, run_dir)
     label = f"ckpt_path={ckpt_path}" if cfg.ckpt_path else f"resume=true: {ckpt_path}"
     ckpt = None if ckpt_path is None else read_ckpt(ckpt_path, label)
@@ -158,8 +167,8 @@ def train(
         model = build_model(cfg, system)
     # _convert_="all": plain lists, not OmegaConf ones, reach the hyper-parameters stored in checkpoints,
     # which load_surrogate reads with torch.load(weights_only=True)
-    datamodule = build_datamodule(cfg, system)
-    module = instantiate(cfg.module, _partial_=True, _convert_="all")(system=system, model=model, tau=system.tau)
+    datamodule = build_datamodule(cfg, system, physics)  # anchors of the same model as the residual
+    module = instantiate(cfg.module, _partial_=True, _convert_="all")(system=physics, model=model, tau=system.tau)
     recorded = None
     if ckpt is not None:
         check_fits(ckpt, label, module)
@@ -224,6 +233,8 @@ def train(
     }
     if datamodule.robot_meta:  # a fine-tuned network: what it learnt from (system, robot, seed, noise, command)
         meta["robot_logs"] = datamodule.robot_meta
+    if physics_meta is not None:  # the residual of a model identified from the logs, not the nominal arm's
+        meta["physics"] = physics_meta
     if interrupted and stop is not None:
         meta["signal"] = stop.name
     if distributed is not None:

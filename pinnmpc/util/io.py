@@ -63,8 +63,16 @@ def save_torch(path: str | Path, obj: Any) -> Path:
     return atomic_write(path, lambda p: torch.save(obj, p))
 
 
+def plain(data: Any) -> Any:
+    """data as JSON types (dicts, lists, numbers, strings): what torch.load(weights_only=True) reads back."""
+    return json.loads(json.dumps(data, default=_plain))
+
+
 def _plain(value: Any) -> Any:
-    """numpy/torch scalars and arrays as plain JSON values."""
+    """numpy/torch scalars and arrays, and OmegaConf containers, as plain JSON values."""
+    omegaconf = sys.modules.get("omegaconf")  # likewise a config node
+    if omegaconf is not None and isinstance(value, omegaconf.DictConfig | omegaconf.ListConfig):
+        return omegaconf.OmegaConf.to_container(value, resolve=True)
     torch = sys.modules.get("torch")  # a tensor can only be here if torch is loaded
     if torch is not None and isinstance(value, torch.Tensor):
         value = value.detach().cpu().numpy()

@@ -140,6 +140,7 @@ TRAIN: dict[str, Check] = {
     "self_loop_figure.steps": integer(2),
     "self_loop_figure.amplitude": vector("nu"),
     "init_from": optional(text()),
+    "physics": optional(text()),
     "model.hidden": listof(integer(1)),  # before stage.hidden, which defaults to it
     "stage.base": optional(text()),
     "stage.hidden": listof(integer(1)),
@@ -169,6 +170,7 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
     "robot.adapted": optional(text()),
     "robot.identified": optional(text()),
     "robot.logs": optional(listof(text())),
+    "robot.rk4_steps": integer(1),
     "optimality.n_states": integer(1),
     "optimality.random_starts": integer(0),
     "scaling.horizons": listof(integer(1)),

@@ -1,0 +1,55 @@
+"""The model a fine-tuning's physics residual weighs: the nominal arm's, or one identified from the robot's logs.
+
+A network fine-tuned on logs keeps the physics residual as a regulariser where the logs do not reach. Of the nominal
+model that residual pulls towards an arm the robot is not; of a model `python -m pinnmpc.identify` fitted to the same
+logs (payload, armature, friction) it pulls towards the robot as far as the model's structure can hold it, and the
+network learns the rest (dry friction's stick, what no coefficient covers) from the logs themselves.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pinnmpc.systems.base import System
+
+COEFFICIENTS = ("viscous", "coulomb", "servo_gain", "payload", "armature")  # what a fit can change: kept in the meta
+
+
+def physics_model(path: str | None, system: System) -> tuple[System, dict[str, Any] | None]:
+    """The system whose residual the physics loss uses and what to record of it (None: the arm's own): `path` is a
+    system config written by pinnmpc.identify for this arm; another arm's, another period or box is refused."""
+    if not path:
+        return system, None
+    from pinnmpc.systems.registry import load_system, system_config
+
+    file = Path(path).expanduser()
+    if file.suffix not in (".yaml", ".yml") or not file.is_file():
+        raise ValueError(f"physics={path}: no such file; expected a system .yaml written by pinnmpc.identify")
+    from omegaconf import OmegaConf
+
+    config = OmegaConf.to_container(system_config(file), resolve=True)
+    origin = config.get("identified_from") or {}
+    if origin.get("system") != system.name:
+        raise ValueError(
+            f"physics={path}: identified from {origin.get('system')!r}; expected a model of {system.name!r} "
+            f"(python -m pinnmpc.identify system={system.name} logs=[...] out={file.name})"
+        )
+    model = load_system(file)
+    same = (
+        model.tau == system.tau
+        and list(model.state_names) == list(system.state_names)
+        and all(np.allclose(getattr(model, b).low, getattr(system, b).low) for b in ("state_box", "input_box"))
+        and all(np.allclose(getattr(model, b).high, getattr(system, b).high) for b in ("state_box", "input_box"))
+    )
+    if not same:
+        raise ValueError(
+            f"physics={path}: its tau, state names or boxes differ from {system.name}'s; expected the same arm "
+            "(only its coefficients fitted)"
+        )
+    fitted = {k: config["dynamics"].get(k) for k in COEFFICIENTS if config["dynamics"].get(k) is not None}
+    record = {"file": str(file), "name": model.name, "coefficients": fitted}
+    record.update({k: v for k, v in origin.items() if k != "system"})
+    return model, {"identified_from": system.name, **record}
