@@ -129,10 +129,11 @@ def test_a_warm_solve_of_the_fine_tuned_network_stays_within_its_iteration_cap(m
     assert not any(s.fallback for s in nmpc.stats)
 
 
-def _fitted_planar3(path, origin: str = "planar3"):
+def _fitted_planar3(path, origin: str = "planar3", tau: float | None = None):
     """A system config as pinnmpc.identify writes it: planar3 with a payload, identified from `origin`."""
     cfg = OmegaConf.to_container(system_config("planar3"), resolve=True)
     cfg["dynamics"]["name"] = "planar3_fit"
+    cfg["dynamics"]["tau"] = tau or cfg["dynamics"]["tau"]
     cfg["dynamics"]["joint_prefix"] = "planar3_"
     cfg["dynamics"]["payload"] = {"mass": 0.5}
     cfg["identified_from"] = {"system": origin, "logs": ["lab.npz"], "fitted": ["payload"]}
@@ -158,7 +159,9 @@ def test_the_physics_residual_of_an_identified_model(make_cfg, tmp_path, lab_log
     with torch.no_grad():
         assert not torch.allclose(outs[0].step(x0, u), outs[1].step(x0, u))
     other = _fitted_planar3(tmp_path / "other" / "planar3_fit.yaml", origin="powercube")
+    slower = _fitted_planar3(tmp_path / "slower" / "planar3_fit.yaml", tau=0.2)
     for bad, says in ((other, "identified from 'powercube'; expected a model of 'planar3'"),
+                      (slower, "its tau, state names or boxes differ from planar3's"),
                       (tmp_path / "none.yaml", "no such file")):  # fmt: skip
         cfg = make_cfg("train", [*TINY, "trainer.max_epochs=1", f"data.logs=[{lab_log}]", f"physics={bad}"])
         with pytest.raises(ValueError, match=f"physics={bad}: {says}"):

@@ -12,8 +12,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from pinnmpc.systems.base import System
+from pinnmpc.systems.registry import load_system, system_config
 
 COEFFICIENTS = ("viscous", "coulomb", "servo_gain", "payload", "armature")  # what a fit can change: kept in the meta
 
@@ -23,13 +25,9 @@ def physics_model(path: str | None, system: System) -> tuple[System, dict[str, A
     system config written by pinnmpc.identify for this arm; another arm's, another period or box is refused."""
     if not path:
         return system, None
-    from pinnmpc.systems.registry import load_system, system_config
-
     file = Path(path).expanduser()
     if file.suffix not in (".yaml", ".yml") or not file.is_file():
         raise ValueError(f"physics={path}: no such file; expected a system .yaml written by pinnmpc.identify")
-    from omegaconf import OmegaConf
-
     config = OmegaConf.to_container(system_config(file), resolve=True)
     origin = config.get("identified_from") or {}
     if origin.get("system") != system.name:
