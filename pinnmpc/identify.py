@@ -32,7 +32,6 @@ def _summary(m: dict[str, Any], run_dir: Path) -> str:
     )  # fmt: skip
     if "coulomb" in m["fitted"]:
         friction += f", coulomb {fmt(v['coulomb'])}"
-
     return (
         f"identified {m['system']} from {m['robot_time_s']:.0f} s of robot time in {m['wall_s']:.1f} s: payload "
         f"{v['payload_mass']:.4g} kg, armature {fmt(v['armature'])}, {friction}; torque residual RMS "

@@ -3,10 +3,10 @@
 The arm's equation M(q) dv/dt + h(q, v) = torque is linear in every coefficient fitted here: per-joint viscous D and
 Coulomb C (torque = u - D v - C tanh(s v)) or servo gain K and Coulomb C (torque = g0(q) + K (u - v) - C tanh(s v)),
 a point mass m_p at a known place (M and h gain m_p times those of a unit mass) and per-joint armature A (on M's
-diagonal). The fit integrates
-that equation over each fine interval of a hold period instead of differentiating the samples: the interval's
-velocity change carries the inertia (A dv exactly), its position change the viscous term (D dq exactly) and the input
-is held, so only the slowly varying M(q), h and the Coulomb term are averaged over the interval's two ends.
+diagonal). The fit integrates that equation over each fine interval of a hold period instead of differentiating the
+samples: the interval's velocity change carries the inertia (A dv exactly), its position change the viscous term
+(D dq exactly) and the input is held, so only the slowly varying M(q), h and the Coulomb term are averaged over the
+interval's two ends.
 Differences of the fine samples would not do: planar3's velocities relax within milliseconds after each input step,
 below a 10 ms fine step, and the acceleration estimates were off by as much as their size. One bounded least-squares
 solve (every coefficient >= 0) gives the fit, with no iterations or starting guess. A joint's equation counts only
