@@ -116,12 +116,16 @@ def resume_command(cfg_overrides: list[str], run_dir: Path) -> str:
     return command_line(words)
 
 
+def anchor_count(cfg: DictConfig) -> int:
+    """The anchors a run integrates: module.weight_anchor=0 switches them off, so none is spent on a term the loss
+    ignores."""
+    return 0 if cfg.module.get("weight_anchor") == 0 else int(cfg.data.get("n_anchor", 0))
+
+
 def build_datamodule(cfg: DictConfig, system: System, physics: System | None = None) -> CollocationDataModule:
-    """The run's training points (anchors of `physics`, the arm's own model by default); module.weight_anchor=0
-    also switches the anchors off, so no integration is spent on a term the loss ignores."""
-    n_anchor = 0 if cfg.module.get("weight_anchor") == 0 else cfg.data.get("n_anchor", 0)
+    """The run's training points, anchors of `physics` (the arm's own model by default)."""
     return instantiate(cfg.data, _partial_=True, _convert_="all")(
-        system=system, tau=system.tau, t_max=cfg.t_max, seed=cfg.seed, n_anchor=n_anchor, physics=physics
+        system=system, tau=system.tau, t_max=cfg.t_max, seed=cfg.seed, n_anchor=anchor_count(cfg), physics=physics
     )
 
 
@@ -136,8 +140,7 @@ def train(
     SIGTERM/SIGINT ends training after the current (cut short) epoch with status "interrupted" and a resume command."""
     system: System = build_system(cfg.system)
     validate_train(cfg, system)
-    anchors = cfg.data.get("n_anchor", 0) and cfg.module.get("weight_anchor") != 0
-    if cfg.data.get("logs") and anchors and not cfg.get("physics"):
+    if cfg.data.get("logs") and anchor_count(cfg) and not cfg.get("physics"):
         raise ValueError(
             f"data.n_anchor={cfg.data.n_anchor} with data.logs and physics=null: anchors of the nominal model would "
             "pull the fine-tuning towards the arm the robot is not; expected physics=<the .yaml of python -m "
