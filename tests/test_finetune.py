@@ -12,6 +12,8 @@ from pinnmpc.controller.build import build_nmpc
 from pinnmpc.plant.mujoco_robot import make_mujoco_plant
 from pinnmpc.references import Reference
 from pinnmpc.robot_data.logs import RobotLog, write_log
+from pinnmpc.robot_data.physics import physics_model
+from pinnmpc.surrogate.prior import FrozenArmPrior
 from pinnmpc.systems import system_config
 from pinnmpc.training.run import train
 from tests.conftest import TINY_TRAIN
@@ -158,6 +160,13 @@ def test_the_physics_residual_of_an_identified_model(make_cfg, tmp_path, lab_log
     x0, u = torch.zeros(4, 6, dtype=torch.float64), torch.full((4, 3), 0.5, dtype=torch.float64)
     with torch.no_grad():
         assert not torch.allclose(outs[0].step(x0, u), outs[1].step(x0, u))
+    # the frozen-arm prior is the fitted arm's too, and survives the save
+    arms = [out.model.config["prior"]["dynamics"] for out in outs]
+    assert arms[0]["name"] == "planar3" and arms[1]["name"] == "planar3_fit" and arms[1]["payload"]["mass"] == 0.5
+    t = torch.full((4, 1), 0.1, dtype=torch.float64)
+    fitted_prior = FrozenArmPrior(load_system(fitted))(t, x0, u)[0]
+    np.testing.assert_allclose(outs[1].model.prior(t, x0, u)[0].numpy(), fitted_prior.numpy(), atol=1e-12)
+    assert not torch.allclose(outs[0].model.prior(t, x0, u)[0], fitted_prior, atol=1e-4)
     other = _fitted_planar3(tmp_path / "other" / "planar3_fit.yaml", origin="powercube")
     slower = _fitted_planar3(tmp_path / "slower" / "planar3_fit.yaml", tau=0.2)
     for bad, says in ((other, "identified from 'powercube'; expected a model of 'planar3'"),
@@ -167,6 +176,25 @@ def test_the_physics_residual_of_an_identified_model(make_cfg, tmp_path, lab_log
         with pytest.raises(ValueError, match=f"physics={bad}: {says}"):
             train(cfg, tmp_path / "bad")
     assert not (tmp_path / "bad").exists() or not any((tmp_path / "bad").iterdir())
+
+
+def test_a_servos_identified_friction_enters_the_prior_smoothed(tmp_path):
+    """physics_model: a servo model's dry friction goes to the frozen-arm prior at physics_prior_slope (recorded in
+    the meta), the residual's model keeps its own slope; a torque arm's prior (no friction in it) is left alone."""
+    cfg = {"dynamics": OmegaConf.to_container(system_config("panda").dynamics, resolve=True)}
+    cfg["dynamics"].update(
+        name="panda_fit", joint_prefix="panda_", coulomb=[3.0, 2.8, 1.5, 1.0, 0.1, 0.1, 0.02], coulomb_slope=50.0
+    )
+    cfg["identified_from"] = {"system": "panda", "logs": ["lab.npz"], "fitted": ["coulomb"]}
+    path = tmp_path / "panda_fit.yaml"
+    OmegaConf.save(OmegaConf.create(cfg), path)
+    panda = load_system("panda")
+    model, record, arm = physics_model(str(path), panda, 3.0)
+    assert model.coulomb_slope == 50.0 and arm["coulomb_slope"] == 3.0 and record["prior_coulomb_slope"] == 3.0
+    assert physics_model(str(path), panda, None)[2]["coulomb_slope"] == 50.0
+    assert physics_model(str(path), panda)[1].get("prior_coulomb_slope") is None
+    planar = _fitted_planar3(tmp_path / "planar3_fit.yaml")
+    assert "prior_coulomb_slope" not in physics_model(str(planar), load_system("planar3"), 3.0)[1]
 
 
 def test_anchors_with_logs_need_an_identified_model(make_cfg, tmp_path, lab_log):

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -14,7 +16,7 @@ from pinnmpc.surrogate.network import PINN
 from pinnmpc.surrogate.prior import EIGEN_FROM_JOINTS, MEMO_SIZE, FrozenArmPrior
 from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian, divided_differences
 from pinnmpc.training.capacity import one_step_data, run_capacity
-from pinnmpc.training.data import CollocationDataModule
+from pinnmpc.training.data import CollocationDataModule, reference_flow
 from pinnmpc.training.module import PINNModule
 from pinnmpc.training.run import train
 from pinnmpc.util.settings import SettingError
@@ -63,6 +65,33 @@ def test_the_prior_is_the_flow_of_the_arm_frozen_at_its_start(prior, points) -> 
     true = one_step_data(arm, TAU, 64, 5e-4, 2)
     miss = (prior(torch.full((64, 1), TAU, dtype=torch.float64), *true[:2])[0] - true[2]).abs().max()
     assert 1e-3 < float(miss) < 0.5 * float((true[2] - true[0]).abs().max())
+
+
+def test_a_servos_dry_friction_enters_the_prior_where_the_servo_settles() -> None:
+    """A velocity servo with dry friction: the frozen drive is K v with v where K (u - v) = C tanh(s v) (sticking
+    near rest, never against the command), and that prior predicts the servo's true step (fine RK4 of its rhs)
+    closer than the same prior without friction; without friction the drive is K u, as before."""
+    base = load_system("planar3")
+    servo = dataclasses.replace(base, actuation="velocity_servo", servo_gain=(20.0, 10.0, 3.0), viscous=(), coulomb=())
+    rough = dataclasses.replace(servo, coulomb=(2.0, 1.0, 0.3))
+    gen = torch.Generator().manual_seed(5)
+    low, high = base.state_box.tensors()
+    x0 = low + (high - low) * torch.rand(64, 6, generator=gen, dtype=torch.float64)
+    x0[:, 3:] *= 0.2  # joint speeds of a tracking arm
+    u = 3.0 * torch.rand(64, 3, generator=gen, dtype=torch.float64) - 1.5
+    u[:8] *= 0.02  # small commands, which the friction holds
+    gain = torch.tensor(servo.servo_gain, dtype=torch.float64)
+    c_smooth, c_rough = servo.frozen_terms(x0[:, :3], u)[1], rough.frozen_terms(x0[:, :3], u)[1]
+    np.testing.assert_allclose(c_smooth.numpy(), (gain * u).numpy())
+    settled = c_rough / gain
+    held = torch.tensor(rough.coulomb, dtype=torch.float64) * torch.tanh(rough.coulomb_slope * settled)
+    np.testing.assert_allclose((gain * (u - settled)).numpy(), held.numpy(), atol=1e-12)  # the friction balanced
+    assert bool((settled * u >= 0).all()) and bool((settled.abs() <= u.abs()).all())
+    assert float((settled[:8].abs() / u[:8].abs()).max()) < 0.3  # near rest it sticks
+    true = reference_flow(rough, x0, u, TAU, 1e-4).double()
+    t = torch.full((64, 1), TAU, dtype=torch.float64)
+    miss = [(FrozenArmPrior(arm)(t, x0, u)[0] - true)[:, 3:].square().mean().sqrt() for arm in (rough, servo)]
+    assert float(miss[0]) < 0.7 * float(miss[1])
 
 
 def test_the_memo_follows_in_place_changes_of_its_inputs(prior, points) -> None:

@@ -3,7 +3,9 @@
 A network fine-tuned on logs keeps the physics residual as a regulariser where the logs do not reach. Of the nominal
 model that residual pulls towards an arm the robot is not; of a model `python -m pinnmpc.identify` fitted to the same
 logs (payload, armature, friction) it pulls towards the robot as far as the model's structure can hold it, and the
-network learns the rest (dry friction's stick, what no coefficient covers) from the logs themselves.
+network learns the rest (dry friction's stick, what no coefficient covers) from the logs themselves. A network with a
+frozen-arm prior gets that model's frozen arm as its prior too, so its output starts at the robot's linear response,
+not the nominal arm's.
 """
 
 from __future__ import annotations
@@ -16,15 +18,19 @@ from omegaconf import OmegaConf
 
 from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import load_system, system_config
+from pinnmpc.systems.urdf_files import portable_urdf
 
 COEFFICIENTS = ("viscous", "coulomb", "servo_gain", "payload", "armature")  # what a fit can change: kept in the meta
 
 
-def physics_model(path: str | None, system: System) -> tuple[System, dict[str, Any] | None]:
-    """The system whose residual the physics loss uses and what to record of it (None: the arm's own): `path` is a
+def physics_model(
+    path: str | None, system: System, prior_slope: float | None = None
+) -> tuple[System, dict[str, Any] | None, dict[str, Any] | None]:
+    """The system whose residual the physics loss uses, what to record of it and its description for a frozen-arm
+    prior, whose dry friction gets `prior_slope` (None: the model's own; None, None: the arm's own): `path` is a
     system config written by pinnmpc.identify for this arm; another arm's, another period or box is refused."""
     if not path:
-        return system, None
+        return system, None, None
     file = Path(path).expanduser()
     if file.suffix not in (".yaml", ".yml") or not file.is_file():
         raise ValueError(f"physics={path}: no such file; expected a system .yaml written by pinnmpc.identify")
@@ -50,4 +56,11 @@ def physics_model(path: str | None, system: System) -> tuple[System, dict[str, A
     fitted = {k: config["dynamics"].get(k) for k in COEFFICIENTS if config["dynamics"].get(k) is not None}
     record = {"file": str(file), "name": model.name, "coefficients": fitted}
     record.update({k: v for k, v in origin.items() if k != "system"})
-    return model, {"identified_from": system.name, **record}
+    description = dict(config["dynamics"])
+    if prior_slope is not None and getattr(model, "actuation", None) == "velocity_servo" and model.coulomb:
+        # a servo's friction enters its frozen-arm prior (RigidArm.frozen_terms): smoother there than in the model
+        description["coulomb_slope"] = float(prior_slope)
+        record["prior_coulomb_slope"] = float(prior_slope)
+    if getattr(model, "urdf", None):  # the file the arm was built from, found wherever the network is loaded
+        description["urdf"] = portable_urdf(model.urdf)
+    return model, {"identified_from": system.name, **record}, description

@@ -28,10 +28,11 @@ def widened(
     seed: int,
     time_basis: Sequence[float] | None = None,
     angle_sums: Sequence[Sequence[int]] | None = None,
+    prior_arm: dict[str, Any] | None = None,
 ) -> PINN:
     """A copy of `base` with hidden widths `hidden` (same depth, none narrower), optionally more time gates
-    (`time_basis`: the base's relaxation times first, new ones after) and angle-sum inputs (`angle_sums`: the
-    base's first), and the same outputs."""
+    (`time_basis`: the base's relaxation times first, new ones after), angle-sum inputs (`angle_sums`: the
+    base's first) and another arm under its prior (`prior_arm`), and the same outputs."""
     old = [layer.out_features for layer in base.net.layers[:-1]]
     new = [int(w) for w in hidden]
     if len(new) != len(old) or any(n < o for n, o in zip(new, old)):
@@ -44,6 +45,8 @@ def widened(
         config.update(_grown_basis(base, time_basis))
     if angle_sums is not None:
         config.update(_grown_sums(base, angle_sums))
+    if prior_arm is not None and config.get("prior"):
+        config["prior"] = {**config["prior"], "dynamics": dict(prior_arm)}
     model = PINN(**config).to(base.out_scale.dtype)
     generator = torch.Generator().manual_seed(seed)
     with torch.no_grad():
@@ -123,10 +126,13 @@ def grown_model(
     angle_sums: Sequence[Sequence[int]] | None = None,
     prior: str | None = None,
     form: dict[str, Any] | None = None,
+    prior_arm: dict[str, Any] | None = None,
 ) -> PINN:
     """The trained surrogate at `path` (init_from) grown to `hidden`, `time_basis` and `angle_sums`, checked
     against this run (tau, t_max and the prior kind cannot change: they define the function it learned; nor can
-    the network's form, `form`: model.activation, ic, second_order, periodic, which widening keeps)."""
+    the network's form, `form`: model.activation, ic, second_order, periodic, which widening keeps). prior_arm: the
+    description of the arm its frozen-arm prior holds from now on (a model identified from a robot: the prior then
+    carries what the fit found, and the network's correction starts from the nominal arm's); None: the same."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"init_from={path} does not exist; expected a trained surrogate.pt or a run's .ckpt")
     surrogate = load_surrogate(path, state_names=tuple(system.state_names))
@@ -148,7 +154,7 @@ def grown_model(
                 f"init_from={path} has model.{key}={have}; this run has model.{key}={want}, which widening cannot "
                 f"change (expected model.{key}={have}, or a fresh network without init_from)"
             )
-    return widened(base, hidden, seed, time_basis, angle_sums)
+    return widened(base, hidden, seed, time_basis, angle_sums, prior_arm)
 
 
 def _plain(value: Any) -> Any:

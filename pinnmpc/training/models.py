@@ -13,9 +13,10 @@ from pinnmpc.training.grow import grown_model
 from pinnmpc.training.stage import staged_model
 
 
-def build_model(cfg: DictConfig, system: System) -> PINN | StagedPINN:
+def build_model(cfg: DictConfig, system: System, prior_arm: dict | None = None) -> PINN | StagedPINN:
     """The network for this system's training box (output scale estimated from the flow when 'auto'), or with
-    stage.base a correction network on top of that trained one, or with init_from that one widened to model.hidden."""
+    stage.base a correction network on top of that trained one, or with init_from that one widened to model.hidden;
+    prior_arm: the description of the arm a frozen-arm prior holds still (an identified model's; None: the system's)."""
     if cfg.stage.base:
         return build_staged(cfg, system)
     if cfg.get("init_from"):
@@ -27,13 +28,15 @@ def build_model(cfg: DictConfig, system: System) -> PINN | StagedPINN:
             for k in keys
             if (v := cfg.model.get(k)) is not None
         }
-        return grown_model(system, cfg.init_from, system.tau, cfg.t_max, hidden, cfg.seed, basis, sums, prior, form)
-    return fresh_model(cfg, system)
+        return grown_model(
+            system, cfg.init_from, system.tau, cfg.t_max, hidden, cfg.seed, basis, sums, prior, form, prior_arm
+        )
+    return fresh_model(cfg, system, prior_arm)
 
 
-def fresh_model(cfg: DictConfig, system: System) -> PINN:
+def fresh_model(cfg: DictConfig, system: System, prior_arm: dict | None = None) -> PINN:
     """A new network of cfg.model for this system's training box (output scale estimated from the flow when
-    'auto'): what training and the capacity check start from."""
+    'auto'): what training and the capacity check start from; prior_arm as in build_model."""
     kind = cfg.model.get("prior")
     # the arm's own description travels with the network: a user's arm outside conf/system, or one whose name a
     # shipped arm shares, rebuilds the same prior wherever the network is loaded
@@ -42,11 +45,12 @@ def fresh_model(cfg: DictConfig, system: System) -> PINN:
         from pinnmpc.systems.urdf import portable_urdf
 
         dynamics["urdf"] = portable_urdf(system.urdf)
+    dynamics = prior_arm or dynamics
     prior = None if kind is None else {"kind": str(kind), "system": system.name, "dynamics": dynamics}
     scale = cfg.model.output_scale
     if scale == "auto":
         a = cfg.model.auto_scale
-        start = None if prior is None else FrozenArmPrior(system)
+        start = None if prior is None else FrozenArmPrior(prior_arm or system)
         scale = flow_scale(system, cfg.t_max, a.samples, a.h, a.quantile, cfg.seed, start)
     return PINN(
         state_low=system.state_box.low,

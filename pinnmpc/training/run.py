@@ -146,7 +146,7 @@ def train(
             "pull the fine-tuning towards the arm the robot is not; expected physics=<the .yaml of python -m "
             f"pinnmpc.identify system={system.name} logs=[...] out=...> or data.n_anchor=0"
         )
-    physics, physics_meta = physics_model(cfg.get("physics"), system)
+    physics, physics_meta, physics_arm = physics_model(cfg.get("physics"), system, cfg.get("physics_prior_slope"))
     ckpt_path = resolve_ckpt(cfg, run_dir)
     label = f"ckpt_path={ckpt_path}" if cfg.ckpt_path else f"resume=true: {ckpt_path}"
     ckpt = None if ckpt_path is None else read_ckpt(ckpt_path, label)
@@ -167,7 +167,7 @@ def train(
     if ckpt is not None and cfg.get("init_from") and stored.get("model"):
         model = PINN(**stored["model"])  # resuming a widened network: its form is in the checkpoint, weights follow
     else:
-        model = build_model(cfg, system)
+        model = build_model(cfg, system, physics_arm)  # a frozen-arm prior holds the identified model still
     # _convert_="all": plain lists, not OmegaConf ones, reach the hyper-parameters stored in checkpoints,
     # which load_surrogate reads with torch.load(weights_only=True)
     datamodule = build_datamodule(cfg, system, physics)  # anchors of the same model as the residual
