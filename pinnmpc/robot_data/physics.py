@@ -58,8 +58,12 @@ def physics_model(
     record.update({k: v for k, v in origin.items() if k != "system"})
     description = dict(config["dynamics"])
     if prior_slope is not None and getattr(model, "actuation", None) == "velocity_servo" and model.coulomb:
-        # a servo's friction enters its frozen-arm prior (RigidArm.frozen_terms): smoother there than in the model
-        description["coulomb_slope"] = float(prior_slope)
+        # a servo's friction enters its frozen-arm prior (RigidArm.frozen_terms): smoother there than in the model,
+        # or (0) not at all, the network learning it from the logs
+        if prior_slope > 0:
+            description["coulomb_slope"] = float(prior_slope)
+        else:
+            description.pop("coulomb")
         record["prior_coulomb_slope"] = float(prior_slope)
     if getattr(model, "urdf", None):  # the file the arm was built from, found wherever the network is loaded
         description["urdf"] = portable_urdf(model.urdf)

@@ -141,7 +141,7 @@ TRAIN: dict[str, Check] = {
     "self_loop_figure.amplitude": vector("nu"),
     "init_from": optional(text()),
     "physics": optional(text()),
-    "physics_prior_slope": optional(positive()),
+    "physics_prior_slope": optional(real(0.0)),
     "model.hidden": listof(integer(1)),  # before stage.hidden, which defaults to it
     "stage.base": optional(text()),
     "stage.hidden": listof(integer(1)),
