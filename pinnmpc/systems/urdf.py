@@ -14,7 +14,6 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import casadi as ca
@@ -22,6 +21,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pinnmpc.systems.actuation import settled_velocity
+from pinnmpc.systems.actuation import xp as _xp
 from pinnmpc.systems.base import Box, check_shapes
 from pinnmpc.systems.urdf_files import URDF_DIR as URDF_DIR  # re-exported: where users' arms are looked up
 from pinnmpc.systems.urdf_files import (
@@ -36,33 +37,6 @@ from pinnmpc.systems.urdf_files import (
 from pinnmpc.systems.urdf_files import portable_urdf as portable_urdf  # re-exported: how an arm's file is recorded
 
 ACTUATIONS = ("torque", "velocity_servo")
-CASADI = SimpleNamespace(tanh=ca.tanh)  # the few functions the actuation law needs, for symbolic arguments
-
-
-SETTLE_NEWTON_STEPS = 10  # Newton steps of settled_velocity from rest: 8 reach 1e-16 for C/K up to 1 s/rad at slope 50
-
-
-def settled_velocity(w: Any, ratio: Any, slope: float) -> Any:
-    """The root v of v = w - ratio tanh(slope v), where a servo commanded w settles against dry friction (K (w - v) =
-    C tanh(slope v), ratio = C / K), by Newton from rest: the function is increasing, concave on the side of the root,
-    so the steps rise monotonically onto it; one smooth formula in any array namespace, differentiable throughout."""
-    xp = _xp(w)
-    v = 0 * w
-    for _ in range(SETTLE_NEWTON_STEPS):
-        th = xp.tanh(slope * v)
-        v = v - (v - w + ratio * th) / (1 + ratio * slope * (1 - th * th))
-    return v
-
-
-def _xp(a: Any) -> Any:
-    """Array namespace of a: torch, numpy or CasADi, so the actuation law is written once."""
-    if isinstance(a, np.ndarray):  # first: the plant asks thousands of times per step
-        return np
-    if isinstance(a, Tensor):
-        return torch
-    if isinstance(a, ca.SX | ca.MX | ca.DM):
-        return CASADI
-    return np
 
 
 @dataclass(frozen=True)
