@@ -255,8 +255,8 @@ class RigidArm:
         return tuple(self.friction_scale * g for g in gain)
 
     def frozen_terms(self, q: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
-        """M(q) (B, n, n) and c0 (B, n) of M(q) dv/dt = c0 - kv v: the arm held at q, without Coriolis terms (and a
-        servo's dry friction frozen at the command); its exact solution over a period carries most of the flow (the
+        """M(q) (B, n, n) and c0 (B, n) of M(q) dv/dt = c0 - kv v: the arm held at q, without Coriolis terms (a
+        servo's dry friction taken where it settles); its exact solution over a period carries most of the flow (the
         rest is learned)."""
         m, g, comp = self.dynamics_terms(q, torch.zeros_like(q))  # h at v = 0 is gravity
         return m, self._frozen_drive(g, u, comp)
