@@ -31,6 +31,7 @@ from pinnmpc.controller import (
     make_solver,
 )
 from pinnmpc.controller.build import build_nmpc, prediction_model
+from pinnmpc.controller.estimator import OffsetFree
 from pinnmpc.controller.ocp import psd_sqrt
 from pinnmpc.controller.shooting import chain_solve, linearise
 from pinnmpc.surrogate import SHIPPED, Surrogate, load_surrogate
@@ -819,6 +820,39 @@ def test_a_network_fine_tuned_against_an_identified_model_runs_in_real_time() ->
     cfg = _config()
     cfg.Q, cfg.R, cfg.disturbance.max_abs = [1.0] * 14, [1e-4] * 7, None  # the Panda's sizes
     assert build_nmpc(cfg, surrogate).solver.rti is True
+
+
+@pytest.mark.parametrize(
+    "notch, network, on",
+    [(None, "planar3", False), (None, "planar3-lab", True), (False, "planar3-lab", False), (True, "planar3", True)],
+)
+def test_the_notch_is_the_default_for_networks_fine_tuned_on_robot_logs(notch, network: str, on: bool) -> None:
+    """disturbance.notch=null: on for a network fine-tuned on robot logs, off for one of the model; set, as set."""
+    cfg = _config(**{"disturbance.notch": notch})
+    cfg.Q, cfg.R, cfg.disturbance.max_abs = [1.0] * 6, [1e-4] * 3, None  # planar3's sizes
+    assert build_nmpc(cfg, load_surrogate(SHIPPED.parent / f"{network}.pt")).describe()["disturbance_notch"] is on
+
+
+def test_the_notch_keeps_an_alternating_error_out_and_lets_an_offset_in() -> None:
+    """Averaged in pairs, an error that flips sign every sample leaves d at zero while the plain filter follows it;
+    a lasting offset still converges to itself, one sample later than without the notch."""
+    flip = np.array([1e-3, -0.05])
+    plain, notched = OffsetFree(2, 0.7), OffsetFree(2, 0.7, notch=True)
+    for k in range(8):
+        d_plain, d_notch = plain.update((-1) ** k * flip), notched.update((-1) ** k * flip)
+    assert np.all(np.abs(d_notch) < 1e-3 * np.abs(flip))  # what the first, unpaired error left, decayed
+    assert np.all(np.abs(d_plain) > 0.5 * np.abs(flip))  # the plain filter passes 0.7 / 1.3 of the alternation
+    offset = np.array([2e-3, 0.1])
+    plain.reset(), notched.reset()
+    plain.update(0.0 * offset), notched.update(0.0 * offset)  # settled at no error, then an offset appears
+    for k in range(30):
+        d_plain, d_notch = plain.update(offset), notched.update(offset)
+        if k == 2:  # three samples in: the notched estimate lags the plain one
+            assert np.all(np.abs(d_notch) < np.abs(d_plain))
+    np.testing.assert_allclose(d_notch, offset, rtol=1e-9)
+    np.testing.assert_allclose(notched.update(np.array([np.nan, 0.0])), offset, rtol=1e-9)  # a fault is skipped
+    with pytest.raises(ValueError, match=r"controller.disturbance.notch='yes'; expected true or false"):
+        OffsetFree(2, 0.7, notch="yes")
 
 
 def test_make_solver_unknown_name() -> None:

@@ -67,6 +67,15 @@ def real_time_default(surrogate: Surrogate) -> bool:
     return isinstance(meta, dict) and (not meta.get("robot_logs") or bool(meta.get("physics")))
 
 
+def notch_default(surrogate: Surrogate) -> bool:
+    """controller.disturbance.notch=null: on for a network fine-tuned on robot logs (`robot_logs` in its meta), which
+    runs on a robot whose dry friction sticks and slips at the control rate, so its prediction errors can flip sign
+    every sample (the Panda's lab robot: docs/results.md); off for a network trained on the model alone, where the
+    notch's half-sample lag costs (the nominal arms track 10-30% worse with it)."""
+    meta = getattr(surrogate, "meta", None)
+    return isinstance(meta, dict) and bool(meta.get("robot_logs"))
+
+
 def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> NMPC:
     """NMPC from conf/controller: horizon, weights, soft joint limits, bounds (null: the surrogate's input box),
     solver, prediction model (exact_values needs the system)."""
@@ -88,6 +97,7 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
     low = surrogate.input_box.low if cfg["u_low"] is None else cfg["u_low"]
     high = surrogate.input_box.high if cfg["u_high"] is None else cfg["u_high"]
     d = cfg["disturbance"] or {}
+    notch = d.get("notch")
     return NMPC(
         ocp,
         solver,
@@ -96,4 +106,5 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
         warm_start=cfg["warm_start"],
         disturbance_gain=float(d.get("gain", 0.0)),
         disturbance_max=d.get("max_abs"),
+        disturbance_notch=notch_default(surrogate) if notch is None else notch,
     )

@@ -18,7 +18,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.controller.casadi_ocp import CasadiOCP, NlpSolver, Solution, merged
 from pinnmpc.controller.casadi_rti import RTI_STATUS, RtiSolver, rti_function, rti_solver
-from pinnmpc.controller.nmpc import StepStats, disturbance_bound, filtered_disturbance
+from pinnmpc.controller.estimator import OffsetFree
+from pinnmpc.controller.nmpc import StepStats
 from pinnmpc.plant.stick_slip import coulomb_joints
 
 TRANSCRIPTIONS = ("rk4", "radau")  # controller.transcription: RK4 shooting or Radau IIA collocation
@@ -38,6 +39,7 @@ class CasadiNMPC:
         cold_solver: NlpSolver | None = None,
         disturbance_gain: float = 0.0,
         disturbance_max: Sequence[float] | None = None,
+        disturbance_notch: bool = False,
         smooth_solver: NlpSolver | None = None,
         keep_unconverged: bool = True,
     ) -> None:
@@ -49,7 +51,7 @@ class CasadiNMPC:
         self.smooth_solver = smooth_solver  # the same OCP with sign(v) friction smoothed: tried when a solve fails
         self.keep_unconverged = bool(keep_unconverged)  # an unconverged solve's inputs against the previous plan
         self.disturbance_gain = float(disturbance_gain)
-        self._d_max = disturbance_bound(disturbance_max, self.nx, self.disturbance_gain)
+        self._estimator = OffsetFree(self.nx, self.disturbance_gain, disturbance_max, disturbance_notch)
         self.stats: list[StepStats] = []
         self.reset()
 
@@ -59,6 +61,7 @@ class CasadiNMPC:
             "controller": "casadi",
             "solver": self.label,
             "disturbance_gain": self.disturbance_gain,
+            "disturbance_notch": self._estimator.notch,
             "prediction": "true_model",
             "real_time": self.rti,  # one SQP step per sample: unconverged by design
             **self.ocp.describe(),  # the transcription and its settings
@@ -73,6 +76,7 @@ class CasadiNMPC:
         self._lam: tuple[np.ndarray, np.ndarray] | None = None  # its multipliers shifted (None: zeros)
         self._last: tuple | None = None  # the last measured state, the input applied and the plan's unknowns (or None)
         self.disturbance: np.ndarray | None = None
+        self._estimator.reset()
         self.stats = []
         self.smoothed_solves = 0
 
@@ -188,10 +192,9 @@ class CasadiNMPC:
     def _estimate_disturbance(self, x: np.ndarray) -> None:
         """Offset-free MPC as NMPC's: what the model missed over the last period (x - F(x_prev, u_prev)),
         filtered by the gain and bounded by disturbance_max, is added to every predicted step."""
-        if self.disturbance_gain == 0.0 or self._last is None:
+        if not self._estimator.on or self._last is None:
             return
-        error = x - self.solver.flow(*self._last)
-        self.disturbance = filtered_disturbance(self.disturbance, error, self.disturbance_gain, self._d_max)
+        self.disturbance = self._estimator.update(x - self.solver.flow(*self._last))
 
 
 def sqpmethod_options(cfg: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
@@ -260,6 +263,7 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
         cold_solver=cold_solver,
         disturbance_gain=float(d.get("gain", 0.0)),
         disturbance_max=d.get("max_abs"),
+        disturbance_notch=bool(d.get("notch") or False),  # null (the network's setting, given to the bench's rows): off
         smooth_solver=smooth_solver,
         keep_unconverged=bool(cfg.get("keep_unconverged", True)),
     )

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pinnmpc.controller.estimator import OffsetFree
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
 from pinnmpc.surrogate.checkpoint import Surrogate
@@ -25,31 +26,6 @@ class StepStats:
     cost: float
     converged: bool
     fallback: bool
-
-
-def disturbance_bound(d_max: Sequence[float] | None, nx: int, gain: float) -> np.ndarray | None:
-    """Validated offset-free settings (gain in [0, 1], nx non-negative bounds); the bound as an array."""
-    if not 0.0 <= gain <= 1.0:
-        raise ValueError(f"controller.disturbance.gain={gain}; expected a number in [0, 1]")
-    bound = None if d_max is None else np.array(d_max, dtype=np.float64)
-    if bound is not None and (bound.shape != (nx,) or np.any(~(bound >= 0))):
-        raise ValueError(
-            f"controller.disturbance.max_abs={list(d_max)} (system.control.disturbance_max); expected null or {nx} "
-            "numbers >= 0, one per state"
-        )
-    return bound
-
-
-def filtered_disturbance(
-    d: np.ndarray | None, error: np.ndarray, gain: float, bound: np.ndarray | None
-) -> np.ndarray | None:
-    """Offset-free MPC's estimate after one more prediction error: filtered by the gain, bounded per state; a
-    non-finite error (a model fault) keeps the last estimate."""
-    if not np.all(np.isfinite(error)):
-        return d
-    d = np.zeros_like(error) if d is None else d
-    d = d + gain * (error - d)
-    return d if bound is None else np.clip(d, -bound, bound)
 
 
 class Controller(Protocol):
@@ -92,6 +68,7 @@ class NMPC:
     warm_start: bool = True
     disturbance_gain: float = 0.0  # offset-free MPC: 0 off; 1 d = the last one-step prediction error; between: filtered
     disturbance_max: Sequence[float] | None = None  # per-state bound on |d| (None: unbounded)
+    disturbance_notch: bool = False  # average the last two prediction errors first (pinnmpc.controller.estimator)
     stats: list[StepStats] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -109,7 +86,7 @@ class NMPC:
         if torch.any(self.low > self.high):
             raise ValueError(f"input lower bound {self.low.tolist()} exceeds upper bound {self.high.tolist()}")
         self._low, self._high = self.low.numpy(), self.high.numpy()
-        self._d_max = disturbance_bound(self.disturbance_max, self.ocp.nx, self.disturbance_gain)
+        self._estimator = OffsetFree(self.ocp.nx, self.disturbance_gain, self.disturbance_max, self.disturbance_notch)
         self.reset()
 
     @property
@@ -123,6 +100,7 @@ class NMPC:
             "controller": "pinn",
             "solver": type(self.solver).__name__,
             "disturbance_gain": self.disturbance_gain,
+            "disturbance_notch": self.disturbance_notch,
             "prediction": getattr(self.ocp.model, "prediction", "surrogate"),
             "real_time": bool(getattr(self.solver, "rti", False)),  # one step per sample: unconverged by design
         }
@@ -167,6 +145,7 @@ class NMPC:
         self._last: tuple[np.ndarray, np.ndarray] | None = None  # the last measured state and the input applied
         self._predicted: np.ndarray | None = None  # the undisturbed surrogate's x after that input, if the plan had it
         self.ocp.disturbance = None
+        self._estimator.reset()
         self.stats = []
 
     def _cold_start(self) -> np.ndarray:
@@ -257,12 +236,13 @@ class NMPC:
 
     def _estimate_disturbance(self, x: np.ndarray) -> None:
         """Offset-free MPC: what the surrogate missed over the last period, added to every predicted step
-        (filtered by the gain, bounded by disturbance_max), so a smooth model error is not tracked as offset."""
-        if self.disturbance_gain == 0.0 or self._last is None:
+        (filtered by the gain, bounded by disturbance_max, notched if asked), so a smooth model error is not
+        tracked as offset."""
+        if not self._estimator.on or self._last is None:
             return
         predicted = self._predicted
         error = self.ocp.prediction_error(*self._last, x) if predicted is None else x - predicted
-        self.ocp.disturbance = filtered_disturbance(self.ocp.disturbance, error, self.disturbance_gain, self._d_max)
+        self.ocp.disturbance = self._estimator.update(error)
 
     def _planned_next(self, info: SolveInfo) -> np.ndarray | None:
         """The undisturbed prediction of the next state from the plan's own states (saves a network call); None
