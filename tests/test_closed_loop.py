@@ -241,8 +241,29 @@ def test_metrics_say_when_the_arm_saturates_or_passes_a_joint_limit(make_cfg, tm
     x[1, 3] = system.joint_limits.high[3] + 0.002  # joint 4 2 mrad past its upper limit at one sample
     run = LoopResult(x, np.zeros((2, 7)), "ok", 0)
     assert limits_and_saturation(run, controller, system) == {
+        "input_reversals": {n: 0.0 for n in system.input_names},
         "joint_limit_samples": 1, "joint_limit_excess_max": pytest.approx(0.002), "saturated_fraction": 0.0,
     }  # fmt: skip
+
+
+def test_chattering_inputs_are_counted_and_named(make_cfg, tmp_path):
+    """input_reversals: per input, the share of samples whose step undoes the one before (steps beyond 1% of the
+    box only, so noise-sized wiggles do not count); the headline names the worst input from 20% on."""
+    system = load_system("panda")
+    controller, _, _ = build_controller(make_cfg("closed_loop", ["system=panda"]), system)
+    u = np.zeros((41, 7))
+    u[:, 3] = 0.3 * (-1.0) ** np.arange(41)  # joint 4 flips every sample
+    u[:, 0] = np.linspace(0.0, 1.0, 41)  # joint 1 ramps: no reversal
+    u[:, 5] = 1e-3 * (-1.0) ** np.arange(41)  # joint 6 flips by less than 1% of its box: not counted
+    x = np.tile(np.r_[np.zeros(3), -1.0, np.zeros(10)], (42, 1))
+    r = limits_and_saturation(LoopResult(x, u, "ok", 0), controller, system)["input_reversals"]
+    assert r["u_joint4"] == 1.0 and r["u_joint1"] == 0.0 and r["u_joint6"] == 0.0
+    m = run_closed_loop(make_cfg("closed_loop", ["max_steps=12", "progress=false", "plots=false"]), tmp_path)
+    assert max(m["input_reversals"].values()) < 0.2 and "reverses its last step" not in headline(m, tmp_path)
+    m["input_reversals"] = {"u1": 0.0, "u2": 0.46}
+    assert "u2 reverses its last step in 46% of samples (chatter: try controller.disturbance.notch=true" in (
+        headline(m, tmp_path)
+    )
 
 
 def test_the_arm_can_start_off_the_reference(make_cfg, tmp_path):

@@ -17,6 +17,8 @@ from pinnmpc.simulation.loop import LoopResult
 from pinnmpc.systems.base import System
 
 SATURATED_NOTE = 0.05  # the headline notes inputs at their bounds from this share of the steps on (display only)
+REVERSAL_STEP = 0.01  # an input step counts towards reversals from this share of its box width on (not noise)
+REVERSAL_NOTE = 0.2  # the headline notes chattering inputs from this share of reversing steps on (display only)
 FINAL_SAMPLES = 10  # the last samples whose worst joint-angle error says where a run ended up
 
 
@@ -132,7 +134,15 @@ def limits_and_saturation(run: LoopResult, controller: Controller, system: Syste
     span = high_u - low_u
     tol = 1e-9 * np.where(np.isfinite(span), span, 0.0)
     at_bound = (u <= low_u + tol) | (u >= high_u - tol)
+    steps = np.diff(u, axis=0)
+    big = np.abs(steps) > REVERSAL_STEP * np.where(np.isfinite(span), span, np.inf)
+    reversed_ = (steps[1:] * steps[:-1] < 0) & big[1:] & big[:-1]  # a step undoing the one before: chatter
     return {
+        # per input, the share of samples whose input step reverses the previous one (both beyond 1% of its box)
+        "input_reversals": {
+            n: float(r)
+            for n, r in zip(system.input_names, reversed_.mean(axis=0) if len(reversed_) else np.zeros(u.shape[-1]))
+        },
         "joint_limit_samples": int((excess > 0).sum()),  # samples with a joint past its limit (system.joint_limits)
         "joint_limit_excess_max": float(excess.max(initial=0.0)),  # rad
         "saturated_fraction": float(at_bound.any(axis=1).mean()) if len(u) else 0.0,  # steps with an input at a bound
@@ -193,6 +203,14 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
             why = "it starts off the reference, x0"
         why = why or "the reference may ask too much"
         trouble.append(f"inputs at a bound in {m['saturated_fraction']:.0%} of steps ({why})")
+    reversals = m.get("input_reversals") or {}
+    worst = max(reversals, key=reversals.get, default=None)
+    if worst is not None and reversals[worst] >= REVERSAL_NOTE:
+        tune = "controller.disturbance.notch=true or a lower gain" if m["disturbance_gain"] else ""
+        trouble.append(
+            f"{worst} reverses its last step in {reversals[worst]:.0%} of samples (chatter"
+            + (f": try {tune})" if tune else ")")
+        )
     return (
         f"{m['status']}: {m['steps']} steps on {m['reference']} with {m['solver']}"
         + (" as a real-time iteration" if real_time else "")
