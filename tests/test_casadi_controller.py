@@ -206,12 +206,14 @@ def test_bad_settings_are_rejected(base_cfg: Callable[..., dict], systems: dict)
             build_casadi_nmpc(base_cfg("powercube", **{key: value}), s)  # never silently truncated
 
 
-def test_dictconfig_and_disturbance_estimator(base_cfg: Callable[..., dict], systems: dict) -> None:
-    """With a plant the model does not know (friction +20 %), the offset-free estimator engages and stays bounded."""
+@pytest.mark.parametrize("notch", [None, True])  # null (the network's setting handed on by the bench): off
+def test_dictconfig_and_disturbance_estimator(base_cfg: Callable[..., dict], systems: dict, notch) -> None:
+    """With a plant the model does not know (friction +20 %), the offset-free estimator engages and stays bounded,
+    with or without the notch."""
     s = systems["powercube"]
-    cfg: DictConfig = OmegaConf.create(base_cfg("powercube", **{"disturbance.gain": 0.7}))
+    cfg: DictConfig = OmegaConf.create(base_cfg("powercube", **{"disturbance.gain": 0.7, "disturbance.notch": notch}))
     c = build_casadi_nmpc(cfg, s)
-    assert c.describe()["disturbance_gain"] == 0.7
+    assert c.describe()["disturbance_gain"] == 0.7 and c.describe()["disturbance_notch"] is bool(notch)
     plant = ScipyPlant(s.with_mismatch(friction_scale=1.2), s.tau)
     ref = hold_and_sine(s, 6, c.horizon)
     x = ref[0].copy()
