@@ -260,7 +260,9 @@ def test_chattering_inputs_are_counted_and_named(make_cfg, tmp_path):
     assert r["u_joint4"] == 1.0 and r["u_joint1"] == 0.0 and r["u_joint6"] == 0.0
     m = run_closed_loop(make_cfg("closed_loop", ["max_steps=12", "progress=false", "plots=false"]), tmp_path)
     assert max(m["input_reversals"].values()) < 0.2 and "reverses its last step" not in headline(m, tmp_path)
-    m["input_reversals"] = {"u1": 0.0, "u2": 0.46}
+    assert "(offset-free, gain 0.7);" in headline(m, tmp_path)  # the PowerCube network: no notch
+    m["input_reversals"], m["disturbance_notch"] = {"u1": 0.0, "u2": 0.46}, True
+    assert "(offset-free, gain 0.7, notch);" in headline(m, tmp_path)
     assert "u2 reverses its last step in 46% of samples (chatter: try controller.disturbance.notch=true" in (
         headline(m, tmp_path)
     )

@@ -173,6 +173,13 @@ def monitor_note(m: dict[str, Any]) -> str:
     return f"; model one-step miss p95 {mon['p95'][worst]:.1e} {unit} ({worst})".replace("  ", " ")
 
 
+def estimator_note(m: dict[str, Any]) -> str:
+    """The headline's offset-free estimator: its gain, and the notch where it is on (nothing when off)."""
+    if not m["disturbance_gain"] > 0:
+        return ""
+    return f" (offset-free, gain {m['disturbance_gain']:g}{', notch' if m.get('disturbance_notch') else ''})"
+
+
 def headline(m: dict[str, Any], run_dir: Path) -> str:
     """One line from metrics.json: status, tracking of every joint angle, OCP vs plant time, what went wrong."""
     names = list(m["mae"])
@@ -214,7 +221,7 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
     return (
         f"{m['status']}: {m['steps']} steps on {m['reference']} with {m['solver']}"
         + (" as a real-time iteration" if real_time else "")
-        + (f" (offset-free, gain {m['disturbance_gain']:g})" if m["disturbance_gain"] > 0 else "")
+        + estimator_note(m)
         + f"; MAE {mae}; OCP median {1e3 * m['ocp_time_s']['median']:.2f} ms "
         f"(plant step {1e3 * m['plant_step_time_s']['median']:.2f} ms)"
         + monitor_note(m)
