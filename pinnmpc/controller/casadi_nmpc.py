@@ -75,7 +75,6 @@ class CasadiNMPC:
         self._w: np.ndarray | None = None  # the last solution shifted (None: cold start from the measured state)
         self._lam: tuple[np.ndarray, np.ndarray] | None = None  # its multipliers shifted (None: zeros)
         self._last: tuple | None = None  # the last measured state, the input applied and the plan's unknowns (or None)
-        self.disturbance: np.ndarray | None = None
         self._estimator.reset()
         self.stats = []
         self.smoothed_solves = 0
@@ -189,12 +188,17 @@ class CasadiNMPC:
         nw[ocp.iu] = self._U
         self._w, self._lam = nw, (ocp.shifted(sol.lam_x, ocp.w_blocks), ocp.shifted(sol.lam_g, ocp.g_blocks))
 
+    @property
+    def disturbance(self) -> np.ndarray | None:
+        """The disturbance the next solve predicts with (None: off or not estimated yet)."""
+        return self._estimator.value
+
     def _estimate_disturbance(self, x: np.ndarray) -> None:
         """Offset-free MPC as NMPC's: what the model missed over the last period (x - F(x_prev, u_prev)),
         filtered by the gain and bounded by disturbance_max, is added to every predicted step."""
         if not self._estimator.on or self._last is None:
             return
-        self.disturbance = self._estimator.update(x - self.solver.flow(*self._last))
+        self._estimator.update(x - self.solver.flow(*self._last))
 
 
 def sqpmethod_options(cfg: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
