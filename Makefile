@@ -7,9 +7,10 @@ TORCH_SPEC ?= torch==2.13.0
 TORCH_PIP_ARGS ?=
 ARGS ?=
 SHARED_REF ?= ../shared/powercube/reference
+CPU_RUNS ?=
 # Every `name=value` given to make becomes one Hydra override, in command-line order, each exactly once and
 # shell-quoted as one argument (values may hold spaces); ARGS="a=1 b=2" is split by the shell like a command line.
-KNOBS := ARGS PYTHON VENV TORCH_SPEC TORCH_PIP_ARGS SHARED_REF
+KNOBS := ARGS PYTHON VENV TORCH_SPEC TORCH_PIP_ARGS SHARED_REF CPU_RUNS
 space := $(subst ,, )
 reverse = $(if $(1),$(call reverse,$(wordlist 2,$(words $(1)),$(1))) $(firstword $(1)))
 uniq = $(if $(1),$(firstword $(1)) $(call uniq,$(filter-out $(firstword $(1)),$(1))))
@@ -18,7 +19,7 @@ CLI_NAMES := $(call uniq,$(call reverse,$(foreach d,$(subst \$(space),^,$(MAKEOV
 shell_quote = '$(subst ','\'',$(1))'
 OVERRIDES = $(foreach v,$(filter-out $(KNOBS),$(CLI_NAMES)),$(call shell_quote,$(v)=$($(v)))) $(ARGS)
 
-.PHONY: install train collect identify self-loop residuals time-basis capacity closed-loop closed-loop-paper robustness evaluate bench sweep sweep-optuna tensorboard test test-all lint format contract clean
+.PHONY: install train gpu-curves collect identify self-loop residuals time-basis capacity closed-loop closed-loop-paper robustness evaluate bench sweep sweep-optuna tensorboard test test-all lint format contract clean
 
 install: $(VENV)/.installed  ## venv with a CPU build of torch, the package (editable) and its extras
 
@@ -31,6 +32,15 @@ $(VENV)/.installed: pyproject.toml
 
 train: install  ## train the default PINN (under 30 min on 2 cores); outputs/train/<time>/
 	$(PY) -m pinnmpc.train $(OVERRIDES)
+
+GPU_RUN = $(PY) -m pinnmpc.train progress=false self_loop_figure.every_n_epochs=0
+GPU_DIR := outputs/gpu-curves/$(shell date +%Y-%m-%d_%H-%M-%S)
+gpu-curves: install  ## on one GPU: PowerCube default 1.5 min, Panda recipes 3.3 min each; RMSE vs minutes (+ CPU_RUNS="dir=label ...")
+	$(GPU_RUN) trainer=gpu threads=0 trainer.max_time=00:00:01:30 hydra.run.dir=$(GPU_DIR)/powercube $(OVERRIDES)
+	$(GPU_RUN) experiment=panda trainer=gpu threads=0 trainer.max_time=00:00:03:20 hydra.run.dir=$(GPU_DIR)/panda $(OVERRIDES)
+	$(GPU_RUN) experiment=panda-gpu trainer.max_time=00:00:03:20 hydra.run.dir=$(GPU_DIR)/panda-gpu $(OVERRIDES)
+	$(PY) -m pinnmpc.curves $(GPU_DIR)/powercube="PowerCube, GPU" $(GPU_DIR)/panda="Panda, GPU" \
+		$(GPU_DIR)/panda-gpu="Panda, GPU, 4x points" $(CPU_RUNS) --out $(GPU_DIR)/curves.png
 
 self-loop: install  ## the paper's 20-step self-loop test with the shipped checkpoint
 	$(PY) -m pinnmpc.self_loop $(OVERRIDES)

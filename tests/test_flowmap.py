@@ -205,6 +205,28 @@ def test_a_compiled_jacobian_with_structural_zeros_comes_out_right() -> None:
     np.testing.assert_allclose(b, bt.numpy(), atol=1e-9)
 
 
+def test_a_training_size_batch_runs_on_torchs_threads_with_the_serial_result(systems: dict) -> None:
+    from pinnmpc.systems.compiled import ROWS_PER_THREAD, batch_threads
+
+    rhs = systems["planar3"].compiled.rhs
+    n = 4 * ROWS_PER_THREAD
+    rng = np.random.default_rng(0)
+    x, u = rng.uniform(-1, 1, (n, 6)), rng.uniform(-1, 1, (n, 3))
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        assert batch_threads(n) == 1
+        (serial,) = rhs(x, u)
+        torch.set_num_threads(2)
+        assert batch_threads(n) == 2 and batch_threads(ROWS_PER_THREAD) == 1  # a controller's rows stay serial
+        (threaded,) = rhs(x, u)
+    finally:
+        torch.set_num_threads(before)
+    assert {key[1] for key in rhs._calls if key[0] == n} == {1, 2}  # both evaluations really ran
+    np.testing.assert_array_equal(threaded, serial)  # rows are independent: bit-identical
+    assert np.isfinite(serial).all() and np.abs(serial).max() > 0
+
+
 def test_a_sparse_compiled_output_is_refused_not_misread() -> None:
     sym = ca.SX.sym("x", 2)
     with pytest.raises(ValueError, match="outputs \\[0\\] are sparse; expected dense outputs"):

@@ -151,7 +151,7 @@ def test_bad_arm_settings_name_the_setting(changes: dict, fragment: str) -> None
 GROUP_OPTIONS = {
     "controller": sorted(p.stem for p in (CONF / "controller").glob("*.yaml")),  # every one there
     "reference": ["builtin"],
-    "experiment": ["paper", "planar3", "panda"],
+    "experiment": ["paper", "planar3", "panda", "panda-gpu"],
 }
 
 
@@ -196,6 +196,18 @@ def test_each_arms_experiment_is_its_shipped_networks_recipe(system: str) -> Non
     sections = ("system", "model", "data", "module", "trainer", "tau", "t_max", "seed", "stage")
     assert _differences({k: recorded[k] for k in sections}, cfg) == []
     assert cfg["data"]["n_anchor"] > 4000  # not the defaults: the recipe is what `make train system=<arm>` lacks
+
+
+def test_the_panda_gpu_recipe_is_the_pandas_with_more_points_on_a_gpu() -> None:
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cpu = OmegaConf.to_container(compose("train", ["experiment=panda"]), resolve=True)
+        gpu = OmegaConf.to_container(compose("train", ["experiment=panda-gpu"]), resolve=True)
+    assert sorted(_differences(cpu, gpu)) == [
+        "data.n_anchor: shipped 16000, composed 64000",
+        "data.n_collocation: shipped 20000, composed 80000",
+        "threads: shipped 2, composed 0",
+        "trainer.accelerator: shipped 'cpu', composed 'auto'",
+    ]
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -539,6 +539,22 @@ def test_a_gpu_trainer_without_a_gpu_is_one_line_and_trainer_gpu_falls_back_to_t
     assert summary["epochs"] == 1 and "distributed" not in summary
 
 
+def test_threads_zero_takes_every_core_and_a_bad_count_is_refused() -> None:
+    from pinnmpc.util.threads import available_cores, use_threads
+
+    before = torch.get_num_threads()
+    try:
+        use_threads(0)
+        assert torch.get_num_threads() == available_cores() >= 1
+        use_threads(1)
+        assert torch.get_num_threads() == 1
+        for bad in (-1, 1.5, True, "2"):
+            with pytest.raises(ValueError, match=r"threads=.*; expected a whole number >= 1, or 0 for every"):
+                use_threads(bad)
+    finally:
+        use_threads(before)
+
+
 def test_a_checkpoint_written_before_priors_carried_their_arm_still_resumes(make_cfg, tmp_path):
     # planar3.pt's checkpoint names its prior's arm only; later networks carry its description too
     ckpt = ROOT / "checkpoints" / "train" / "planar3-prior-last.ckpt"

@@ -86,14 +86,15 @@ class FrozenArmPrior(nn.Module):
         """M, A = M^-1 kv and v_ss (float64, flat batch): through adam in torch where a graph is wanted, else the
         same adam model's CasADi form compiled to C (adam's per-call cost in torch dominates small batches, such as
         a surrogate stepping one state)."""
-        if q.requires_grad or u.requires_grad:
-            m, c0 = self.arm.frozen_terms(q, u)
+        if q.requires_grad or u.requires_grad:  # adam's model lives on the CPU; the copies are differentiable
+            m, c0 = (a.to(q.device) for a in self.arm.frozen_terms(q.cpu(), u.cpu()))
         else:
             rows = self._compiled_terms()(q.cpu().numpy(), u.cpu().numpy())
             m, c0 = (torch.from_numpy(a).to(q.device) for a in rows)
             m = m.reshape(-1, self.nq, self.nq)  # M is symmetric: its column-major vec reads back as M
-        a = torch.cholesky_solve(torch.diag_embed(self.kv.expand_as(q)), torch.linalg.cholesky(m))  # M is SPD
-        return m, a, c0 / self.kv
+        kv = self.kv.to(q.device)
+        a = torch.cholesky_solve(torch.diag_embed(kv.expand_as(q)), torch.linalg.cholesky(m))  # M is SPD
+        return m, a, c0 / kv
 
     def _compiled_terms(self) -> Callable[[np.ndarray, np.ndarray], list[np.ndarray]]:
         """(q, u) rows -> [vec M, c0] rows, compiled once."""
@@ -115,7 +116,7 @@ class FrozenArmPrior(nn.Module):
         e = torch.linalg.matrix_exp(-a * t.unsqueeze(-1))
         d = (v0 - vss).unsqueeze(-1)
         v = vss + (e @ d).squeeze(-1)
-        q = q0 + vss * t + (m @ (d - e @ d)).squeeze(-1) / self.kv
+        q = q0 + vss * t + (m @ (d - e @ d)).squeeze(-1) / self.kv.to(q0.device)
         return torch.cat((q, v), -1), torch.cat((v, -(a @ (v - vss).unsqueeze(-1)).squeeze(-1)), -1)
 
     def forward(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:

@@ -45,10 +45,20 @@ def compile_functions(name: str, functions: list[ca.Function], opt: str = "-O1")
         raise CompileError(f"loading {lib} failed: {said[-1] if said else type(e).__name__}") from None
 
 
+ROWS_PER_THREAD = 512  # a batch is split over threads only in chunks at least this big (a thread's start costs
+#   about what a few hundred rows of a small arm's rhs do): controller calls stay serial, training batches go parallel
+
+
+def batch_threads(n: int) -> int:
+    """Threads for a batch of n rows: torch's thread count (the `threads` setting), fewer for a small batch; the
+    rows are independent, so the result is bit-identical to a serial call."""
+    return max(1, min(torch.get_num_threads(), n // ROWS_PER_THREAD))
+
+
 class BatchedFunction:
     """A compiled CasADi function over rows of numpy arrays via CasADi's buffer API: no DM conversions or transposes
     (at batch 1 a Python-level call's overhead would be most of a controller step; at training size the
-    conversions a sizeable share of the rhs)."""
+    conversions a sizeable share of the rhs). Large batches run on torch's threads (`batch_threads`)."""
 
     def __init__(self, f: ca.Function) -> None:
         sparse = [j for j in range(f.n_out()) if not f.sparsity_out(j).is_dense()]
@@ -56,7 +66,8 @@ class BatchedFunction:
             raise ValueError(f"{f.name()}: outputs {sparse} are sparse; expected dense outputs (ca.densify them)")
         self.f = f
         self.sizes = [f.numel_out(j) for j in range(f.n_out())]
-        self._calls: dict[int, tuple[ca.Function, Any, Any]] = {}  # per batch size: function, buffer, evaluator
+        self._calls: dict[tuple[int, int], tuple[ca.Function, Any, Any]] = {}  # per (rows, threads): function,
+        #   buffer, evaluator
 
     def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
         """Inputs (B, n_i) each; outputs (B, m_j) each. Rows are samples: a C-ordered (B, n) array is the
@@ -64,10 +75,11 @@ class BatchedFunction:
         n = args[0].shape[0]
         if n == 0:  # CasADi cannot map over no rows
             return [np.zeros((0, self.f.size1_out(j) * self.f.size2_out(j))) for j in range(self.f.n_out())]
-        call = self._calls.get(n)
+        threads = batch_threads(n)
+        call = self._calls.get((n, threads))
         if call is None:
-            fm = self.f if n == 1 else self.f.map(n, "serial")
-            call = self._calls[n] = (fm, *fm.buffer())
+            fm = self.f if n == 1 else self.f.map(n, "serial") if threads == 1 else self.f.map(n, "thread", threads)
+            call = self._calls[n, threads] = (fm, *fm.buffer())
         _, buf, evaluate = call
         args = [np.ascontiguousarray(a, dtype=np.float64) for a in args]
         outs = [np.empty((n, m)) for m in self.sizes]
