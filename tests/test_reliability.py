@@ -431,7 +431,7 @@ def test_a_stage_may_start_exactly_at_its_base(make_cfg) -> None:
 @pytest.mark.parametrize(
     ("entry", "override", "message"),
     [
-        ("train", "threads=0", "threads=0: expected an integer >= 1"),
+        ("train", "threads=-1", "threads=-1: expected an integer >= 0"),
         ("train", "seed=abc", "seed='abc': expected an integer"),
         ("train", "trainer.max_time=soon", "trainer.max_time='soon': expected a duration DD:HH:MM:SS"),
         ("train", "t_max=0.1", "t_max=0.1 is below the system's tau=0.2"),

@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 from pinnmpc import load_surrogate, load_system
 from pinnmpc.plant.integrators import rk4_step
 from pinnmpc.systems import Box, PowerCube, RigidArm, available, build_system
+from pinnmpc.util.settings import validate_train
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -201,7 +202,9 @@ def test_each_arms_experiment_is_its_shipped_networks_recipe(system: str) -> Non
 def test_the_panda_gpu_recipe_is_the_pandas_with_more_points_on_a_gpu() -> None:
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cpu = OmegaConf.to_container(compose("train", ["experiment=panda"]), resolve=True)
-        gpu = OmegaConf.to_container(compose("train", ["experiment=panda-gpu"]), resolve=True)
+        composed = compose("train", ["experiment=panda-gpu"])
+        gpu = OmegaConf.to_container(composed, resolve=True)
+    validate_train(composed, load_system("panda"))  # threads=0 (every core) is a valid setting of a training
     assert sorted(_differences(cpu, gpu)) == [
         "data.n_anchor: shipped 16000, composed 64000",
         "data.n_collocation: shipped 20000, composed 80000",

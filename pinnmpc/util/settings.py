@@ -132,7 +132,7 @@ CAPACITY: dict[str, Check] = {
 TRAIN: dict[str, Check] = {
     "t_max": positive(),
     "seed": SEED,
-    "threads": integer(1),
+    "threads": integer(0),  # 0: every available core (a GPU host evaluating a URDF arm's rhs)
     "ckpt_path": optional(text()),
     "resume": boolean(),
     "progress": boolean(),
