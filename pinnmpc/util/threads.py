@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from numbers import Integral
 
 import torch
 from threadpoolctl import threadpool_limits
@@ -16,8 +17,8 @@ def available_cores() -> int:
 def use_threads(n: int) -> None:
     """Small controller solves are fastest single-threaded: threaded BLAS adds overhead to each tiny GEMM.
     0 takes every available core (a GPU host, whose CPU evaluates a URDF arm's rhs in training)."""
-    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+    if isinstance(n, bool) or not isinstance(n, Integral) or n < 0:
         raise ValueError(f"threads={n!r}; expected a whole number >= 1, or 0 for every available core")
-    n = n or available_cores()
+    n = int(n) or available_cores()
     torch.set_num_threads(n)
     threadpool_limits(limits=n)  # stays in force for the process
