@@ -110,6 +110,7 @@ def run_identify(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         name=name,
         max_samples=cfg.max_samples,
         min_speed=float(cfg.min_speed),
+        place_range=float(cfg.payload.range),
         validation_periods=int(cfg.validation_periods),
         rk4_steps=int(cfg.rk4_steps),
         seed=int(cfg.seed),

@@ -2,7 +2,7 @@
 
 The arm's equation M(q) dv/dt + h(q, v) = torque is linear in every coefficient fitted here: per-joint viscous D and
 Coulomb C (torque = u - D v - C tanh(s v)) or servo gain K and Coulomb C (torque = g0(q) + K (u - v) - C tanh(s v)),
-a point mass m_p at a known place (M and h gain m_p times those of a unit mass) and per-joint armature A (on M's
+a point mass m_p at a given place (M and h gain m_p times those of a unit mass) and per-joint armature A (on M's
 diagonal). The fit integrates that equation over each fine interval of a hold period instead of differentiating the
 samples: the interval's velocity change carries the inertia (A dv exactly), its position change the viscous term
 (D dq exactly) and the input is held, so only the slowly varying M(q), h and the Coulomb term are averaged over the
@@ -12,6 +12,9 @@ below a 10 ms fine step, and the acceleration estimates were off by as much as t
 solve (every coefficient >= 0) gives the fit, with no iterations or starting guess. A joint's equation counts only
 where it moves faster than min_speed: dry friction (which sticks) has no smooth counterpart, and while sliding it is
 a constant torque against the motion, which the Coulomb term C tanh(s v) then absorbs (C fitted = C + dry friction).
+The point mass's place is fitted too where asked: what a unit mass adds is a quadratic polynomial in its place (its
+spatial inertia is linear in 1, c and c c^T), so ten evaluations of the arm give it at every place, and a small
+search over the place, each trial one bounded linear solve for the rest, finds where the load sits.
 One-period predictions of the fitted model (RK4) against the logged next states are reported beside the nominal's.
 """
 
@@ -25,13 +28,17 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.optimize import lsq_linear
+from scipy.optimize import least_squares, lsq_linear
 
 from pinnmpc.plant.integrators import rk4_fixed
 from pinnmpc.robot_data.logs import RobotLog, check_enough
 from pinnmpc.systems.urdf import Payload, RigidArm
+from pinnmpc.systems.urdf_files import payload_place
 
-KEYS = ("viscous", "coulomb", "servo_gain", "payload", "armature")  # what can be fitted
+KEYS = ("viscous", "coulomb", "servo_gain", "payload", "payload_pos", "armature")  # what can be fitted
+# Places around the start (in units of the stencil's size) whose unit-mass columns fix the quadratic in c exactly.
+STENCIL = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0, -1, 0], [0, 0, -1], [1, 1, 0],
+                    [1, 0, 1], [0, 1, 1]], dtype=float)  # fmt: skip
 
 
 @dataclass
@@ -100,6 +107,31 @@ def _interval_terms(system: RigidArm, s: Intervals) -> tuple[np.ndarray, np.ndar
     return m.reshape(-1, 2, nq, nq).mean(1), h.reshape(-1, 2, nq).mean(1), g.reshape(-1, 2, nq).mean(1)
 
 
+def _unit_column(base: RigidArm, s: Intervals, payload: Payload, m0: np.ndarray, h0: np.ndarray) -> np.ndarray:
+    """(n, nq): what a unit point mass at payload's place adds to each interval's torque equation."""
+    unit = dataclasses.replace(base, payload=dataclasses.replace(payload, mass=1.0))
+    m1, h1, _ = _interval_terms(unit, s)
+    return np.einsum("bij,bj->bi", m1 - m0, s.v[:, 1] - s.v[:, 0]) / s.dt[:, None] + h1 - h0
+
+
+def _quadratic(c: np.ndarray) -> np.ndarray:
+    """The ten monomials of degree <= 2 in c (..., 3): a point mass's spatial inertia is linear in them."""
+    x, y, z = np.moveaxis(c, -1, 0)
+    return np.stack([np.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, x * z, y * z], axis=-1)
+
+
+def place_columns(system: RigidArm, s: Intervals, payload: Payload, size: float) -> tuple[str, np.ndarray, Any]:
+    """The payload's link, its start place (3,) and column(c): the unit-mass column (n * nq,) at any place c in that
+    link's frame, exact from the stencil of places around the start (size: the stencil's spacing, m)."""
+    base = _bare(system)
+    link, start = payload_place(base.model_urdf, payload, system.tip_frame, system.joints)
+    c0 = np.asarray(start)
+    m0, h0, _ = _interval_terms(base, s)
+    at = [_unit_column(base, s, Payload(1.0, tuple((c0 + size * d).tolist()), link), m0, h0) for d in STENCIL]
+    coef = np.linalg.solve(_quadratic(STENCIL), np.stack([a.reshape(-1) for a in at]))
+    return link, c0, lambda c: _quadratic((np.asarray(c) - c0) / size) @ coef
+
+
 def _bare(system: RigidArm) -> RigidArm:
     """The arm without payload and armature and with unscaled friction: the fit's starting point."""
     return dataclasses.replace(system, payload=None, armature=(), friction_scale=1.0)
@@ -117,10 +149,8 @@ def regression(
     m0, h0, g0 = _interval_terms(base, s)
     rhs = (g0 if servo else s.u) - np.einsum("bij,bj->bi", m0, dv) / dt - h0  # what the fitted terms must make up
     cols: dict[str, np.ndarray] = {}
-    if "payload" in fit:
-        unit = dataclasses.replace(base, payload=dataclasses.replace(payload, mass=1.0))
-        m1, h1, _ = _interval_terms(unit, s)
-        cols["payload_mass"] = np.einsum("bij,bj->bi", m1 - m0, dv) / dt + h1 - h0
+    if "payload" in fit:  # where its place is searched, the search fills the column in
+        cols["payload_mass"] = np.zeros_like(dv) if "payload_pos" in fit else _unit_column(base, s, payload, m0, h0)
     per_joint = {
         "armature": dv / dt,
         "viscous": dq / dt,
@@ -149,22 +179,27 @@ def identify(
     name: str | None = None,
     max_samples: int | None = None,
     min_speed: float = 0.0,
+    place_range: float = 0.3,
     validation_periods: int = 1000,
     rk4_steps: int = 50,
     seed: int = 0,
 ) -> Fit:
     """Fit the named coefficients (of KEYS) to the logs; payload gives the mass's place (mass ignored; None: the
-    tip, as the MuJoCo robots' convention). A joint's equation counts only where its speed exceeds min_speed at
-    both ends of the interval: slower, a real arm's dry friction sticks and slips, which no smooth model follows."""
+    tip, as the MuJoCo robots' convention), with "payload_pos" where the search for it starts (within place_range
+    m per axis). A joint's equation counts only where its speed exceeds min_speed at both ends of the interval:
+    slower, a real arm's dry friction sticks and slips, which no smooth model follows."""
     unknown = [k for k in fit if k not in KEYS]
     if unknown:
         raise ValueError(f"fit {unknown}; expected some of {list(KEYS)}")
+    if "payload_pos" in fit and "payload" not in fit:
+        raise ValueError("fit.payload_pos=true needs fit.payload=true: the place is searched with the mass")
+    if "payload_pos" in fit and not (math.isfinite(place_range) and place_range > 0):
+        raise ValueError(f"payload.range={place_range!r}; expected a finite number > 0 (m)")
     friction = ("servo_gain", "coulomb") if system.actuation == "velocity_servo" else ("viscous", "coulomb")
-    fit = [k for k in fit if k in (*friction, "payload", "armature")]
+    allowed = (*friction, "payload", "payload_pos", "armature")
+    fit = [k for k in fit if k in allowed]
     if not fit:
-        raise ValueError(
-            f"nothing to fit for actuation {system.actuation}; expected some of {[*friction, 'payload', 'armature']}"
-        )
+        raise ValueError(f"nothing to fit for actuation {system.actuation}; expected some of {list(allowed)}")
     payload = payload or Payload(0.0)
     s = intervals(logs, max_samples, seed)
     a, b, names, joint = regression(system, s, fit, payload)
@@ -172,16 +207,47 @@ def identify(
     check_enough(int(used.sum()) // system.nq, 20 * len(names), f"the logs (joints above min_speed={min_speed})",
                  tau=system.tau, fine=logs[0].fine, t_max=system.tau / logs[0].fine)  # fmt: skip
     weight = used / _torque_scale(system)[joint]  # each joint's equation relative to its torque range
-    aw, bw = a * weight[:, None], b * weight
-    scale = np.maximum(np.sqrt((aw**2).mean(axis=0)), 1e-300)
-    sol = lsq_linear(aw / scale, bw, bounds=(0.0, np.inf), method="bvls", lsmr_tol="auto")
-    theta = sol.x / scale
+    if "payload_pos" in fit:
+        payload = _search_place(system, s, payload, a, b, weight, names.index("payload_mass"), place_range)
+    theta = _bounded_fit(a, b, weight)
     values = _values(system, names, theta, fit)
+    if "payload_pos" in fit:
+        values["payload_pos"] = list(payload.pos)
     fitted = fitted_system(system, values, payload, name)
     mask = used.reshape(-1, system.nq)
     res, res0 = ((a @ th - b).reshape(-1, system.nq) for th in (theta, _nominal_theta(system, names)))
     pred, pred0 = (one_period_rmse(m, logs, validation_periods, rk4_steps, seed) for m in (fitted, system))
     return Fit(fitted, values, list(fit), int(used.sum()), _rms(res, mask), _rms(res0, mask), pred, pred0)
+
+
+def _bounded_fit(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """theta >= 0 minimising |weight (a theta - b)|, each column scaled to unit size for the solver."""
+    aw = a * weight[:, None]
+    scale = np.maximum(np.sqrt((aw**2).mean(axis=0)), 1e-300)
+    return lsq_linear(aw / scale, b * weight, bounds=(0.0, np.inf), method="bvls", lsmr_tol="auto").x / scale
+
+
+def _search_place(
+    system: RigidArm,
+    s: Intervals,
+    payload: Payload,
+    a: np.ndarray,
+    b: np.ndarray,
+    weight: np.ndarray,
+    k: int,
+    size: float,
+) -> Payload:
+    """The point mass's place that explains the logs best (the rest refitted at each trial place); a's column k
+    (the payload's) is left at that place."""
+    link, c0, column = place_columns(system, s, payload, size)
+
+    def residual(c: np.ndarray) -> np.ndarray:
+        a[:, k] = column(c)
+        return (a @ _bounded_fit(a, b, weight) - b) * weight
+
+    found = least_squares(residual, c0, bounds=(c0 - size, c0 + size), x_scale=size, diff_step=1e-3)
+    a[:, k] = column(found.x)
+    return Payload(0.0, tuple(float(v) for v in found.x), link)
 
 
 def _nominal_theta(system: RigidArm, names: list[str]) -> np.ndarray:

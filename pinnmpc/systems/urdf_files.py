@@ -148,9 +148,11 @@ def _payload(name: str, value: Any) -> Payload | None:
     return Payload(float(mass), pos, value.get("link"))
 
 
-def payload_urdf(text: str, payload: Payload, tip_frame: str | None, joints: Sequence[str], scale: float = 1.0) -> str:
-    """URDF text with the payload as a fixed child link of zero inertia (mass / scale: the arm's mass_scale leaves
-    it unscaled), so adam and Pinocchio see one arm; its default link and pos are the MuJoCo robots' convention."""
+def payload_place(
+    text: str, payload: Payload, tip_frame: str | None, joints: Sequence[str]
+) -> tuple[str, tuple[float, ...]]:
+    """The payload's link and its position in that link's frame, the defaults resolved: the MuJoCo robots' convention
+    (the tip frame's origin, else the tip drawn: twice the last link's centre of mass)."""
     root = ET.fromstring(text)
     links = {link.get("name"): link for link in root.iter("link")}
     last = next(j for j in root.findall("joint") if j.get("name") == joints[-1]).find("child").get("link")
@@ -167,10 +169,18 @@ def payload_urdf(text: str, payload: Payload, tip_frame: str | None, joints: Seq
         origin = links[link].find("inertial/origin")
         xyz = [float(v) for v in (origin.get("xyz") or "0 0 0").split()] if origin is not None else [0.0] * 3
         pos = tuple(2.0 * v for v in xyz)
+    return link, tuple(float(v) for v in (pos or (0.0, 0.0, 0.0)))
+
+
+def payload_urdf(text: str, payload: Payload, tip_frame: str | None, joints: Sequence[str], scale: float = 1.0) -> str:
+    """URDF text with the payload as a fixed child link of zero inertia (mass / scale: the arm's mass_scale leaves
+    it unscaled), so adam and Pinocchio see one arm; its default link and pos are the MuJoCo robots' convention."""
+    link, pos = payload_place(text, payload, tip_frame, joints)
+    root = ET.fromstring(text)
     joint = ET.SubElement(root, "joint", {"name": "pinnmpc_payload_joint", "type": "fixed"})
     ET.SubElement(joint, "parent", {"link": link})
     ET.SubElement(joint, "child", {"link": "pinnmpc_payload"})
-    ET.SubElement(joint, "origin", {"xyz": " ".join(repr(float(v)) for v in (pos or (0.0, 0.0, 0.0))), "rpy": "0 0 0"})
+    ET.SubElement(joint, "origin", {"xyz": " ".join(repr(v) for v in pos), "rpy": "0 0 0"})
     inertial = ET.SubElement(ET.SubElement(root, "link", {"name": "pinnmpc_payload"}), "inertial")
     ET.SubElement(inertial, "origin", {"xyz": "0 0 0", "rpy": "0 0 0"})
     ET.SubElement(inertial, "mass", {"value": repr(payload.mass / scale)})
