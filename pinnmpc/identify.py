@@ -32,9 +32,10 @@ def _summary(m: dict[str, Any], run_dir: Path) -> str:
     )  # fmt: skip
     if "coulomb" in m["fitted"]:
         friction += f", coulomb {fmt(v['coulomb'])}"
+    place = f" at [{', '.join(f'{c:.4f}' for c in v['payload_pos'])}] m" if "payload_pos" in v else ""
     return (
         f"identified {m['system']} from {m['robot_time_s']:.0f} s of robot time in {m['wall_s']:.1f} s: payload "
-        f"{v['payload_mass']:.4g} kg, armature {fmt(v['armature'])}, {friction}; torque residual RMS "
+        f"{v['payload_mass']:.4g} kg{place}, armature {fmt(v['armature'])}, {friction}; torque residual RMS "
         f"{fmt(m['torque_rms'])} N m (nominal {fmt(m['nominal_torque_rms'])}); system in {m['out']}"
     )
 

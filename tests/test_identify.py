@@ -209,3 +209,20 @@ def test_identify_finds_where_a_payload_sits(tmp_path: Path) -> None:
     assert held.values["payload_mass"] < 0.8
     with pytest.raises(ValueError, match=r"fit.payload_pos=true needs fit.payload=true"):
         identify(nominal, [log], ["payload_pos"])
+
+
+def test_the_identify_command_reports_and_writes_the_place(known_log: Path, tmp_path: Path) -> None:
+    """`python -m pinnmpc.identify` names the payload's fitted place in its summary and writes it into the system
+    .yaml, which loads with the load where the robot carries it."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "system" / "known3.yaml"
+    args = ["system=planar3", f"logs=[{known_log}]", f"out={out}", "validation_periods=20", "rk4_steps=20",
+            "max_samples=3000", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
+    done = subprocess.run([sys.executable, "-m", "pinnmpc.identify", *args], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert " kg at [0.25" in done.stdout
+    loaded = load_system(out)
+    np.testing.assert_allclose(loaded.payload.pos, LAB["payload"]["pos"], atol=5e-3)
+    assert loaded.payload.link == "link3"
