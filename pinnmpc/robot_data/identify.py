@@ -120,13 +120,16 @@ def _quadratic(c: np.ndarray) -> np.ndarray:
     return np.stack([np.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, x * z, y * z], axis=-1)
 
 
-def place_columns(system: RigidArm, s: Intervals, payload: Payload, size: float) -> tuple[str, np.ndarray, Any]:
+def place_columns(
+    system: RigidArm, s: Intervals, payload: Payload, size: float, terms: tuple[np.ndarray, ...] | None = None
+) -> tuple[str, np.ndarray, Any]:
     """The payload's link, its start place (3,) and column(c): the unit-mass column (n * nq,) at any place c in that
-    link's frame, exact from the stencil of places around the start (size: the stencil's spacing, m)."""
+    link's frame, exact from the stencil of places around the start (size: the stencil's spacing, m); terms: the
+    bare arm's _interval_terms where already computed."""
     base = _bare(system)
     link, start = payload_place(base.model_urdf, payload, system.tip_frame, system.joints)
     c0 = np.asarray(start)
-    m0, h0, _ = _interval_terms(base, s)
+    m0, h0, _ = terms or _interval_terms(base, s)
     at = [_unit_column(base, s, Payload(1.0, tuple((c0 + size * d).tolist()), link), m0, h0) for d in STENCIL]
     coef = np.linalg.solve(_quadratic(STENCIL), np.stack([a.reshape(-1) for a in at]))
     return link, c0, lambda c: _quadratic((np.asarray(c) - c0) / size) @ coef
@@ -138,7 +141,7 @@ def _bare(system: RigidArm) -> RigidArm:
 
 
 def regression(
-    system: RigidArm, s: Intervals, fit: Sequence[str], payload: Payload
+    system: RigidArm, s: Intervals, fit: Sequence[str], payload: Payload, terms: tuple[np.ndarray, ...] | None = None
 ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
     """A theta = b, the equation integrated over each interval and divided by its length (torque units) for the
     coefficients named in fit (rows: interval-major, joint-minor), the column names and each row's joint;
@@ -146,7 +149,7 @@ def regression(
     base = _bare(system)
     n, servo = system.nq, system.actuation == "velocity_servo"
     dq, dv, dt = s.q[:, 1] - s.q[:, 0], s.v[:, 1] - s.v[:, 0], s.dt[:, None]
-    m0, h0, g0 = _interval_terms(base, s)
+    m0, h0, g0 = terms or _interval_terms(base, s)
     rhs = (g0 if servo else s.u) - np.einsum("bij,bj->bi", m0, dv) / dt - h0  # what the fitted terms must make up
     cols: dict[str, np.ndarray] = {}
     if "payload" in fit:  # where its place is searched, the search fills the column in
@@ -202,13 +205,15 @@ def identify(
         raise ValueError(f"nothing to fit for actuation {system.actuation}; expected some of {list(allowed)}")
     payload = payload or Payload(0.0)
     s = intervals(logs, max_samples, seed)
-    a, b, names, joint = regression(system, s, fit, payload)
+    terms = _interval_terms(_bare(system), s)  # M, h, g of the bare arm: the regression's and the place search's
+    a, b, names, joint = regression(system, s, fit, payload, terms)
     used = (np.abs(s.v).min(axis=1) > min_speed).reshape(-1)
     check_enough(int(used.sum()) // system.nq, 20 * len(names), f"the logs (joints above min_speed={min_speed})",
                  tau=system.tau, fine=logs[0].fine, t_max=system.tau / logs[0].fine)  # fmt: skip
     weight = used / _torque_scale(system)[joint]  # each joint's equation relative to its torque range
     if "payload_pos" in fit:
-        payload = _search_place(system, s, payload, a, b, weight, names.index("payload_mass"), place_range)
+        k = names.index("payload_mass")
+        payload = _search_place(place_columns(system, s, payload, place_range, terms), a, b, weight, k, place_range)
     theta = _bounded_fit(a, b, weight)
     values = _values(system, names, theta, fit)
     if "payload_pos" in fit:
@@ -228,18 +233,11 @@ def _bounded_fit(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> np.ndarray
 
 
 def _search_place(
-    system: RigidArm,
-    s: Intervals,
-    payload: Payload,
-    a: np.ndarray,
-    b: np.ndarray,
-    weight: np.ndarray,
-    k: int,
-    size: float,
+    columns: tuple[str, np.ndarray, Any], a: np.ndarray, b: np.ndarray, weight: np.ndarray, k: int, size: float
 ) -> Payload:
-    """The point mass's place that explains the logs best (the rest refitted at each trial place); a's column k
-    (the payload's) is left at that place."""
-    link, c0, column = place_columns(system, s, payload, size)
+    """The point mass's place (within size per axis of the start) that explains the logs best, the rest refitted at
+    each trial place (columns: place_columns'); a's column k (the payload's) is left at that place."""
+    link, c0, column = columns
 
     def residual(c: np.ndarray) -> np.ndarray:
         a[:, k] = column(c)
