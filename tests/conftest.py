@@ -71,3 +71,17 @@ TINY_TRAIN = [  # a real training run of a few seconds: tiny network, few points
     "trainer.enable_model_summary=false",
     "threads=1",
 ]
+
+
+def central_jacobian(
+    flow: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], x0: torch.Tensor, u: torch.Tensor, eps: float = 1e-6
+) -> torch.Tensor:
+    """d flow(x0, u) / d(x0, u) (B, nx, nx + nu) by central differences: the reference an exact Jacobian is held to."""
+    z, nx = torch.cat((x0, u), -1), x0.shape[-1]
+    cols = []
+    for k in range(z.shape[-1]):
+        d = torch.zeros(z.shape[-1], dtype=z.dtype)
+        d[k] = eps
+        up, down = (flow((z + s * d)[:, :nx].clone(), (z + s * d)[:, nx:].clone()) for s in (1, -1))
+        cols.append((up - down) / (2 * eps))
+    return torch.stack(cols, -1)

@@ -180,7 +180,8 @@ def test_the_physics_residual_of_an_identified_model(make_cfg, tmp_path, lab_log
 
 def test_a_servos_identified_friction_enters_the_prior_smoothed(tmp_path):
     """physics_model: a servo model's dry friction goes to the frozen-arm prior at physics_prior_slope (0: not at all;
-    recorded in the meta), the residual's model keeps its own; a torque arm's prior (no friction) is left alone."""
+    recorded in the meta), the residual's model keeps its own; a torque arm's too (its frozen_arm prior leaves the
+    friction out, frozen_arm_friction integrates it), its required coulomb zeroed at 0."""
     cfg = {"dynamics": OmegaConf.to_container(system_config("panda").dynamics, resolve=True)}
     cfg["dynamics"].update(
         name="panda_fit", joint_prefix="panda_", coulomb=[3.0, 2.8, 1.5, 1.0, 0.1, 0.1, 0.02], coulomb_slope=50.0
@@ -196,7 +197,9 @@ def test_a_servos_identified_friction_enters_the_prior_smoothed(tmp_path):
     assert model.coulomb and "coulomb" not in arm and record["prior_coulomb_slope"] == 0.0
     assert physics_model(str(path), panda)[1].get("prior_coulomb_slope") is None
     planar = _fitted_planar3(tmp_path / "planar3_fit.yaml")
-    assert "prior_coulomb_slope" not in physics_model(str(planar), load_system("planar3"), 3.0)[1]
+    model, record, arm = physics_model(str(planar), load_system("planar3"), 3.0)
+    assert model.coulomb_slope == 50.0 and arm["coulomb_slope"] == 3.0 and record["prior_coulomb_slope"] == 3.0
+    assert physics_model(str(planar), load_system("planar3"), 0.0)[2]["coulomb"] == [0.0, 0.0, 0.0]
 
 
 def test_anchors_with_logs_need_an_identified_model(make_cfg, tmp_path, lab_log):

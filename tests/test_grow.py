@@ -112,6 +112,29 @@ def test_init_from_a_network_without_the_configured_prior_is_refused(make_cfg):
         build_model(cfg, load_system("planar3"))
 
 
+def test_init_from_a_frozen_arm_network_may_move_its_friction_into_the_prior(make_cfg):
+    """frozen_arm to frozen_arm_friction: the weights stay, the prior under them changes (nominal planar3's Coulomb
+    friction now integrated at the moving velocity)."""
+    overrides = [
+        f"init_from={shipped('planar3')}",
+        "system.network.prior=frozen_arm_friction",
+        "model.hidden=[64,64,64,64]",
+    ]
+    cfg = make_cfg("train", ["system=planar3", *TINY_TRAIN, *overrides])
+    model = build_model(cfg, load_system("planar3"))
+    base = load_surrogate(system="planar3").model
+    assert model.config["prior"]["kind"] == "frozen_arm_friction" and model.prior.steps > 0
+    assert all(torch.equal(a, b) for a, b in zip(model.net.parameters(), base.net.parameters()))
+    arm, g = load_system("planar3"), torch.Generator().manual_seed(3)
+    (low, high), (ulow, uhigh) = arm.state_box.tensors(), arm.input_box.tensors()
+    x0 = low + (high - low) * torch.rand(50, 6, generator=g, dtype=torch.float64)
+    u = ulow + (uhigh - ulow) * torch.rand(50, 3, generator=g, dtype=torch.float64)
+    t = torch.full((50, 1), arm.tau, dtype=torch.float64)
+    dtype = model.out_scale.dtype
+    moved = (model(t.to(dtype), x0.to(dtype), u.to(dtype)) - base(t.to(dtype), x0.to(dtype), u.to(dtype))).abs().max()
+    assert 1e-4 < float(moved) < 0.1  # the same correction on another prior
+
+
 def _planar3_net() -> PINN:
     """A planar3 network with periodic angles, gates and no angle sums (seeded weights: any outputs will do)."""
     arm = load_system("planar3")

@@ -20,7 +20,7 @@ from pinnmpc.training.data import CollocationDataModule, reference_flow
 from pinnmpc.training.module import PINNModule
 from pinnmpc.training.run import train
 from pinnmpc.util.settings import SettingError
-from tests.conftest import TINY_TRAIN
+from tests.conftest import TINY_TRAIN, central_jacobian
 
 TAU = 0.1
 
@@ -115,12 +115,8 @@ def test_the_compiled_prior_and_its_jacobian_match_torch_and_finite_differences(
     np.testing.assert_allclose(xn, x.numpy(), atol=1e-12)
     np.testing.assert_allclose(prior(t, x0.clone(), u.clone())[0].numpy(), x.numpy(), atol=1e-12)  # M in C, no graph
     np.testing.assert_allclose(jn.reshape(jac.shape), jac.numpy(), atol=1e-11)
-    z, eps = torch.cat((x0, u), -1), 1e-6
-    for k in range(9):
-        d = torch.zeros(9, dtype=torch.float64)
-        d[k] = eps
-        up, down = (prior(t, (z + s * d)[:, :6].clone(), (z + s * d)[:, 6:].clone())[0] for s in (1, -1))
-        np.testing.assert_allclose(jac[:, :, k].numpy(), ((up - down) / (2 * eps)).numpy(), atol=1e-7)
+    numeric = central_jacobian(lambda a, b: prior(t, a, b)[0], x0, u)
+    np.testing.assert_allclose(jac.numpy(), numeric.numpy(), atol=1e-7)
 
 
 def test_the_eigen_jacobian_agrees_with_ad_through_the_series(prior, points) -> None:
@@ -146,12 +142,8 @@ def test_a_seven_joint_arm_takes_the_eigen_path_and_it_matches_finite_difference
     xn, jn = fast.with_jacobian(x0.numpy(), u.numpy())
     np.testing.assert_allclose(fast.value(x0.numpy(), u.numpy())[0], xn, atol=1e-12)
     t = torch.full((3, 1), tau, dtype=torch.float64)
-    z, eps = torch.cat((x0, u), -1), 1e-6
-    for k in range(3 * n):
-        d = torch.zeros(3 * n, dtype=torch.float64)
-        d[k] = eps
-        up, down = (panda(t, (z + s * d)[:, : 2 * n].clone(), (z + s * d)[:, 2 * n :].clone())[0] for s in (1, -1))
-        np.testing.assert_allclose(jn.reshape(3, 2 * n, 3 * n)[:, :, k], ((up - down) / (2 * eps)).numpy(), atol=1e-6)
+    numeric = central_jacobian(lambda a, b: panda(t, a, b)[0], x0, u)
+    np.testing.assert_allclose(jn.reshape(3, 2 * n, 3 * n), numeric.numpy(), atol=1e-6)
 
 
 def test_divided_differences_at_a_double_eigenvalue_are_the_derivative() -> None:
@@ -225,7 +217,8 @@ def test_the_prior_is_refused_where_it_cannot_work(make_cfg, tmp_path) -> None:
     coarse = ["system=planar3", *TINY_TRAIN, "model.auto_scale.h=1e-2"]
     with pytest.raises(ValueError, match="model.auto_scale.h=0.01: RK4 at this step diverges on planar3's flow"):
         train(make_cfg("train", coarse), tmp_path)
-    with pytest.raises(SettingError, match="model.prior='frozen': expected one of frozen_arm or null"):
+    said = "model.prior=.frozen.: expected one of frozen_arm, frozen_arm_friction or null"
+    with pytest.raises(SettingError, match=said):
         run_capacity(make_cfg("capacity", ["system=planar3", "system.network.prior=frozen"]), tmp_path / "c")
 
 

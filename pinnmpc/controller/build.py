@@ -60,9 +60,10 @@ def real_time_default(surrogate: Surrogate) -> bool:
     """controller.solvers.lifted_gauss_newton.rti=null: the real-time iteration (one lifted step per sample) for a
     network trained on the model alone, whose flow is smooth: it tracks within 1.1x of the converged solve at a
     fraction of its time (docs/results.md), and for one fine-tuned on robot logs against an identified model's
-    residual and anchors (`physics` in its meta), which keep its flow as smooth; the converged solve for a network
-    fine-tuned on the logs alone (`robot_logs` in its meta), whose learnt dry friction one step per sample does not
-    follow, and for any other flow map (a true model given as the model)."""
+    residual and anchors (`physics` in its meta), which keep its flow near that smooth (with the friction in its
+    prior the converged solve tracks closer still, at a multiple of the time: rti=false is the user's choice); the
+    converged solve for a network fine-tuned on the logs alone (`robot_logs` in its meta), whose learnt dry friction
+    one step per sample does not follow, and for any other flow map (a true model given as the model)."""
     meta = getattr(surrogate, "meta", None)
     return isinstance(meta, dict) and (not meta.get("robot_logs") or bool(meta.get("physics")))
 

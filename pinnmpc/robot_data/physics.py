@@ -57,13 +57,16 @@ def physics_model(
     record = {"file": str(file), "name": model.name, "coefficients": fitted}
     record.update({k: v for k, v in origin.items() if k != "system"})
     description = dict(config["dynamics"])
-    if prior_slope is not None and getattr(model, "actuation", None) == "velocity_servo" and model.coulomb:
-        # a servo's friction enters its frozen-arm prior (RigidArm.frozen_terms): smoother there than in the model,
-        # or (0) not at all, the network learning it from the logs
+    servo = getattr(model, "actuation", None) == "velocity_servo"
+    if prior_slope is not None and getattr(model, "coulomb", None) and any(model.coulomb):
+        # dry friction in a frozen-arm prior (a servo's settled, any arm's with frozen_arm_friction): smoother there
+        # than in the model, or (0) not at all, the network learning it from the logs
         if prior_slope > 0:
             description["coulomb_slope"] = float(prior_slope)
-        else:
+        elif servo:
             description.pop("coulomb")
+        else:  # a torque arm's coulomb is required: zeros
+            description["coulomb"] = [0.0] * len(model.coulomb)
         record["prior_coulomb_slope"] = float(prior_slope)
     if getattr(model, "urdf", None):  # the file the arm was built from, found wherever the network is loaded
         description["urdf"] = portable_urdf(model.urdf)

@@ -17,7 +17,7 @@ from pinnmpc.surrogate import mlp
 from pinnmpc.surrogate.activations import Ops
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.surrogate.network import PINN
-from pinnmpc.surrogate.prior import TAYLOR_DEGREE, FrozenArmPrior
+from pinnmpc.surrogate.prior import TAYLOR_DEGREE, FrozenArmPrior, friction_substeps
 
 SOFTPLUS_THRESHOLD = 20.0  # torch's softplus returns its input above this, and so does the export
 
@@ -77,14 +77,20 @@ def _relaxation(n: int, kv: np.ndarray) -> ca.Function:
 def prior_function(prior: FrozenArmPrior, tau: float) -> ca.Function:
     """x_p(tau) of the frozen-arm prior as a function (x0, u) -> x_p: FrozenArmPrior.compiled's formula with M^-1 kv
     by Cholesky and E - I from _expm1, as matrix operations (MX), so that its Jacobian and C stay compact."""
-    n, s, kv = prior.nq, prior.squarings(tau), prior.kv.numpy()
+    n, kv = prior.nq, prior.kv.numpy()
+    h = tau / max(1, prior.steps)  # sub-steps with moving friction (FrozenArmPrior.steps)
+    s = prior.squarings(h)
     x, u = ca.MX.sym("x", 2 * n), ca.MX.sym("u", n)
     q0, v0 = x[:n], x[n:]
-    m, c0 = prior.arm.casadi_frozen_terms()(q0, u)
+    m, c0 = prior.arm.casadi_frozen_terms(settled=not prior.steps)(q0, u)
     vss = c0 / ca.DM(kv)
-    e_minus_i = _expm1(-_relaxation(n, kv)(m) * (tau / 2**s), s)
+    e_minus_i = _expm1(-_relaxation(n, kv)(m) * (h / 2**s), s)
     d = v0 - vss
     lag = -ca.mtimes(ca.DM(np.diag(1 / kv)), ca.mtimes(m, e_minus_i))  # kv^-1 M (I - E)
+    if prior.steps:
+        relax = lambda d: (ca.mtimes(lag, d), d + ca.mtimes(e_minus_i, d))  # noqa: E731
+        substeps = friction_substeps((q0, v0), vss, prior.arm.dry_friction, ca.DM(kv), h, relax, prior.steps)
+        return ca.Function(f"{prior.arm.name}_frozen_prior", [x, u], [ca.vertcat(*substeps)])
     xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), v0 + ca.mtimes(e_minus_i, d))  # vss + E d = v0 + (E - I) d
     return ca.Function(f"{prior.arm.name}_frozen_prior", [x, u], [xp])
 

@@ -217,7 +217,7 @@ class PINN(nn.Module):
         n_trig = len(periodic) + 2 * len(angle_sums)  # cosines of the periodic states, then sin and cos of the sums
         self.net = TangentMLP(n_lin + n_trig, self.n_head * self.n_gates, hidden, activation)
         # no parameters, no state; the arm from its description (older networks: by its system name)
-        self.prior = None if prior is None else FrozenArmPrior(prior.get("dynamics") or prior["system"])
+        self.prior = None if prior is None else FrozenArmPrior(prior.get("dynamics") or prior["system"], prior["kind"])
 
     @property
     def sum_columns(self) -> tuple[slice, slice]:

@@ -8,7 +8,9 @@ the arm is the linear system M(q0) dv/dt = c0 - kv v, dq/dt = v (kv diagonal), w
     E(t) = exp(-A t),   A = M^-1 kv,   v_ss = kv^-1 c0.
 
 A network that learns only what this misses (configuration change, Coriolis, Coulomb friction) fits the flow
-several times closer on the same budget (docs/training.md). No parameters: torch for training (memoised, since
+several times closer on the same budget (docs/training.md). Kind `frozen_arm_friction` adds the arm's dry friction
+at the moving velocity: two sub-steps, each the same exact solve with the friction held at a predicted mean velocity
+(friction_substeps); an arm without dry friction gets the plain flow. No parameters: torch for training (memoised, since
 full-batch training evaluates it on the same points every step) and CasADi compiled to C, with its exact Jacobian
 (by AD, or by eigendecomposition on larger arms: pinnmpc.surrogate.prior_eigen), for the controller's numpy path.
 """
@@ -26,7 +28,10 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor, nn
 
-KINDS = ("frozen_arm",)  # model.prior values besides null
+KINDS = ("frozen_arm", "frozen_arm_friction")  # model.prior values besides null: the arm's dry friction settled in
+#   c0, or held per sub-step at the moving velocity (friction_substeps); arms without dry friction: the same flow
+FRICTION_STEPS = 2  # exponential Heun sub-steps of frozen_arm_friction over a period: the predicted end velocity's
+#   friction, averaged with the start's, per sub-step (docs/training.md)
 TAYLOR_DEGREE = 12  # terms of exp(X / 2^s) before squaring; with |X / 2^s| <= 1/2 the remainder is ~1e-14
 SQUARING_NORM = 0.5  # the largest 1-norm of X / 2^s the Taylor series is trusted at
 MEMO_SIZE = 8  # input sets kept, least recently used out first (collocation, anchors, validation, and the data
@@ -49,11 +54,32 @@ class CompiledPrior:
     with_jacobian: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]  # -> [x_p, J (B, nx (nx + nu)) row-major]
 
 
+def friction_substeps(
+    x0: tuple[Any, Any], vss: Any, friction: Callable[[Any], Any], kv: Any, h: Any, relax: Callable, steps: int
+) -> tuple[Any, Any]:
+    """(q, v) after `steps` sub-steps of h of the arm frozen at q0 with its dry friction at the moving velocity: per
+    sub-step the friction is held at the mean of the start velocity and a predicted end velocity (exponential Heun),
+    the linear rest solved exactly; relax(d) -> (kv^-1 M (I - E(h)) d, E(h) d); any array namespace. x0 = (q0, v0),
+    vss = c0 / kv of the drive without the friction."""
+    q, v = x0
+
+    def sub(q: Any, v: Any, w: Any) -> tuple[Any, Any]:
+        """One exact step of M dv/dt = c0 - friction(w) - kv v."""
+        ss = vss - friction(w) / kv
+        lag_d, e_d = relax(v - ss)
+        return q + ss * h + lag_d, ss + e_d
+
+    for _ in range(steps):
+        predicted = sub(q, v, v)[1]
+        q, v = sub(q, v, 0.5 * (v + predicted))
+    return q, v
+
+
 class FrozenArmPrior(nn.Module):
     """x_p(t) of the arm frozen at q0 (see the module docstring) for a URDF arm: a System, its `dynamics`
-    description (what a network's config stores) or the name of a shipped system."""
+    description (what a network's config stores) or the name of a shipped system; kind: one of KINDS."""
 
-    def __init__(self, system: Any) -> None:
+    def __init__(self, system: Any, kind: str = "frozen_arm") -> None:
         super().__init__()
         from pinnmpc.systems import RigidArm, build_system, load_system
 
@@ -72,7 +98,10 @@ class FrozenArmPrior(nn.Module):
                 f"model.prior='frozen_arm' needs a positive viscous coefficient or servo gain on every joint; "
                 f"{system} has {list(arm.linear_gain)}: set system.network.prior=null"
             )
-        self.arm, self.nq = arm, arm.nq
+        check_prior(kind)
+        self.arm, self.nq, self.kind = arm, arm.nq, kind
+        moving = kind == "frozen_arm_friction" and bool(getattr(arm, "coulomb", None)) and any(arm.coulomb)
+        self.steps = FRICTION_STEPS if moving else 0  # sub-steps with moving friction; 0: one exact solve
         self.kv = torch.tensor(arm.linear_gain, dtype=torch.float64)  # float64 whatever the network's dtype
         self._memo: dict[tuple[Any, ...], tuple[tuple[Tensor, ...], Tensor, Tensor]] = {}
         self._compiled: dict[float, CompiledPrior] = {}  # per tau: every numpy flow of this network shares one
@@ -87,7 +116,7 @@ class FrozenArmPrior(nn.Module):
         same adam model's CasADi form compiled to C (adam's per-call cost in torch dominates small batches, such as
         a surrogate stepping one state)."""
         if q.requires_grad or u.requires_grad:  # adam's model lives on the CPU; the copies are differentiable
-            m, c0 = (a.to(q.device) for a in self.arm.frozen_terms(q.cpu(), u.cpu()))
+            m, c0 = (a.to(q.device) for a in self.arm.frozen_terms(q.cpu(), u.cpu(), settled=not self.steps))
         else:
             rows = self._compiled_terms()(q.cpu().numpy(), u.cpu().numpy())
             m, c0 = (torch.from_numpy(a).to(q.device) for a in rows)
@@ -102,8 +131,8 @@ class FrozenArmPrior(nn.Module):
             from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
             q, u = ca.SX.sym("q", self.nq), ca.SX.sym("u", self.nq)
-            m, c0 = self.arm.casadi_frozen_terms()(q, u)
-            name = f"{self.arm.name}_frozen_terms_value"
+            m, c0 = self.arm.casadi_frozen_terms(settled=not self.steps)(q, u)
+            name = f"{self.arm.name}_frozen_terms_value{'_moving' if self.steps else ''}"
             f = ca.Function(name, [q, u], [ca.densify(ca.vec(m)), c0], {"cse": True})
             self._terms_c = BatchedFunction(compile_functions(name, [f], opt="-O2")[name])
         return self._terms_c
@@ -113,11 +142,33 @@ class FrozenArmPrior(nn.Module):
         n = self.nq
         q0, v0 = x0[:, :n], x0[:, n:]
         m, a, vss = self._terms(q0, u)
+        if self.steps:
+            return self._solve_moving(t, (q0, v0), m, a, vss)
         e = torch.linalg.matrix_exp(-a * t.unsqueeze(-1))
         d = (v0 - vss).unsqueeze(-1)
         v = vss + (e @ d).squeeze(-1)
         q = q0 + vss * t + (m @ (d - e @ d)).squeeze(-1) / self.kv.to(q0.device)
         return torch.cat((q, v), -1), torch.cat((v, -(a @ (v - vss).unsqueeze(-1)).squeeze(-1)), -1)
+
+    def _solve_moving(
+        self, t: Tensor, x0: tuple[Tensor, Tensor], m: Tensor, a: Tensor, vss: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """x_p(t) with the friction at the moving velocity (friction_substeps), and dx_p/dt by forward-mode AD."""
+        kv = self.kv.to(vss.device)
+
+        def flow(t: Tensor) -> Tensor:
+            """x_p at t (B, 1)."""
+            h = t / self.steps
+            e = torch.linalg.matrix_exp(-a * h.unsqueeze(-1))
+
+            def relax(d: Tensor) -> tuple[Tensor, Tensor]:
+                """kv^-1 M (I - E) d and E d."""
+                ed = (e @ d.unsqueeze(-1)).squeeze(-1)
+                return (m @ (d - ed).unsqueeze(-1)).squeeze(-1) / kv, ed
+
+            return torch.cat(friction_substeps(x0, vss, self.arm.dry_friction, kv, h, relax, self.steps), -1)
+
+        return torch.func.jvp(flow, (t,), (torch.ones_like(t),))
 
     def forward(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """x_p(t) and dx_p/dt for t (..., 1), x0 (..., nx), u (..., nu), in x0's dtype; x_p(0) = x0."""
@@ -164,22 +215,33 @@ class FrozenArmPrior(nn.Module):
             return self._compiled[tau]
         from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
-        n, s, kv = self.nq, self.squarings(tau), ca.DM(self.kv.numpy())
+        n, h, kv = self.nq, tau / max(1, self.steps), ca.DM(self.kv.numpy())
+        s = self.squarings(h)
         x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
         q0, v0 = x[:n], x[n:]
-        m, c0 = self.arm.casadi_frozen_terms()(q0, u)
+        m, c0 = self.arm.casadi_frozen_terms(settled=not self.steps)(q0, u)
         vss = c0 / kv
-        e = _expm(-ca.solve(m, ca.diag(kv)) * (tau / 2**s), s)
+        e = _expm(-ca.solve(m, ca.diag(kv)) * (h / 2**s), s)
         d = v0 - vss
         lag = ca.mtimes(ca.diag(1 / kv), ca.mtimes(m, ca.SX.eye(n) - e))  # kv^-1 M (I - E): dq(tau)/dv0
-        xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d))
-        tag = f"{self.arm.name}_frozen_prior"
+        if self.steps:
+            relax = lambda d: (ca.mtimes(lag, d), ca.mtimes(e, d))  # noqa: E731
+            xp = ca.vertcat(*friction_substeps((q0, v0), vss, self.arm.dry_friction, kv, h, relax, self.steps))
+        else:
+            xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d))
+        tag = f"{self.arm.name}_frozen_prior{'_moving' if self.steps else ''}"
         value = ca.Function(f"{tag}_value", [x, u], [xp], {"cse": True})
         if n >= EIGEN_FROM_JOINTS:
             from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
 
             lib = compile_functions(tag, [value], opt="-O2")
-            fast = CompiledPrior(BatchedFunction(lib[value.name()]), EigenPriorJacobian(self.arm, tau, self.kv.numpy()))
+            jacobian = EigenPriorJacobian(self.arm, tau, self.kv.numpy(), self.steps)
+            fast = CompiledPrior(BatchedFunction(lib[value.name()]), jacobian)
+        elif self.steps:  # friction couples v0 and u into the sub-steps: AD along every input
+            jac = ca.jacobian(xp, ca.vertcat(x, u))
+            full = ca.Function(tag, [x, u], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})
+            lib = compile_functions(tag, [value, full], opt="-O2")
+            fast = CompiledPrior(BatchedFunction(lib[value.name()]), BatchedFunction(lib[full.name()]))
         else:
             # x_p is linear in (v0, v_ss) given q0: those columns are E's blocks; AD only along q0, through M and E
             by_v0 = ca.vertcat(lag, e)

@@ -46,27 +46,28 @@ class EigenPriorJacobian:
     """x_p(tau) and its Jacobian d x_p / d(x0, u) (B, nx (nx + nu), row-major) for numpy rows x0 (B, nx), u (B, nu):
     S by one compiled function, its eigendecomposition by numpy, the rest by a second compiled function."""
 
-    def __init__(self, arm: RigidArm, tau: float, kv: np.ndarray) -> None:
+    def __init__(self, arm: RigidArm, tau: float, kv: np.ndarray, steps: int = 0) -> None:
         from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
         n = self.n = arm.nq
+        span = tau / max(1, steps)  # one solve over tau, or sub-steps with moving friction (FrozenArmPrior.steps)
         kh = ca.DM(np.sqrt(kv))
         q, u, lam, vt = ca.SX.sym("q", n), ca.SX.sym("u", n), ca.SX.sym("lam", n), ca.SX.sym("v", n * n)
         x0 = ca.SX.sym("x", 2 * n)
-        frozen = arm.casadi_frozen_terms()  # (q, u) -> (M, c0), built once, called at q and at q0 below
+        frozen = arm.casadi_frozen_terms(settled=not steps)  # (q, u) -> (M, c0), built once, called at q and q0
         m = frozen(q, u)[0]
         s_of_q = ca.mtimes(ca.diag(kh), ca.solve(m, ca.diag(kh)))  # S = Kh M^-1 Kh
-        tag = f"{arm.name}_frozen_eigen"
+        tag = f"{arm.name}_frozen_eigen{'_moving' if steps else ''}"
         spd = ca.Function(f"{tag}_s", [q], [ca.densify(ca.vec(s_of_q))], {"cse": True})
         # the rest at q = q0: V from its row-major rows (CasADi reshapes column-major, so those read as V^T)
         q0, v0 = x0[:n], x0[n:]
         m, c0 = frozen(q0, u)
         vss = c0 / ca.DM(kv)
         vec = ca.reshape(vt, n, n).T
-        em = [ca.expm1(-lam[a] * tau) for a in range(n)]
+        em = [ca.expm1(-lam[a] * span) for a in range(n)]
         f0, f1 = [e + 1 for e in em], [-e / lam[a] for a, e in enumerate(em)]
-        df0 = [-tau * (e + 1) for e in em]
-        df1 = [(lam[a] * tau * (e + 1) + e) / lam[a] ** 2 for a, e in enumerate(em)]
+        df0 = [-span * (e + 1) for e in em]
+        df1 = [(lam[a] * span * (e + 1) + e) / lam[a] ** 2 for a, e in enumerate(em)]
         left, right = ca.mtimes(ca.diag(1 / kh), vec), ca.mtimes(vec.T, ca.diag(kh))  # Kh^-1 V and V^T Kh
         e = ca.mtimes(ca.mtimes(left, ca.diag(ca.vertcat(*f0))), right)  # E
         lag = ca.mtimes(ca.mtimes(left, ca.diag(ca.vertcat(*f1))), right)  # kv^-1 M (I - E)
@@ -75,6 +76,12 @@ class EigenPriorJacobian:
         p = ca.solve(m, right.T).T  # V^T Kh M^-1, so V^T dS_j V = -p dM_j p^T
         lams = [lam[a] for a in range(n)]
         big0, big1 = divided_differences(lams, f0, df0), divided_differences(lams, f1, df1)
+        if steps:
+            xp, jac = _moving(arm, (x0, u), (vss, e, lag), (left, right, p, big0, big1), (span, steps), m)
+            rest = ca.Function(tag, [x0, u, lam, vt], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})
+            lib = compile_functions(tag, [spd, rest], opt="-O2")
+            self.spd, self.rest = BatchedFunction(lib[spd.name()]), BatchedFunction(lib[rest.name()])
+            return
         cols0, cols1 = [], []
         for j in range(n):
             t = ca.mtimes(ca.mtimes(p, _dm(m, q0, j)), p.T)
@@ -95,6 +102,31 @@ class EigenPriorJacobian:
         s = self.spd(x0[:, :n])[0].reshape(-1, n, n)  # symmetric: its column-major vec reads back as S
         lam, vec = np.linalg.eigh(s)
         return self.rest(x0, u, lam, vec.reshape(-1, n * n))
+
+
+def _moving(arm: RigidArm, inputs: tuple, solve: tuple, eigen: tuple, steps: tuple, m: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """x_p and its Jacobian for the friction sub-steps (pinnmpc.surrogate.prior.friction_substeps): AD through the
+    sub-steps with E(h) and kv^-1 M (I - E(h)) held as symbols, then their derivatives along q0 (Daleckii-Krein)
+    chained in. inputs (x0, u); solve (v_ss, E, lag); eigen (Kh^-1 V, V^T Kh, V^T Kh M^-1, F0, F1); steps (h, count)."""
+    from pinnmpc.surrogate.prior import friction_substeps
+
+    (x0, u), (vss, e, lag), (left, right, p, big0, big1), (h, count) = inputs, solve, eigen, steps
+    n = arm.nq
+    es, ls = ca.SX.sym("e", n, n), ca.SX.sym("l", n, n)
+    relax = lambda d: (ca.mtimes(ls, d), ca.mtimes(es, d))  # noqa: E731
+    kv = ca.DM(arm.linear_gain)
+    xs = ca.vertcat(*friction_substeps((x0[:n], x0[n:]), vss, arm.dry_friction, kv, h, relax, count))
+    turns = []  # d(E, lag)/dq0_j, stacked as (vec E, vec lag)
+    for j in range(n):
+        t = ca.mtimes(ca.mtimes(p, _dm(m, x0[:n], j)), p.T)
+        de = -ca.mtimes(left, ca.mtimes(big0 * t, right))
+        dl = -ca.mtimes(left, ca.mtimes(big1 * t, right))
+        turns.append(ca.vertcat(ca.vec(de), ca.vec(dl)))
+    held = ca.vertcat(ca.vec(es), ca.vec(ls))
+    by_q = ca.jtimes(xs, held, ca.horzcat(*turns))  # forward mode along each q0_j: no (nx, 2 n^2) Jacobian
+    jac = ca.jacobian(xs, ca.vertcat(x0, u)) + ca.horzcat(by_q, ca.SX(2 * n, 2 * n))
+    out = ca.substitute([xs, jac], [es, ls], [e, lag])
+    return out[0], out[1]
 
 
 def _dm(m: ca.SX, q: ca.SX, j: int) -> ca.SX:

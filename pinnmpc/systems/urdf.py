@@ -180,14 +180,20 @@ class RigidArm:
     # -- the one hand-written law ---------------------------------------------------------------------------
     def actuation_torque(self, v: Any, u: Any) -> Any:
         """Joint torque from the input, apart from gravity compensation (any array namespace)."""
-        xp, f = _xp(v), self.friction_scale
+        f = self.friction_scale
         if self.actuation == "torque":
-            d, c = self._coeffs("viscous", v), self._coeffs("coulomb", v)
-            return u - f * (d * v + c * xp.tanh(self.coulomb_slope * v))
+            return u - f * (self._coeffs("viscous", v) * v + self._coeffs("coulomb", v) * self._slip(v))
         out = f * self._coeffs("servo_gain", v) * (u - v)
-        if self.coulomb:
-            out = out - f * self._coeffs("coulomb", v) * xp.tanh(self.coulomb_slope * v)
-        return out
+        return out - self.dry_friction(v) if self.coulomb else out
+
+    def dry_friction(self, v: Any) -> Any:
+        """The joints' dry friction torque at velocity v, as the actuation law applies it (any array namespace; zero
+        for an arm without `coulomb`): what a frozen-arm prior with moving friction integrates."""
+        return self.friction_scale * self._coeffs("coulomb", v) * self._slip(v) if self.coulomb else 0 * v
+
+    def _slip(self, v: Any) -> Any:
+        """tanh(slope v): the dry friction's direction, smoothed."""
+        return _xp(v).tanh(self.coulomb_slope * v)
 
     def _coeffs(self, key: str, like: Any) -> Any:
         """Per-joint coefficients in like's array type."""
@@ -254,30 +260,32 @@ class RigidArm:
         gain = self.viscous if self.actuation == "torque" else self.servo_gain
         return tuple(self.friction_scale * g for g in gain)
 
-    def frozen_terms(self, q: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+    def frozen_terms(self, q: Tensor, u: Tensor, settled: bool = True) -> tuple[Tensor, Tensor]:
         """M(q) (B, n, n) and c0 (B, n) of M(q) dv/dt = c0 - kv v: the arm held at q, without Coriolis terms (a
-        servo's dry friction taken where it settles); its exact solution over a period carries most of the flow (the
-        rest is learned)."""
+        servo's dry friction taken where it settles; settled=False: without it); its exact solution over a period
+        carries most of the flow (the rest is learned)."""
         m, g, comp = self.dynamics_terms(q, torch.zeros_like(q))  # h at v = 0 is gravity
-        return m, self._frozen_drive(g, u, comp)
+        return m, self._frozen_drive(g, u, comp, settled)
 
-    def casadi_frozen_terms(self) -> ca.Function:
+    def casadi_frozen_terms(self, settled: bool = True) -> ca.Function:
         """The same (q, u) -> (M, c0) as a CasADi SX function (adam's CasADi backend)."""
         n = self.nq
         q, u = ca.SX.sym("q", n), ca.SX.sym("u", n)
         m, g, comp = self.casadi_terms(q, ca.SX.zeros(n), gravity=True)
-        return ca.Function(f"{self.name}_frozen", [q, u], [m, self._frozen_drive(g, u, comp)], {"cse": True})
+        drive = self._frozen_drive(g, u, comp, settled)
+        return ca.Function(f"{self.name}_frozen", [q, u], [m, drive], {"cse": True})
 
-    def _frozen_drive(self, g: Any, u: Any, comp: Any = None) -> Any:
+    def _frozen_drive(self, g: Any, u: Any, comp: Any = None, settled: bool = True) -> Any:
         """c0: the actuation at rest less the gravity it must hold (for a servo: only a payload's, which its
         compensation of the arm without it leaves). A servo's dry friction enters as the torque it holds at the
-        velocity the frozen servo settles at (so that steady state is exact, stick included); a torque-driven arm's
-        stays out, and an arm without dry friction (every nominal servo) gets exactly the term without it."""
+        velocity the frozen servo settles at (so that steady state is exact, stick included) unless settled=False; a
+        torque-driven arm's stays out, and an arm without dry friction (every nominal servo) gets exactly the term
+        without it."""
         if self.actuation == "torque":
             return u - self.mass_scale * g
         gain = self.friction_scale * self._coeffs("servo_gain", u)
         drive = gain * u - self._bias(g, comp) if self.payload is not None else gain * u
-        if not self.coulomb:
+        if not self.coulomb or not settled:
             return drive
         ratio = self._coeffs("coulomb", u) / self._coeffs("servo_gain", u)  # the velocity the friction takes off
         return gain * settled_velocity(drive / gain, ratio, self.coulomb_slope)

@@ -29,10 +29,12 @@ def widened(
     time_basis: Sequence[float] | None = None,
     angle_sums: Sequence[Sequence[int]] | None = None,
     prior_arm: dict[str, Any] | None = None,
+    prior_kind: str | None = None,
 ) -> PINN:
     """A copy of `base` with hidden widths `hidden` (same depth, none narrower), optionally more time gates
     (`time_basis`: the base's relaxation times first, new ones after), angle-sum inputs (`angle_sums`: the
-    base's first) and another arm under its prior (`prior_arm`), and the same outputs."""
+    base's first), another arm under its prior (`prior_arm`) or another frozen-arm kind (`prior_kind`), and the
+    same network outputs."""
     old = [layer.out_features for layer in base.net.layers[:-1]]
     new = [int(w) for w in hidden]
     if len(new) != len(old) or any(n < o for n, o in zip(new, old)):
@@ -47,6 +49,8 @@ def widened(
         config.update(_grown_sums(base, angle_sums))
     if prior_arm is not None and config.get("prior"):
         config["prior"] = {**config["prior"], "dynamics": dict(prior_arm)}
+    if prior_kind is not None and config.get("prior"):
+        config["prior"] = {**config["prior"], "kind": str(prior_kind)}
     model = PINN(**config).to(base.out_scale.dtype)
     generator = torch.Generator().manual_seed(seed)
     with torch.no_grad():
@@ -129,8 +133,8 @@ def grown_model(
     prior_arm: dict[str, Any] | None = None,
 ) -> PINN:
     """The trained surrogate at `path` (init_from) grown to `hidden`, `time_basis` and `angle_sums`, checked
-    against this run (tau, t_max and the prior kind cannot change: they define the function it learned; nor can
-    the network's form, `form`: model.activation, ic, second_order, periodic, which widening keeps). prior_arm: the
+    against this run (tau, t_max and whether it has a prior cannot change: they define the function it learned; nor
+    can the network's form, `form`: model.activation, ic, second_order, periodic, which widening keeps). prior_arm: the
     description of the arm its frozen-arm prior holds from now on (a model identified from a robot: the prior then
     carries what the fit found, and the network's correction starts from the nominal arm's); None: the same."""
     if not Path(path).is_file():
@@ -141,7 +145,7 @@ def grown_model(
         if abs(have - want) > 1e-12:
             raise ValueError(f"init_from={path} was trained with {what}={have}; this run has {what}={want}")
     have_prior = (base.config.get("prior") or {}).get("kind")
-    if have_prior != prior:
+    if (have_prior is None) != (prior is None):  # one frozen-arm kind for another: the correction starts as it was
         raise ValueError(
             f"init_from={path} was trained with model.prior={have_prior or 'null'}; this run has "
             f"model.prior={prior or 'null'} "
@@ -154,7 +158,7 @@ def grown_model(
                 f"init_from={path} has model.{key}={have}; this run has model.{key}={want}, which widening cannot "
                 f"change (expected model.{key}={have}, or a fresh network without init_from)"
             )
-    return widened(base, hidden, seed, time_basis, angle_sums, prior_arm)
+    return widened(base, hidden, seed, time_basis, angle_sums, prior_arm, prior)
 
 
 def _plain(value: Any) -> Any:

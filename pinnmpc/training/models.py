@@ -50,7 +50,7 @@ def fresh_model(cfg: DictConfig, system: System, prior_arm: dict | None = None) 
     scale = cfg.model.output_scale
     if scale == "auto":
         a = cfg.model.auto_scale
-        start = None if prior is None else FrozenArmPrior(prior_arm or system)
+        start = None if prior is None else FrozenArmPrior(prior_arm or system, prior["kind"])
         scale = flow_scale(system, cfg.t_max, a.samples, a.h, a.quantile, cfg.seed, start)
     return PINN(
         state_low=system.state_box.low,
