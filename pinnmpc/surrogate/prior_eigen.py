@@ -77,7 +77,8 @@ class EigenPriorJacobian:
         lams = [lam[a] for a in range(n)]
         big0, big1 = divided_differences(lams, f0, df0), divided_differences(lams, f1, df1)
         if steps:
-            xp, jac = _moving(arm, (x0, u), (vss, e, lag), (left, right, p, big0, big1), (span, steps), m)
+            diags = (ca.vertcat(*f0), ca.vertcat(*f1))
+            xp, jac = _moving(arm, (x0, u), (vss, diags), (left, right, p, big0, big1), (span, steps), m)
             rest = ca.Function(tag, [x0, u, lam, vt], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})
             lib = compile_functions(tag, [spd, rest], opt="-O2")
             self.spd, self.rest = BatchedFunction(lib[spd.name()]), BatchedFunction(lib[rest.name()])
@@ -105,27 +106,28 @@ class EigenPriorJacobian:
 
 
 def _moving(arm: RigidArm, inputs: tuple, solve: tuple, eigen: tuple, steps: tuple, m: ca.SX) -> tuple[ca.SX, ca.SX]:
-    """x_p and its Jacobian for the friction sub-steps (pinnmpc.surrogate.prior.friction_substeps): AD through the
-    sub-steps with E(h) and kv^-1 M (I - E(h)) held as symbols, then their derivatives along q0 (Daleckii-Krein)
-    chained in. inputs (x0, u); solve (v_ss, E, lag); eigen (Kh^-1 V, V^T Kh, V^T Kh M^-1, F0, F1); steps (h, count)."""
+    """x_p and its Jacobian for the friction sub-steps (pinnmpc.surrogate.prior.friction_substeps), E and the lag
+    applied in factored form, Kh^-1 V (diag f - F o D) V^T Kh with D = -V^T dS V: D = 0 gives their values, and
+    CasADi's forward mode along D = p dM_j p^T their derivative along q0_j (Daleckii-Krein) through every sub-step,
+    no n x n matrix formed. inputs (x0, u); solve (v_ss, (f0, f1)); eigen (Kh^-1 V, V^T Kh, V^T Kh M^-1, F0, F1);
+    steps (h, count)."""
     from pinnmpc.surrogate.prior import friction_substeps
 
-    (x0, u), (vss, e, lag), (left, right, p, big0, big1), (h, count) = inputs, solve, eigen, steps
+    (x0, u), (vss, (f0, f1)), (left, right, p, big0, big1), (h, count) = inputs, solve, eigen, steps
     n = arm.nq
-    es, ls = ca.SX.sym("e", n, n), ca.SX.sym("l", n, n)
-    relax = lambda d: (ca.mtimes(ls, d), ca.mtimes(es, d))  # noqa: E731
+    turn = ca.SX.sym("d", n, n)  # -V^T dS V, zero at the point itself
+
+    def relax(d: ca.SX) -> tuple[ca.SX, ca.SX]:
+        """kv^-1 M (I - E) d and E d."""
+        r = ca.mtimes(right, d)
+        return ca.mtimes(left, f1 * r - ca.mtimes(big1 * turn, r)), ca.mtimes(left, f0 * r - ca.mtimes(big0 * turn, r))
+
     kv = ca.DM(arm.linear_gain)
     xs = ca.vertcat(*friction_substeps((x0[:n], x0[n:]), vss, arm.dry_friction, kv, h, relax, count))
-    turns = []  # d(E, lag)/dq0_j, stacked as (vec E, vec lag)
-    for j in range(n):
-        t = ca.mtimes(ca.mtimes(p, _dm(m, x0[:n], j)), p.T)
-        de = -ca.mtimes(left, ca.mtimes(big0 * t, right))
-        dl = -ca.mtimes(left, ca.mtimes(big1 * t, right))
-        turns.append(ca.vertcat(ca.vec(de), ca.vec(dl)))
-    held = ca.vertcat(ca.vec(es), ca.vec(ls))
-    by_q = ca.jtimes(xs, held, ca.horzcat(*turns))  # forward mode along each q0_j: no (nx, 2 n^2) Jacobian
+    seeds = [ca.vec(ca.mtimes(ca.mtimes(p, _dm(m, x0[:n], j)), p.T)) for j in range(n)]  # -V^T dS_j V
+    by_q = ca.jtimes(xs, ca.vec(turn), ca.horzcat(*seeds))  # forward mode along each q0_j
     jac = ca.jacobian(xs, ca.vertcat(x0, u)) + ca.horzcat(by_q, ca.SX(2 * n, 2 * n))
-    out = ca.substitute([xs, jac], [es, ls], [e, lag])
+    out = ca.substitute([xs, jac], [turn], [ca.SX.zeros(n, n)])
     return out[0], out[1]
 
 
