@@ -201,7 +201,7 @@ class RigidArm:
             return self._numpy_coeffs[key]
         value = getattr(self, key)
         if isinstance(like, Tensor):
-            return torch.tensor(value, dtype=like.dtype)
+            return torch.tensor(value, dtype=like.dtype, device=like.device)
         return ca.DM(value)
 
     @functools.cached_property
