@@ -60,7 +60,7 @@ class EigenPriorJacobian:
         tag = f"{arm.name}_frozen_eigen{'_moving' if steps else ''}"
         spd = ca.Function(f"{tag}_s", [q], [ca.densify(ca.vec(s_of_q))], {"cse": True})
         # the rest at q = q0: V from its row-major rows (CasADi reshapes column-major, so those read as V^T)
-        q0, v0 = x0[:n], x0[n:]
+        q0 = x0[:n]
         m, c0 = frozen(q0, u)
         vss = c0 / ca.DM(kv)
         vec = ca.reshape(vt, n, n).T
@@ -69,30 +69,15 @@ class EigenPriorJacobian:
         df0 = [-span * (e + 1) for e in em]
         df1 = [(lam[a] * span * (e + 1) + e) / lam[a] ** 2 for a, e in enumerate(em)]
         left, right = ca.mtimes(ca.diag(1 / kh), vec), ca.mtimes(vec.T, ca.diag(kh))  # Kh^-1 V and V^T Kh
-        e = ca.mtimes(ca.mtimes(left, ca.diag(ca.vertcat(*f0))), right)  # E
-        lag = ca.mtimes(ca.mtimes(left, ca.diag(ca.vertcat(*f1))), right)  # kv^-1 M (I - E)
-        d = v0 - vss
-        z = ca.mtimes(right, d)  # V^T Kh (v0 - v_ss)
         p = ca.solve(m, right.T).T  # V^T Kh M^-1, so V^T dS_j V = -p dM_j p^T
         lams = [lam[a] for a in range(n)]
         big0, big1 = divided_differences(lams, f0, df0), divided_differences(lams, f1, df1)
+        factors = (left, right, p, big0, big1)
         if steps:
             diags = (ca.vertcat(*f0), ca.vertcat(*f1))
-            xp, jac = _moving(arm, (x0, u), (vss, diags), (left, right, p, big0, big1), (span, steps), m)
-            rest = ca.Function(tag, [x0, u, lam, vt], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})
-            lib = compile_functions(tag, [spd, rest], opt="-O2")
-            self.spd, self.rest = BatchedFunction(lib[spd.name()]), BatchedFunction(lib[rest.name()])
-            return
-        cols0, cols1 = [], []
-        for j in range(n):
-            t = ca.mtimes(ca.mtimes(p, _dm(m, q0, j)), p.T)
-            cols0.append(-ca.mtimes(left, ca.mtimes(big0 * t, z)))
-            cols1.append(-ca.mtimes(left, ca.mtimes(big1 * t, z)))
-        eye = ca.SX.eye(n)
-        by_vss = ca.vertcat(tau * eye - lag, eye - e)
-        by_q = ca.vertcat(eye + ca.horzcat(*cols1), ca.horzcat(*cols0)) + ca.mtimes(by_vss, ca.jacobian(vss, q0))
-        jac = ca.horzcat(by_q, ca.vertcat(lag, e), ca.mtimes(by_vss, ca.jacobian(vss, u)))
-        xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d))
+            xp, jac = _moving(arm, (x0, u), (vss, diags, ca.DM(kv)), factors, (span, steps), m)
+        else:
+            xp, jac = _settled((x0, u), (vss, f0, f1), factors, tau, m)
         rest = ca.Function(tag, [x0, u, lam, vt], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})
         lib = compile_functions(tag, [spd, rest], opt="-O2")
         self.spd, self.rest = BatchedFunction(lib[spd.name()]), BatchedFunction(lib[rest.name()])
@@ -105,15 +90,38 @@ class EigenPriorJacobian:
         return self.rest(x0, u, lam, vec.reshape(-1, n * n))
 
 
+def _settled(inputs: tuple, solve: tuple, eigen: tuple, tau: float, m: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """x_p and its Jacobian for one exact solve over tau: x_p is linear in (v0, v_ss) given q0, and along q0_j the
+    Daleckii-Krein derivatives of E and the lag are applied to V^T Kh (v0 - v_ss) alone. inputs (x0, u); solve (v_ss,
+    f0, f1); eigen (Kh^-1 V, V^T Kh, V^T Kh M^-1, F0, F1)."""
+    (x0, u), (vss, f0, f1), (left, right, p, big0, big1) = inputs, solve, eigen
+    n = vss.shape[0]
+    q0, v0 = x0[:n], x0[n:]
+    e = ca.mtimes(ca.mtimes(left, ca.diag(ca.vertcat(*f0))), right)  # E
+    lag = ca.mtimes(ca.mtimes(left, ca.diag(ca.vertcat(*f1))), right)  # kv^-1 M (I - E)
+    d = v0 - vss
+    z = ca.mtimes(right, d)  # V^T Kh (v0 - v_ss)
+    cols0, cols1 = [], []
+    for j in range(n):
+        t = ca.mtimes(ca.mtimes(p, _dm(m, q0, j)), p.T)
+        cols0.append(-ca.mtimes(left, ca.mtimes(big0 * t, z)))
+        cols1.append(-ca.mtimes(left, ca.mtimes(big1 * t, z)))
+    eye = ca.SX.eye(n)
+    by_vss = ca.vertcat(tau * eye - lag, eye - e)
+    by_q = ca.vertcat(eye + ca.horzcat(*cols1), ca.horzcat(*cols0)) + ca.mtimes(by_vss, ca.jacobian(vss, q0))
+    jac = ca.horzcat(by_q, ca.vertcat(lag, e), ca.mtimes(by_vss, ca.jacobian(vss, u)))
+    return ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d)), jac
+
+
 def _moving(arm: RigidArm, inputs: tuple, solve: tuple, eigen: tuple, steps: tuple, m: ca.SX) -> tuple[ca.SX, ca.SX]:
     """x_p and its Jacobian for the friction sub-steps (pinnmpc.surrogate.prior.friction_substeps), E and the lag
     applied in factored form, Kh^-1 V (diag f - F o D) V^T Kh with D = -V^T dS V: D = 0 gives their values, and
     CasADi's forward mode along D = p dM_j p^T their derivative along q0_j (Daleckii-Krein) through every sub-step,
-    no n x n matrix formed. inputs (x0, u); solve (v_ss, (f0, f1)); eigen (Kh^-1 V, V^T Kh, V^T Kh M^-1, F0, F1);
-    steps (h, count)."""
+    no n x n matrix formed. inputs (x0, u); solve (v_ss, (f0, f1), kv); eigen (Kh^-1 V, V^T Kh, V^T Kh M^-1, F0,
+    F1); steps (h, count)."""
     from pinnmpc.surrogate.prior import friction_substeps
 
-    (x0, u), (vss, (f0, f1)), (left, right, p, big0, big1), (h, count) = inputs, solve, eigen, steps
+    (x0, u), (vss, (f0, f1), kv), (left, right, p, big0, big1), (h, count) = inputs, solve, eigen, steps
     n = arm.nq
     turn = ca.SX.sym("d", n, n)  # -V^T dS V, zero at the point itself
 
@@ -122,7 +130,6 @@ def _moving(arm: RigidArm, inputs: tuple, solve: tuple, eigen: tuple, steps: tup
         r = ca.mtimes(right, d)
         return ca.mtimes(left, f1 * r - ca.mtimes(big1 * turn, r)), ca.mtimes(left, f0 * r - ca.mtimes(big0 * turn, r))
 
-    kv = ca.DM(arm.linear_gain)
     xs = ca.vertcat(*friction_substeps((x0[:n], x0[n:]), vss, arm.dry_friction, kv, h, relax, count))
     seeds = [ca.vec(ca.mtimes(ca.mtimes(p, _dm(m, x0[:n], j)), p.T)) for j in range(n)]  # -V^T dS_j V
     by_q = ca.jtimes(xs, ca.vec(turn), ca.horzcat(*seeds))  # forward mode along each q0_j
