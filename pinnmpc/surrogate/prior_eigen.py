@@ -25,6 +25,8 @@ if TYPE_CHECKING:
     from pinnmpc.systems import RigidArm
 
 CLOSE = 1e-7  # eigenvalues closer than this (relative) share a divided difference: f' at the first
+OPT = "-O3"  # C optimisation level of both functions: the factored sub-steps run fastest at -O3, the settled
+#   form alike at -O2 and -O3, at about the same compile time (docs/results.md, "Twenty-ninth session")
 
 
 def divided_differences(lam: list, f: list, df: list) -> ca.SX:
@@ -79,7 +81,7 @@ class EigenPriorJacobian:
         else:
             xp, jac = _settled((x0, u), (vss, f0, f1), factors, tau, m)
         rest = ca.Function(tag, [x0, u, lam, vt], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})
-        lib = compile_functions(tag, [spd, rest], opt="-O2")
+        lib = compile_functions(tag, [spd, rest], opt=OPT)
         self.spd, self.rest = BatchedFunction(lib[spd.name()]), BatchedFunction(lib[rest.name()])
 
     def __call__(self, x0: np.ndarray, u: np.ndarray) -> list[np.ndarray]:
