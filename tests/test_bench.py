@@ -478,6 +478,11 @@ def test_the_robot_section_runs_every_controller_on_the_robot(tmp_path: Path) ->
     keys = ["classical_nominal", "pinn_shipped", "pinn_adapted", "pinn_shipped_nominal"]
     assert list(robot["rows"]) == [f"{k}@builtin:default" for k in keys]
     assert all(r["status"] == "ok" and r["steps"] == 3 for r in robot["rows"].values())
-    assert "## 7. On the robot `lab`" in (tmp_path / "bench.md").read_text()
+    (paired,) = robot["paired_ocp"]  # the two networks' loops again, their samples interleaved
+    assert (paired["samples"], paired["status"], paired["base"]) == (3, "ok", "pinn_shipped")
+    assert paired["ratio_median"]["pinn_shipped"] == 1.0 and paired["ratio_median"]["pinn_adapted"] > 0
+    assert all(0 < paired["ocp_median_s"][k] <= paired["ocp_p95_s"][k] for k in ("pinn_shipped", "pinn_adapted"))
+    report = (tmp_path / "bench.md").read_text()
+    assert "## 7. On the robot `lab`" in report and "samples interleaved in one process" in report
     with pytest.raises(ValueError, match="expected plant=mujoco plant.robot=<name>"):
         run_bench(_cfg(["system=planar3", *off, "robot.enabled=true", "progress=false"]), tmp_path / "b")

@@ -12,8 +12,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pinnmpc.bench.classical import classical_cfg, classical_solvers
-from pinnmpc.bench.common import bench_reference, controller_cfg
+from pinnmpc.bench.common import bench_reference, controller_cfg, make_plant
 from pinnmpc.bench.loops import loop_row
+from pinnmpc.bench.paired import paired_ocp
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.plant.settings import ScipyPlantSettings
 from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
@@ -66,11 +67,19 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
     if cfg.robot.adapted is not None:
         networks["pinn_adapted"] = load_surrogate(str(cfg.robot.adapted), state_names=system.state_names)
     rows: dict[str, dict[str, Any]] = {}
-    for key, label, controller, box in robot_controllers(cfg, system, networks):
+    built = robot_controllers(cfg, system, networks)
+    for key, label, controller, box in built:
         for ref in refs:
             row = loop_row(cfg, system, controller, box, system.tau, ref)
             rows[f"{key}@{ref.name}"] = {**row, "label": label, "controller": key, "reference": ref.name}
             log.info("robot: %s on %s done in %.1f s", label, ref.name, row["wall_s"])
+    paired = []
+    nets = {key: c for key, _, c, _ in built if key in networks}
+    if cfg.robot.paired_ocp and len(nets) > 1:  # the fine-tuned network's OCP against the shipped one's, interleaved
+        for ref in refs:
+            plant = lambda: make_plant(cfg, system, system.tau)  # noqa: E731
+            paired.append(paired_ocp(nets, plant, ref, cfg.closed_loop.max_steps))
+            log.info("robot: paired OCP times on %s done", ref.name)
     nominal = cfg.copy()
     with open_dict(nominal):
         nominal.plant = OmegaConf.structured(ScipyPlantSettings)  # the model as the plant, default settings
@@ -94,6 +103,7 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
         "adapted": None if cfg.robot.adapted is None else str(cfg.robot.adapted),
         "identified": None if cfg.robot.identified is None else str(cfg.robot.identified),
         "rows": rows,
+        "paired_ocp": paired,
     }
 
 
@@ -167,6 +177,7 @@ def md_robot(section: dict[str, Any], system: dict[str, Any]) -> str:
         if nets
         else []
     )
+    paired = md_paired(section.get("paired_ocp") or [])
     return "\n".join(
         [
             f"## 7. On the robot `{section['robot']}` (a robot the model is not)",
@@ -177,7 +188,27 @@ def md_robot(section: dict[str, Any], system: dict[str, Any]) -> str:
             f"{section['adapted'] or '—'}; identified model: {section['identified'] or '—'}.",
             "",
             md_table(head, table),
+            *paired,
             *rmse,
             "",
         ]
     )
+
+
+def md_paired(paired: list[dict[str, Any]]) -> list[str]:
+    """Lines of the interleaved OCP comparison (bench/paired.py): the fine-tuned network against the shipped one."""
+    lines = []
+    for p in paired:
+        med = p["ocp_median_s"]
+        status = "" if p["status"] == "ok" else f"; {p['status']}"
+        lines.append(
+            f"- {p['reference']}: {fmt(p['ratio_median']['pinn_adapted'])}x (OCP medians "
+            f"{fmt(1e3 * med['pinn_adapted'])} / {fmt(1e3 * med['pinn_shipped'])} ms, {p['samples']} samples{status})"
+        )
+    if not lines:
+        return []
+    head = (
+        "OCP time of the fine-tuned network's controller against the shipped one's, their samples interleaved in one "
+        "process (median of the per-sample ratio; pinnmpc/bench/paired.py):"
+    )
+    return ["", head, "", *lines]
