@@ -263,6 +263,10 @@ def test_chattering_inputs_are_counted_and_named(make_cfg, tmp_path):
     assert "(offset-free, gain 0.7);" in headline(m, tmp_path)  # the PowerCube network: no notch
     m["input_reversals"], m["disturbance_notch"] = {"u1": 0.0, "u2": 0.46}, True
     assert "(offset-free, gain 0.7, notch);" in headline(m, tmp_path)
+    assert "u2 reverses its last step in 46% of samples (chatter: try a lower controller.disturbance.gain)" in (
+        headline(m, tmp_path)
+    )  # the notch is on already
+    m["disturbance_notch"] = False
     assert "u2 reverses its last step in 46% of samples (chatter: try controller.disturbance.notch=true" in (
         headline(m, tmp_path)
     )
@@ -388,3 +392,21 @@ def test_solves_longer_than_the_control_period_are_counted_and_named(make_cfg, t
     assert ("longer than the control period" in headline(m, tmp_path)) == (m["over_period"] > 0)
     slow = {**m, "over_period": 2}  # as metrics.json reads on a machine too slow for this controller
     assert f"2 solves longer than the control period ({1e3 * m['tau']:g} ms)" in headline(slow, tmp_path)
+
+
+def test_a_trust_bound_keeps_the_real_time_iteration_of_a_robot_network_on_track(make_cfg, tmp_path):
+    # planar3-lab.pt learnt the lab robot's dry friction from its logs alone: one lifted step per sample, every step
+    # trusted, jumps where its linearisation does not reach and saturates its way off the reference (measured over
+    # these 45 samples: 1.3e-2 rad on joint 3); the arm's trust bound (system.control.rti_trust, the default for such
+    # a network) solves those samples fully (8 here) and tracks within 7.1e-4 rad
+    net = ROOT / "pinnmpc" / "checkpoints" / "planar3-lab.pt"
+    common = ["system=planar3", "plant=mujoco", "plant.robot=lab", f"checkpoint={net}", "reference.name=random-101",
+              "controller.disturbance.gain=0", "max_steps=45", "progress=false", "plots=false"]  # fmt: skip
+    bounded = run_closed_loop(make_cfg("closed_loop", common), tmp_path / "bounded")
+    every = ["controller.solvers.lifted_gauss_newton.rti_trust=inf"]
+    trusted = run_closed_loop(make_cfg("closed_loop", [*common, *every]), tmp_path / "trusted")
+    assert bounded["real_time"] and trusted["real_time"] and bounded["rti_trust"] == 0.1
+    assert 2 <= bounded["solved_fully"] <= 45 // 3 and trusted["solved_fully"] == 1  # the first solve is full
+    assert "(trust 0.1: " in headline(bounded, tmp_path)
+    for joint in ("q_joint1", "q_joint2", "q_joint3"):
+        assert bounded["mae"][joint] < 0.3 * trusted["mae"][joint], joint

@@ -798,18 +798,37 @@ def test_the_solver_settings_are_their_dataclasses_and_checked_when_built() -> N
 
 
 @pytest.mark.parametrize(
-    "network, rti, real_time",
-    [("planar3", None, True), ("planar3-lab", None, False), ("planar3", False, False), ("planar3-lab", True, True)],
+    "network, rti, arm_trust, real_time, trust",
+    [
+        ("planar3", None, None, True, None),
+        ("planar3-lab", None, None, False, None),
+        ("planar3", False, None, False, None),
+        ("planar3-lab", True, None, True, None),
+        ("planar3", None, 0.1, True, None),  # the arm's trust bound is for networks fine-tuned on robot logs
+        ("planar3-lab", None, 0.1, True, 0.1),
+        ("planar3-lab", False, 0.1, False, 0.1),
+    ],
 )
-def test_the_real_time_iteration_is_the_default_for_networks_of_the_model(network: str, rti, real_time) -> None:
-    """rti=null: one lifted step per sample for a network trained on the model, the converged solve for one
-    fine-tuned on robot logs (its learnt dry friction: measured 13x worse as a real-time iteration)."""
+def test_the_real_time_iteration_is_the_default_for_networks_of_the_model(
+    network: str, rti, arm_trust, real_time: bool, trust
+) -> None:
+    """rti=null: one lifted step per sample for a network trained on the model; for one fine-tuned on robot logs
+    alone (its learnt dry friction: measured 13x worse as a plain real-time iteration) the same only with the arm's
+    trust bound (controller.rti_trust), which then solves the samples whose step goes beyond it fully, else the
+    converged solve."""
     surrogate = load_surrogate(SHIPPED.parent / f"{network}.pt")
-    cfg = _config(**{"solvers.lifted_gauss_newton.rti": rti})
+    cfg = _config(**{"solvers.lifted_gauss_newton.rti": rti, "rti_trust": arm_trust})
     cfg.Q, cfg.R, cfg.disturbance.max_abs = [1.0] * 6, [1e-4] * 3, None  # planar3's sizes
     nmpc = build_nmpc(cfg, surrogate)
     assert nmpc.solver.rti is real_time and nmpc.describe()["real_time"] is real_time
+    assert nmpc.solver.rti_trust == trust and nmpc.describe()["rti_trust"] == trust
     assert ("robot_logs" in surrogate.meta) is (network == "planar3-lab")
+
+
+@pytest.mark.parametrize("trust", [0, -0.1, float("nan"), True, "0.1"])
+def test_a_bad_trust_bound_is_one_clear_error(trust) -> None:
+    with pytest.raises(ValueError, match=r"LiftedGaussNewtonSolver.rti_trust=.*; expected a fraction of the input "):
+        make_solver("lifted_gauss_newton", rti_trust=trust)
 
 
 def test_a_network_fine_tuned_against_an_identified_model_runs_in_real_time() -> None:

@@ -28,6 +28,7 @@ OPTIONAL = {  # what a Python caller may leave out (conf/controller/nmpc.yaml se
     "joint_limits": None,
     "model": "surrogate",
     "exact_rk4_steps": None,
+    "rti_trust": None,
 }
 
 
@@ -56,16 +57,27 @@ def prediction_model(cfg: dict[str, Any], surrogate: Surrogate, system: System |
     return ExactValues(surrogate, CompiledRK4(system, surrogate.tau, surrogate.tau / steps))
 
 
-def real_time_default(surrogate: Surrogate) -> bool:
+def real_time_default(surrogate: Surrogate, trust: float | None = None) -> bool:
     """controller.solvers.lifted_gauss_newton.rti=null: the real-time iteration (one lifted step per sample) for a
     network trained on the model alone, whose flow is smooth: it tracks within 1.1x of the converged solve at a
     fraction of its time (docs/results.md), and for one fine-tuned on robot logs against an identified model's
-    residual and anchors (`physics` in its meta), which keep its flow near that smooth (with the friction in its
-    prior the converged solve tracks closer still, at a multiple of the time: rti=false is the user's choice); the
-    converged solve for a network fine-tuned on the logs alone (`robot_logs` in its meta), whose learnt dry friction
-    one step per sample does not follow, and for any other flow map (a true model given as the model)."""
+    residual and anchors (`physics` in its meta), which keep its flow near that smooth. A network fine-tuned on the
+    logs alone (`robot_logs` in its meta) has learnt the robot's dry friction, which one step per sample does not
+    follow everywhere: the real-time iteration only with a trust bound (`trust`, see trust_default), else the
+    converged solve; the converged solve for any other flow map (a true model given as the model)."""
     meta = getattr(surrogate, "meta", None)
-    return isinstance(meta, dict) and (not meta.get("robot_logs") or bool(meta.get("physics")))
+    if not isinstance(meta, dict):
+        return False
+    return not meta.get("robot_logs") or bool(meta.get("physics")) or trust is not None
+
+
+def trust_default(surrogate: Surrogate, arm_trust: float | None) -> float | None:
+    """controller.solvers.lifted_gauss_newton.rti_trust=null: the arm's bound (controller.rti_trust, from
+    system.control.rti_trust) for a network fine-tuned on robot logs, whose learnt stick-slip makes a few real-time
+    steps jump where its linearisation does not reach (one full solve there re-anchors the plan: docs/results.md);
+    none for a network trained on the model alone (its numbers stay as measured)."""
+    meta = getattr(surrogate, "meta", None)
+    return arm_trust if isinstance(meta, dict) and meta.get("robot_logs") else None
 
 
 def notch_default(surrogate: Surrogate) -> bool:
@@ -89,8 +101,11 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
         raise ValueError(f"the controller config {what}; expected {list(REQUIRED)} and any of {list(OPTIONAL)}")
     cfg = {**OPTIONAL, **cfg}
     options = dict((cfg["solvers"] or {}).get(cfg["solver"]) or {})
-    if cfg["solver"] == "lifted_gauss_newton" and options.get("rti") is None:
-        options["rti"] = real_time_default(surrogate)
+    if cfg["solver"] == "lifted_gauss_newton":
+        if options.get("rti_trust") is None:
+            options["rti_trust"] = trust_default(surrogate, cfg["rti_trust"])
+        if options.get("rti") is None:
+            options["rti"] = real_time_default(surrogate, options["rti_trust"])
     solver = make_solver(cfg["solver"], **options)
     ocp = HorizonOCP(
         prediction_model(cfg, surrogate, system), cfg["horizon"], cfg["Q"], cfg["R"], cfg["R_rate"], cfg["joint_limits"]

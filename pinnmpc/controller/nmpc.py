@@ -103,6 +103,8 @@ class NMPC:
             "disturbance_notch": self.disturbance_notch,
             "prediction": getattr(self.ocp.model, "prediction", "surrogate"),
             "real_time": bool(getattr(self.solver, "rti", False)),  # one step per sample: unconverged by design
+            "rti_steps": getattr(self.solver, "rti_steps", None),
+            "rti_trust": getattr(self.solver, "rti_trust", None),  # a step beyond it: that sample solved fully
         }
 
     @property

@@ -72,6 +72,8 @@ def metrics(
         "converged_fraction": float(np.mean([s.converged for s in st])) if st else 0.0,
         "fallbacks": sum(s.fallback for s in st),
         "not_converged": sum(not s.converged for s in st),
+        # a real-time loop's samples solved to convergence (the first, and steps beyond rti_trust or at joint limits)
+        "solved_fully": _solved_fully(st, controller.describe()),
         "out_of_box_steps": run.out_of_box_steps,
         "u_abs_max": float(np.abs(run.u).max()) if len(run.u) else 0.0,
         "state_units": dict(zip(names, units)),  # for readers of the file (and the headline)
@@ -180,6 +182,25 @@ def estimator_note(m: dict[str, Any]) -> str:
     return f" (offset-free, gain {m['disturbance_gain']:g}{', notch' if m.get('disturbance_notch') else ''})"
 
 
+def _solved_fully(stats: list[Any], described: dict[str, Any]) -> int | None:
+    """Samples of a PINN real-time loop that took more than its steps or converged: solved fully (None: not such a
+    loop)."""
+    if not described.get("real_time") or "rti_trust" not in described:
+        return None
+    steps = described.get("rti_steps") or 1
+    return sum(1 for s in stats if s.converged or s.iterations != steps)
+
+
+def real_time_note(m: dict[str, Any]) -> str:
+    """' as a real-time iteration', with its trust bound and how many samples it solved fully where it has one."""
+    if not m.get("real_time"):
+        return ""
+    trust = m.get("rti_trust")
+    if trust is None or not math.isfinite(trust) or m.get("solved_fully") is None:
+        return " as a real-time iteration"
+    return f" as a real-time iteration (trust {trust:g}: {m['solved_fully']} of {m['steps']} samples solved fully)"
+
+
 def headline(m: dict[str, Any], run_dir: Path) -> str:
     """One line from metrics.json: status, tracking of every joint angle, OCP vs plant time, what went wrong."""
     names = list(m["mae"])
@@ -213,14 +234,20 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
     reversals = m.get("input_reversals") or {}
     worst = max(reversals, key=reversals.get, default=None)
     if worst is not None and reversals[worst] >= REVERSAL_NOTE:
-        tune = "controller.disturbance.notch=true or a lower gain" if m["disturbance_gain"] else ""
+        tune = ""
+        if m["disturbance_gain"]:
+            tune = (
+                "a lower controller.disturbance.gain"
+                if m.get("disturbance_notch")
+                else ("controller.disturbance.notch=true or a lower gain")
+            )
         trouble.append(
             f"{worst} reverses its last step in {reversals[worst]:.0%} of samples (chatter"
             + (f": try {tune})" if tune else ")")
         )
     return (
         f"{m['status']}: {m['steps']} steps on {m['reference']} with {m['solver']}"
-        + (" as a real-time iteration" if real_time else "")
+        + real_time_note(m)
         + estimator_note(m)
         + f"; MAE {mae}; OCP median {1e3 * m['ocp_time_s']['median']:.2f} ms "
         f"(plant step {1e3 * m['plant_step_time_s']['median']:.2f} ms)"

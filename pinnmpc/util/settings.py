@@ -43,6 +43,7 @@ SYSTEM: dict[str, Check] = {  # the per-joint lists of conf/system/<name>.yaml t
     "system.control.Q": weight("nx"),  # the NMPC's weights: checked before a training the controller comes after
     "system.control.R": weight("nu"),
     "system.control.disturbance_max": optional(vector("nx", real(0.0))),
+    "system.control.rti_trust": optional(positive()),
 }
 
 CLOSED_LOOP: dict[str, Check] = {

@@ -69,6 +69,12 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     solved to convergence; a solver built without a controller treats null as false."""
     rti_steps: int = 1
     """Lifted steps per sample of the real-time iteration (more: closer to converged, slower)."""
+    rti_trust: float | None = None
+    """A real-time step that moves any input by more than this fraction of its box width is not trusted: that sample
+    is solved to convergence from where the step got to (the iteration's Gauss-Newton model was far off there).
+    null (auto): the controller decides from its model (pinnmpc.controller.build.trust_default: the arm's
+    system.control.rti_trust for a network fine-tuned on robot logs, every step trusted otherwise); inf: every step
+    trusted; a solver built without a controller treats null as inf."""
     tol_promise_inexact: float = 1e-3
     """controller.model=exact_values: relative slack of the check that a stop's cost keeps the model's promise
     (the Jacobians are the PINN's, not the derivatives of the values, so promises are inexact)."""
@@ -81,6 +87,12 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"LiftedGaussNewtonSolver.{name}={value!r}; expected a whole number >= 1")
+        trust = self.rti_trust
+        if trust is not None and (isinstance(trust, bool) or not isinstance(trust, int | float) or not trust > 0):
+            raise ValueError(
+                f"LiftedGaussNewtonSolver.rti_trust={trust!r}; expected a fraction of the input box's width > 0 "
+                "(inf: every step trusted) or null"
+            )
 
     def solve(
         self, problem: Problem, U0: Array, warm: LiftedWarm | NoWarm = NO_WARM
@@ -112,14 +124,17 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         if prior is not None:  # the last plan's states x_2..x_H are this plan's s_1..s_{H-1}
             nodes[:, 1:] = prior[:, 1:]
             if self.rti:
+                before = U
                 U, states, cost = self._rti_steps(ocp, nodes, U, refb, upb, lo, hi)
                 limits = ocp.joint_limits
-                if limits is None or not (limits.reached(prior) | limits.reached(states)).any():
+                trust = np.inf if self.rti_trust is None else self.rti_trust
+                wild = bool((np.abs(U - before) > trust * (hi - lo)).any())  # the step left its model's reach
+                if not wild and (limits is None or not (limits.reached(prior) | limits.reached(states)).any()):
                     unconverged = np.zeros(batch, dtype=bool)
                     return result(shape, U, np.full(batch, self.rti_steps, dtype=np.int64), cost, unconverged, states)
-                # a plan at the soft joint limits: their penalty switches on and off there, which steps from the
-                # last plan's linearisation do not follow (plans crossed the limits); this sample is solved fully
-                # from where the steps got to
+                # a step beyond rti_trust, or a plan at the soft joint limits (their penalty switches on and off
+                # there, which steps from the last plan's linearisation do not follow: plans crossed the limits):
+                # this sample is solved fully from where the steps got to
                 nodes[:, 1:] = states[:, :-1]
                 done += self.rti_steps
         else:
