@@ -87,5 +87,5 @@ def test_its_compiled_forms_and_jacobians_match_torch_and_finite_differences(ser
 
 
 def test_an_unknown_kind_is_refused() -> None:
-    with pytest.raises(ValueError, match="model.prior='frozen_arm_moving'; expected null or one of"):
-        FrozenArmPrior("planar3", "frozen_arm_moving")
+    with pytest.raises(ValueError, match="model.prior='frozen_arm_rk4'; expected null or one of"):
+        FrozenArmPrior("planar3", "frozen_arm_rk4")

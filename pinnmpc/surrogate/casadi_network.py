@@ -89,7 +89,7 @@ def prior_function(prior: FrozenArmPrior, tau: float) -> ca.Function:
     lag = -ca.mtimes(ca.DM(np.diag(1 / kv)), ca.mtimes(m, e_minus_i))  # kv^-1 M (I - E)
     if prior.steps:
         relax = lambda d: (ca.mtimes(lag, d), d + ca.mtimes(e_minus_i, d))  # noqa: E731
-        substeps = friction_substeps((q0, v0), vss, prior.arm.dry_friction, ca.DM(kv), h, relax, prior.steps)
+        substeps = friction_substeps((q0, v0), vss, prior.moving_torque(q0), ca.DM(kv), h, relax, prior.steps)
         return ca.Function(f"{prior.arm.name}_frozen_prior", [x, u], [ca.vertcat(*substeps)])
     xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), v0 + ca.mtimes(e_minus_i, d))  # vss + E d = v0 + (E - I) d
     return ca.Function(f"{prior.arm.name}_frozen_prior", [x, u], [xp])

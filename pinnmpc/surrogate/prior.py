@@ -10,7 +10,8 @@ the arm is the linear system M(q0) dv/dt = c0 - kv v, dq/dt = v (kv diagonal), w
 A network that learns only what this misses (configuration change, Coriolis, Coulomb friction) fits the flow
 several times closer on the same budget (docs/training.md). Kind `frozen_arm_friction` adds the arm's dry friction
 at the moving velocity: two sub-steps, each the same exact solve with the friction held at a predicted mean velocity
-(friction_substeps); an arm without dry friction gets the plain flow. No parameters: torch for training (memoised, since
+(friction_substeps); an arm without dry friction gets the plain flow. Kind `frozen_arm_moving` holds the Coriolis and
+centrifugal torques C(q0, w) w at the moving velocity in the same sub-steps too. No parameters: torch for training (memoised, since
 full-batch training evaluates it on the same points every step) and CasADi compiled to C, with its exact Jacobian
 (by AD, or by eigendecomposition on larger arms: pinnmpc.surrogate.prior_eigen), for the controller's numpy path.
 """
@@ -28,8 +29,9 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor, nn
 
-KINDS = ("frozen_arm", "frozen_arm_friction")  # model.prior values besides null: the arm's dry friction settled in
-#   c0, or held per sub-step at the moving velocity (friction_substeps); arms without dry friction: the same flow
+KINDS = ("frozen_arm", "frozen_arm_friction", "frozen_arm_moving")  # model.prior values besides null: the arm's dry
+#   friction settled in c0, or held per sub-step at the moving velocity (friction_substeps; arms without dry
+#   friction: the same flow as frozen_arm), or the same with the Coriolis and centrifugal torques C(q0, w) w too
 FRICTION_STEPS = 2  # exponential Heun sub-steps of frozen_arm_friction over a period: the predicted end velocity's
 #   friction, averaged with the start's, per sub-step (docs/training.md)
 TAYLOR_DEGREE = 12  # terms of exp(X / 2^s) before squaring; with |X / 2^s| <= 1/2 the remainder is ~1e-14
@@ -100,12 +102,25 @@ class FrozenArmPrior(nn.Module):
             )
         check_prior(kind)
         self.arm, self.nq, self.kind = arm, arm.nq, kind
-        moving = kind == "frozen_arm_friction" and bool(getattr(arm, "coulomb", None)) and any(arm.coulomb)
-        self.steps = FRICTION_STEPS if moving else 0  # sub-steps with moving friction; 0: one exact solve
+        self.coriolis = kind == "frozen_arm_moving"  # C(q0, w) w held per sub-step with the friction
+        moving = self.coriolis or (
+            kind == "frozen_arm_friction" and bool(getattr(arm, "coulomb", None)) and any(arm.coulomb)
+        )
+        self.steps = FRICTION_STEPS if moving else 0  # sub-steps with moving torques; 0: one exact solve
         self.kv = torch.tensor(arm.linear_gain, dtype=torch.float64)  # float64 whatever the network's dtype
         self._memo: dict[tuple[Any, ...], tuple[tuple[Tensor, ...], Tensor, Tensor]] = {}
         self._compiled: dict[float, CompiledPrior] = {}  # per tau: every numpy flow of this network shares one
         self._terms_c: Callable[[np.ndarray, np.ndarray], list[np.ndarray]] | None = None  # M, c0 in C (no graph)
+
+    def moving_torque(self, q0: Any) -> Callable[[Any], Any]:
+        """w -> the torques each sub-step holds at the moving velocity w: the dry friction, and for frozen_arm_moving
+        C(q0, w) w; q0 a tensor (adam) or a CasADi expression."""
+        if not self.coriolis:
+            return self.arm.dry_friction
+        if isinstance(q0, Tensor):  # adam's torch model lives on the CPU
+            return lambda w: self.arm.dry_friction(w) + self.arm.coriolis_torque(q0.cpu(), w.cpu()).to(w.device)
+        coriolis = self.arm.casadi_coriolis()
+        return lambda w: self.arm.dry_friction(w) + coriolis(q0, w)
 
     def __deepcopy__(self, memo: dict) -> FrozenArmPrior:
         """Shared, not copied: it has no state to diverge (its robot model holds modules that do not copy)."""
@@ -125,6 +140,10 @@ class FrozenArmPrior(nn.Module):
         a = torch.cholesky_solve(torch.diag_embed(kv.expand_as(q)), torch.linalg.cholesky(m))  # M is SPD
         return m, a, c0 / kv
 
+    def _suffix(self) -> str:
+        """Name suffix of the compiled functions per flow: one solve, moving friction, with Coriolis too."""
+        return "_coriolis" if self.coriolis else "_moving" if self.steps else ""
+
     def _compiled_terms(self) -> Callable[[np.ndarray, np.ndarray], list[np.ndarray]]:
         """(q, u) rows -> [vec M, c0] rows, compiled once."""
         if self._terms_c is None:
@@ -132,7 +151,7 @@ class FrozenArmPrior(nn.Module):
 
             q, u = ca.SX.sym("q", self.nq), ca.SX.sym("u", self.nq)
             m, c0 = self.arm.casadi_frozen_terms(settled=not self.steps)(q, u)
-            name = f"{self.arm.name}_frozen_terms_value{'_moving' if self.steps else ''}"
+            name = f"{self.arm.name}_frozen_terms_value{self._suffix()}"
             f = ca.Function(name, [q, u], [ca.densify(ca.vec(m)), c0], {"cse": True})
             self._terms_c = BatchedFunction(compile_functions(name, [f], opt="-O2")[name])
         return self._terms_c
@@ -166,7 +185,7 @@ class FrozenArmPrior(nn.Module):
                 ed = (e @ d.unsqueeze(-1)).squeeze(-1)
                 return (m @ (d - ed).unsqueeze(-1)).squeeze(-1) / kv, ed
 
-            return torch.cat(friction_substeps(x0, vss, self.arm.dry_friction, kv, h, relax, self.steps), -1)
+            return torch.cat(friction_substeps(x0, vss, self.moving_torque(x0[0]), kv, h, relax, self.steps), -1)
 
         return torch.func.jvp(flow, (t,), (torch.ones_like(t),))
 
@@ -226,16 +245,18 @@ class FrozenArmPrior(nn.Module):
         lag = ca.mtimes(ca.diag(1 / kv), ca.mtimes(m, ca.SX.eye(n) - e))  # kv^-1 M (I - E): dq(tau)/dv0
         if self.steps:
             relax = lambda d: (ca.mtimes(lag, d), ca.mtimes(e, d))  # noqa: E731
-            xp = ca.vertcat(*friction_substeps((q0, v0), vss, self.arm.dry_friction, kv, h, relax, self.steps))
+            xp = ca.vertcat(*friction_substeps((q0, v0), vss, self.moving_torque(q0), kv, h, relax, self.steps))
         else:
             xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d))
-        tag = f"{self.arm.name}_frozen_prior{'_moving' if self.steps else ''}"
+        tag = f"{self.arm.name}_frozen_prior{self._suffix()}"
         value = ca.Function(f"{tag}_value", [x, u], [xp], {"cse": True})
         if n >= EIGEN_FROM_JOINTS:
             from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
 
             lib = compile_functions(tag, [value], opt="-O2")
-            jacobian = EigenPriorJacobian(self.arm, tau, self.kv.numpy(), self.steps)
+            jacobian = EigenPriorJacobian(
+                self.arm, tau, self.kv.numpy(), self.steps, self.moving_torque, self._suffix()
+            )
             fast = CompiledPrior(BatchedFunction(lib[value.name()]), jacobian)
         elif self.steps:  # friction couples v0 and u into the sub-steps: AD along every input
             jac = ca.jacobian(xp, ca.vertcat(x, u))

@@ -16,6 +16,7 @@ product: on a 7-joint arm the exponential needs many squarings (its time constan
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import casadi as ca
@@ -48,7 +49,17 @@ class EigenPriorJacobian:
     """x_p(tau) and its Jacobian d x_p / d(x0, u) (B, nx (nx + nu), row-major) for numpy rows x0 (B, nx), u (B, nu):
     S by one compiled function, its eigendecomposition by numpy, the rest by a second compiled function."""
 
-    def __init__(self, arm: RigidArm, tau: float, kv: np.ndarray, steps: int = 0) -> None:
+    def __init__(
+        self,
+        arm: RigidArm,
+        tau: float,
+        kv: np.ndarray,
+        steps: int = 0,
+        torque: Callable | None = None,
+        suffix: str = "",
+    ) -> None:
+        """torque: q0 -> (w -> the torques the sub-steps hold at w; FrozenArmPrior.moving_torque), default the dry
+        friction; suffix: the compiled functions' name suffix (FrozenArmPrior._suffix)."""
         from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
         n = self.n = arm.nq
@@ -59,7 +70,7 @@ class EigenPriorJacobian:
         frozen = arm.casadi_frozen_terms(settled=not steps)  # (q, u) -> (M, c0), built once, called at q and q0
         m = frozen(q, u)[0]
         s_of_q = ca.mtimes(ca.diag(kh), ca.solve(m, ca.diag(kh)))  # S = Kh M^-1 Kh
-        tag = f"{arm.name}_frozen_eigen{'_moving' if steps else ''}"
+        tag = f"{arm.name}_frozen_eigen{suffix}"
         spd = ca.Function(f"{tag}_s", [q], [ca.densify(ca.vec(s_of_q))], {"cse": True})
         # the rest at q = q0: V from its row-major rows (CasADi reshapes column-major, so those read as V^T)
         q0 = x0[:n]
@@ -77,7 +88,8 @@ class EigenPriorJacobian:
         factors = (left, right, p, big0, big1)
         if steps:
             diags = (ca.vertcat(*f0), ca.vertcat(*f1))
-            xp, jac = _moving(arm, (x0, u), (vss, diags, ca.DM(kv)), factors, (span, steps), m)
+            moving = (torque or (lambda q: arm.dry_friction))(q0)
+            xp, jac = _moving(n, (x0, u), (vss, diags, ca.DM(kv), moving), factors, (span, steps), m)
         else:
             xp, jac = _settled((x0, u), (vss, f0, f1), factors, tau, m)
         rest = ca.Function(tag, [x0, u, lam, vt], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})
@@ -115,16 +127,15 @@ def _settled(inputs: tuple, solve: tuple, eigen: tuple, tau: float, m: ca.SX) ->
     return ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d)), jac
 
 
-def _moving(arm: RigidArm, inputs: tuple, solve: tuple, eigen: tuple, steps: tuple, m: ca.SX) -> tuple[ca.SX, ca.SX]:
+def _moving(n: int, inputs: tuple, solve: tuple, eigen: tuple, steps: tuple, m: ca.SX) -> tuple[ca.SX, ca.SX]:
     """x_p and its Jacobian for the friction sub-steps (pinnmpc.surrogate.prior.friction_substeps), E and the lag
     applied in factored form, Kh^-1 V (diag f - F o D) V^T Kh with D = -V^T dS V: D = 0 gives their values, and
     CasADi's forward mode along D = p dM_j p^T their derivative along q0_j (Daleckii-Krein) through every sub-step,
-    no n x n matrix formed. inputs (x0, u); solve (v_ss, (f0, f1), kv); eigen (Kh^-1 V, V^T Kh, V^T Kh M^-1, F0,
-    F1); steps (h, count)."""
+    no n x n matrix formed. inputs (x0, u); solve (v_ss, (f0, f1), kv, w -> the moving torques); eigen (Kh^-1 V,
+    V^T Kh, V^T Kh M^-1, F0, F1); steps (h, count)."""
     from pinnmpc.surrogate.prior import friction_substeps
 
-    (x0, u), (vss, (f0, f1), kv), (left, right, p, big0, big1), (h, count) = inputs, solve, eigen, steps
-    n = arm.nq
+    (x0, u), (vss, (f0, f1), kv, torque), (left, right, p, big0, big1), (h, count) = inputs, solve, eigen, steps
     turn = ca.SX.sym("d", n, n)  # -V^T dS V, zero at the point itself
 
     def relax(d: ca.SX) -> tuple[ca.SX, ca.SX]:
@@ -132,7 +143,7 @@ def _moving(arm: RigidArm, inputs: tuple, solve: tuple, eigen: tuple, steps: tup
         r = ca.mtimes(right, d)
         return ca.mtimes(left, f1 * r - ca.mtimes(big1 * turn, r)), ca.mtimes(left, f0 * r - ca.mtimes(big0 * turn, r))
 
-    xs = ca.vertcat(*friction_substeps((x0[:n], x0[n:]), vss, arm.dry_friction, kv, h, relax, count))
+    xs = ca.vertcat(*friction_substeps((x0[:n], x0[n:]), vss, torque, kv, h, relax, count))
     seeds = [ca.vec(ca.mtimes(ca.mtimes(p, _dm(m, x0[:n], j)), p.T)) for j in range(n)]  # -V^T dS_j V
     by_q = ca.jtimes(xs, ca.vec(turn), ca.horzcat(*seeds))  # forward mode along each q0_j
     jac = ca.jacobian(xs, ca.vertcat(x0, u)) + ca.horzcat(by_q, ca.SX(2 * n, 2 * n))

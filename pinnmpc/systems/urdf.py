@@ -253,6 +253,18 @@ class RigidArm:
             return self.mass_scale * m + torch.diag(torch.tensor(self.armature, dtype=q.dtype)), h, g
         return self.mass_scale * m, h, g
 
+    def coriolis_torque(self, q: Tensor, v: Tensor) -> Tensor:
+        """C(q, v) v (B, n) through adam, scaled as the arm's h: what a frozen-arm prior with moving terms holds."""
+        kd, b, n = self._kindyn(q.dtype), q.shape[0], self.nq
+        base, still = torch.eye(4, dtype=q.dtype).expand(b, 4, 4), torch.zeros(b, 6, dtype=q.dtype)
+        return self.mass_scale * kd.coriolis_term(base, q, still, v).reshape(b, n + 6)[:, 6:]
+
+    def casadi_coriolis(self) -> ca.Function:
+        """(q, v) -> C(q, v) v as a CasADi SX function (callable on SX, MX or numbers)."""
+        q, v = ca.SX.sym("q", self.nq), ca.SX.sym("v", self.nq)
+        c = self.mass_scale * self._casadi_kindyn().coriolis_term(ca.SX.eye(4), q, ca.SX.zeros(6), v)[6:]
+        return ca.Function(f"{self.name}_coriolis", [q, v], [c], {"cse": True})
+
     # -- the arm frozen at q0: the linear part a learned flow map builds on (pinnmpc.surrogate.prior) -----------------
     @property
     def linear_gain(self) -> tuple[float, ...]:
