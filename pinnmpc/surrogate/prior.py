@@ -11,9 +11,10 @@ A network that learns only what this misses (configuration change, Coriolis, Cou
 several times closer on the same budget (docs/training.md). Kind `frozen_arm_friction` adds the arm's dry friction
 at the moving velocity: two sub-steps, each the same exact solve with the friction held at a predicted mean velocity
 (friction_substeps); an arm without dry friction gets the plain flow. Kind `frozen_arm_moving` holds the Coriolis and
-centrifugal torques C(q0, w) w at the moving velocity in the same sub-steps too. No parameters: torch for training (memoised, since
-full-batch training evaluates it on the same points every step) and CasADi compiled to C, with its exact Jacobian
-(by AD, or by eigendecomposition on larger arms: pinnmpc.surrogate.prior_eigen), for the controller's numpy path.
+centrifugal torques C(q0, w) w at the moving velocity in the same sub-steps too. No parameters: torch for training
+(memoised, since full-batch training evaluates it on the same points every step) and CasADi compiled to C, with its
+exact Jacobian (by AD, or by eigendecomposition on larger arms: pinnmpc.surrogate.prior_eigen), for the controller's
+numpy path.
 """
 
 from __future__ import annotations
