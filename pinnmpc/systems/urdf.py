@@ -433,28 +433,6 @@ class RigidArm:
     # -- drawing ---------------------------------------------------------------------------------------------
     def kinematics(self, q: np.ndarray) -> np.ndarray:
         """Joint origins and the tip, (N, n + 1, 3) in the base frame, for stick drawings."""
-        import pinocchio as pin
+        from pinnmpc.systems.urdf_drawing import stick_points
 
-        model, data = self.pinocchio
-        q = np.atleast_2d(np.asarray(q, dtype=np.float64))[:, : self.nq]
-        if self._pin_order is not None:
-            q = q[:, self._pin_order]
-        tip = self.tip_frame
-        tip_id = model.getFrameId(tip) if tip else None
-        out = np.empty((q.shape[0], self.nq + 2, 3))
-        for i, qi in enumerate(q):
-            pin.forwardKinematics(model, data, qi)
-            out[i, 0] = 0.0
-            out[i, 1 : self.nq + 1] = [data.oMi[j].translation for j in range(1, self.nq + 1)]
-            if tip_id is not None:
-                pin.updateFramePlacements(model, data)
-                out[i, -1] = data.oMf[tip_id].translation
-            else:
-                out[i, -1] = out[i, -2] + data.oMi[self.nq].rotation @ self._tip_offset
-        return out
-
-    @functools.cached_property
-    def _tip_offset(self) -> np.ndarray:
-        """Last link's reach for drawing: twice its centre of mass offset in its joint frame."""
-        model, _ = self._nominal_pinocchio
-        return 2.0 * np.asarray(model.inertias[self.nq].lever)
+        return stick_points(self, q)
