@@ -76,8 +76,8 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
     paired = []
     nets = {key: c for key, _, c, _ in built if key in networks}
     if cfg.robot.paired_ocp and len(nets) > 1:  # the fine-tuned network's OCP against the shipped one's, interleaved
+        plant = lambda: make_plant(cfg, system, system.tau)  # noqa: E731
         for ref in refs:
-            plant = lambda: make_plant(cfg, system, system.tau)  # noqa: E731
             paired.append(paired_ocp(nets, plant, ref, cfg.closed_loop.max_steps))
             log.info("robot: paired OCP times on %s done", ref.name)
     nominal = cfg.copy()
