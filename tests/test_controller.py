@@ -829,6 +829,10 @@ def test_the_real_time_iteration_is_the_default_for_networks_of_the_model(
 def test_a_bad_trust_bound_is_one_clear_error(trust) -> None:
     with pytest.raises(ValueError, match=r"LiftedGaussNewtonSolver.rti_trust=.*; expected a fraction of the input "):
         make_solver("lifted_gauss_newton", rti_trust=trust)
+    cfg = _config(rti_trust=trust)  # the arm's bound: refused even for a network it would not apply to
+    cfg.Q, cfg.R, cfg.disturbance.max_abs = [1.0] * 6, [1e-4] * 3, None  # planar3's sizes
+    with pytest.raises(ValueError, match=r"controller.rti_trust=.* \(system.control.rti_trust\); expected a fraction"):
+        build_nmpc(cfg, load_surrogate(SHIPPED.parent / "planar3.pt"))
 
 
 def test_a_network_fine_tuned_against_an_identified_model_runs_in_real_time() -> None:

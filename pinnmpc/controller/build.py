@@ -100,6 +100,12 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
         what = f"lacks {missing}" if missing else f"has unknown keys {unknown}"
         raise ValueError(f"the controller config {what}; expected {list(REQUIRED)} and any of {list(OPTIONAL)}")
     cfg = {**OPTIONAL, **cfg}
+    trust = cfg["rti_trust"]
+    if trust is not None and (isinstance(trust, bool) or not isinstance(trust, int | float) or not trust > 0):
+        raise ValueError(
+            f"controller.rti_trust={trust!r} (system.control.rti_trust); expected a fraction of the input box's "
+            "width > 0 or null"
+        )
     options = dict((cfg["solvers"] or {}).get(cfg["solver"]) or {})
     if cfg["solver"] == "lifted_gauss_newton":
         if options.get("rti_trust") is None:
