@@ -9,6 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 from pinnmpc.controller.nmpc import NMPC
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers import make_solver
+from pinnmpc.controller.solvers.lifted import valid_trust
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.surrogate.flowmap import CompiledRK4, ExactValues, FlowMap
 from pinnmpc.systems.base import System
@@ -101,7 +102,7 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
         raise ValueError(f"the controller config {what}; expected {list(REQUIRED)} and any of {list(OPTIONAL)}")
     cfg = {**OPTIONAL, **cfg}
     trust = cfg["rti_trust"]
-    if trust is not None and (isinstance(trust, bool) or not isinstance(trust, int | float) or not trust > 0):
+    if trust is not None and not valid_trust(trust):
         raise ValueError(
             f"controller.rti_trust={trust!r} (system.control.rti_trust); expected a fraction of the input box's "
             "width > 0 or null"

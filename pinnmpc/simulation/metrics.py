@@ -46,13 +46,14 @@ def metrics(
     x = run.x
     err = np.abs(x - ref.x[: len(x)])
     st = controller.stats
+    described = controller.describe()
     return {
         "reference": ref.name,
         "status": run.status,
         "steps": len(st),
         "tau": plant.tau,
         "horizon": controller.horizon,
-        **controller.describe(),
+        **described,
         "mae": {n: float(v) for n, v in zip(names, err.mean(0))},
         "rmse": {n: float(v) for n, v in zip(names, np.sqrt((err**2).mean(0)))},
         "max_abs_error": {n: float(v) for n, v in zip(names, err.max(0))},
@@ -73,7 +74,7 @@ def metrics(
         "fallbacks": sum(s.fallback for s in st),
         "not_converged": sum(not s.converged for s in st),
         # a real-time loop's samples solved to convergence (the first, and steps beyond rti_trust or at joint limits)
-        "solved_fully": _solved_fully(st, controller.describe()),
+        "solved_fully": _solved_fully(st, described),
         "out_of_box_steps": run.out_of_box_steps,
         "u_abs_max": float(np.abs(run.u).max()) if len(run.u) else 0.0,
         "state_units": dict(zip(names, units)),  # for readers of the file (and the headline)

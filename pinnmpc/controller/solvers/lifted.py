@@ -88,7 +88,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"LiftedGaussNewtonSolver.{name}={value!r}; expected a whole number >= 1")
         trust = self.rti_trust
-        if trust is not None and (isinstance(trust, bool) or not isinstance(trust, int | float) or not trust > 0):
+        if trust is not None and not valid_trust(trust):
             raise ValueError(
                 f"LiftedGaussNewtonSolver.rti_trust={trust!r}; expected a fraction of the input box's width > 0 "
                 "(inf: every step trusted) or null"
@@ -234,6 +234,11 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     def _warm_shape(ocp: HorizonOCP) -> tuple[int, ...]:
         """Shape per problem of the warm array this solver takes: the last plan's states x_1..x_H."""
         return (ocp.horizon, ocp.nx)
+
+
+def valid_trust(value: object) -> bool:
+    """Whether a trust bound (rti_trust, system.control.rti_trust) is a number > 0 (inf included)."""
+    return not isinstance(value, bool) and isinstance(value, int | float) and value > 0
 
 
 def _moved(pred: np.ndarray, sens: np.ndarray, step: np.ndarray) -> np.ndarray:
