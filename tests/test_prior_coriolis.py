@@ -6,11 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from pinnmpc import load_system
 from pinnmpc.surrogate.casadi_network import prior_function
 from pinnmpc.surrogate.prior import FRICTION_STEPS, FrozenArmPrior
 from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
+from pinnmpc.systems import build_system, system_config
 from pinnmpc.training.data import reference_flow
 from tests.conftest import central_jacobian
 
@@ -64,7 +66,7 @@ def test_its_compiled_forms_and_jacobians_match_torch_and_finite_differences(arm
     xn, jn = prior.compiled(arm.tau).with_jacobian(x0.numpy(), u.numpy())
     np.testing.assert_allclose(xn, x.numpy(), atol=1e-12)
     np.testing.assert_allclose(jn.reshape(jac.shape), jac.numpy(), atol=1e-10)
-    eigen = EigenPriorJacobian(arm, arm.tau, prior.kv.numpy(), prior.steps, prior.moving_torque, "_coriolis_test")
+    eigen = EigenPriorJacobian(arm, arm.tau, prior.kv.numpy(), prior.steps, True, "_coriolis_test")
     xe, je = eigen(x0.numpy(), u.numpy())
     np.testing.assert_allclose(xe, x.numpy(), atol=1e-12)
     np.testing.assert_allclose(je.reshape(jac.shape), jac.numpy(), atol=1e-9)
@@ -73,6 +75,23 @@ def test_its_compiled_forms_and_jacobians_match_torch_and_finite_differences(arm
         np.testing.assert_allclose(np.asarray(exported(x0[k].numpy(), u[k].numpy())).ravel(), xn[k], atol=1e-12)
     numeric = central_jacobian(lambda a, b: prior(t, a, b)[0], x0, u)
     np.testing.assert_allclose(jac.numpy(), numeric.numpy(), atol=1e-6)
+
+
+def test_the_eigen_jacobians_christoffel_form_holds_on_an_identified_arm(points) -> None:
+    """The eigen path writes C(q0, w) w through dM/dq0 (not adam's Newton-Euler graph): a payload, a mass scale and
+    armature (constant on M's diagonal) must leave it equal to the torch prior, value and Jacobian."""
+    cfg = OmegaConf.to_container(system_config("planar3"), resolve=True)
+    cfg["dynamics"].update(name="planar3_heavy", payload={"mass": 0.4})
+    arm = build_system(OmegaConf.create(cfg)).with_mismatch(mass_scale=1.3)
+    prior, (x0, u) = FrozenArmPrior(arm, KIND), (a[:6] for a in points)
+    x, jac = prior.with_jacobian(torch.full((6, 1), arm.tau, dtype=torch.float64), x0, u)
+    xe, je = EigenPriorJacobian(arm, arm.tau, prior.kv.numpy(), prior.steps, True, "_coriolis_heavy")(
+        x0.numpy(), u.numpy()
+    )
+    np.testing.assert_allclose(xe, x.numpy(), atol=1e-12)
+    np.testing.assert_allclose(je.reshape(jac.shape), jac.numpy(), atol=1e-9)
+    held = EigenPriorJacobian(arm, arm.tau, prior.kv.numpy(), prior.steps, False, "_heavy")(x0.numpy(), u.numpy())
+    assert np.abs(held[0] - x.numpy()).max() > 1e-4  # without the Coriolis torques it is another flow
 
 
 def test_the_coriolis_torque_is_the_arms_bias_less_gravity(arm, points) -> None:

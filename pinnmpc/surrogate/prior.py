@@ -255,9 +255,7 @@ class FrozenArmPrior(nn.Module):
             from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
 
             lib = compile_functions(tag, [value], opt="-O2")
-            jacobian = EigenPriorJacobian(
-                self.arm, tau, self.kv.numpy(), self.steps, self.moving_torque, self._suffix()
-            )
+            jacobian = EigenPriorJacobian(self.arm, tau, self.kv.numpy(), self.steps, self.coriolis, self._suffix())
             fast = CompiledPrior(BatchedFunction(lib[value.name()]), jacobian)
         elif self.steps:  # friction couples v0 and u into the sub-steps: AD along every input
             jac = ca.jacobian(xp, ca.vertcat(x, u))

@@ -12,11 +12,15 @@ dM/dq0 from CasADi's AD of the arm's mass matrix compiled to C. This costs one e
 matrix products per sample, where AD through a Taylor series with squarings carries n tangents through every
 product: on a 7-joint arm the exponential needs many squarings (its time constants span 1 ms to 0.2 s against a
 50 ms period), so this path is the cheaper there; small arms keep the AD one (docs/design.md).
+
+With the Coriolis torques at the moving velocity (frozen_arm_moving) they are written through the same dM/dq0_k,
+C(q0, w) w = (sum_k w_k dM_k) w - 1/2 (w^T dM_i w)_i (Christoffel symbols, one formula for all sub-steps), and
+their change along q0_j through d2M/dq0_j dq0_k, computed once per sample: AD through the recursive Newton-Euler
+graph at every sub-step's velocity cost several times more (docs/training.md).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import casadi as ca
@@ -55,11 +59,11 @@ class EigenPriorJacobian:
         tau: float,
         kv: np.ndarray,
         steps: int = 0,
-        torque: Callable | None = None,
+        coriolis: bool = False,
         suffix: str = "",
     ) -> None:
-        """torque: q0 -> (w -> the torques the sub-steps hold at w; FrozenArmPrior.moving_torque), default the dry
-        friction; suffix: the compiled functions' name suffix (FrozenArmPrior._suffix)."""
+        """steps: sub-steps with the dry friction at the moving velocity (0: one solve); coriolis: the sub-steps hold
+        C(q0, w) w too (FrozenArmPrior.moving_torque); suffix: the compiled functions' name suffix."""
         from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
         n = self.n = arm.nq
@@ -88,8 +92,8 @@ class EigenPriorJacobian:
         factors = (left, right, p, big0, big1)
         if steps:
             diags = (ca.vertcat(*f0), ca.vertcat(*f1))
-            moving = (torque or (lambda q: arm.dry_friction))(q0)
-            xp, jac = _moving(n, (x0, u), (vss, diags, ca.DM(kv), moving), factors, (span, steps), m)
+            solve = (vss, diags, ca.DM(kv), arm.dry_friction)
+            xp, jac = _moving(n, (x0, u), solve, factors, (span, steps), m, coriolis)
         else:
             xp, jac = _settled((x0, u), (vss, f0, f1), factors, tau, m)
         rest = ca.Function(tag, [x0, u, lam, vt], [xp, ca.densify(ca.vec(jac.T))], {"cse": True})
@@ -127,28 +131,83 @@ def _settled(inputs: tuple, solve: tuple, eigen: tuple, tau: float, m: ca.SX) ->
     return ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d)), jac
 
 
-def _moving(n: int, inputs: tuple, solve: tuple, eigen: tuple, steps: tuple, m: ca.SX) -> tuple[ca.SX, ca.SX]:
+def _moving(
+    n: int, inputs: tuple, solve: tuple, eigen: tuple, steps: tuple, m: ca.SX, coriolis: bool
+) -> tuple[ca.SX, ca.SX]:
     """x_p and its Jacobian for the friction sub-steps (pinnmpc.surrogate.prior.friction_substeps), E and the lag
     applied in factored form, Kh^-1 V (diag f - F o D) V^T Kh with D = -V^T dS V: D = 0 gives their values, and
     CasADi's forward mode along D = p dM_j p^T their derivative along q0_j (Daleckii-Krein) through every sub-step,
-    no n x n matrix formed. inputs (x0, u); solve (v_ss, (f0, f1), kv, w -> the moving torques); eigen (Kh^-1 V,
-    V^T Kh, V^T Kh M^-1, F0, F1); steps (h, count)."""
+    no n x n matrix formed. With coriolis, each sub-step's C(q0, w) w enters linearised at its own point
+    (HeldCoriolis). inputs (x0, u); solve (v_ss, (f0, f1), kv, w -> the dry friction); eigen (Kh^-1 V, V^T Kh,
+    V^T Kh M^-1, F0, F1); steps (h, count)."""
     from pinnmpc.surrogate.prior import friction_substeps
 
-    (x0, u), (vss, (f0, f1), kv, torque), (left, right, p, big0, big1), (h, count) = inputs, solve, eigen, steps
+    (x0, u), (vss, (f0, f1), kv, dry), (left, right, p, big0, big1), (h, count) = inputs, solve, eigen, steps
+    q0 = x0[:n]
     turn = ca.SX.sym("d", n, n)  # -V^T dS V, zero at the point itself
+    held = HeldCoriolis(n, q0) if coriolis else None
 
     def relax(d: ca.SX) -> tuple[ca.SX, ca.SX]:
         """kv^-1 M (I - E) d and E d."""
         r = ca.mtimes(right, d)
         return ca.mtimes(left, f1 * r - ca.mtimes(big1 * turn, r)), ca.mtimes(left, f0 * r - ca.mtimes(big0 * turn, r))
 
-    xs = ca.vertcat(*friction_substeps((x0[:n], x0[n:]), vss, torque, kv, h, relax, count))
-    seeds = [ca.vec(ca.mtimes(ca.mtimes(p, _dm(m, x0[:n], j)), p.T)) for j in range(n)]  # -V^T dS_j V
+    torque = (lambda w: dry(w) + held(w)) if held else dry  # noqa: E731
+    xs = ca.vertcat(*friction_substeps((q0, x0[n:]), vss, torque, kv, h, relax, count))
+    dms = [ca.densify(_dm(m, q0, j)) for j in range(n)]
+    seeds = [ca.vec(ca.mtimes(ca.mtimes(p, dms[j]), p.T)) for j in range(n)]  # -V^T dS_j V
     by_q = ca.jtimes(xs, ca.vec(turn), ca.horzcat(*seeds))  # forward mode along each q0_j
-    jac = ca.jacobian(xs, ca.vertcat(x0, u)) + ca.horzcat(by_q, ca.SX(2 * n, 2 * n))
-    out = ca.substitute([xs, jac], [turn], [ca.SX.zeros(n, n)])
-    return out[0], out[1]
+    out = [xs, ca.jacobian(xs, ca.vertcat(x0, u)) + ca.horzcat(by_q, ca.SX(2 * n, 2 * n))]
+    if held:
+        out = held.resolve(out, dms)
+    return tuple(ca.substitute(out, [turn], [ca.SX.zeros(n, n)]))
+
+
+class HeldCoriolis:
+    """C(q0, w) w of the sub-steps for AD at the cost of its linearisation: with the Christoffel form
+    c(w; D) = (sum_k w_k D_k) w - 1/2 (w^T D_i w)_i, D_k = dM/dq0_k, each call at an expression w returns
+    c(w') + J(w') (w - w') + G(w') (q0 - q0'), w' and q0' symbols resolved to w and q0 after differentiation,
+    J = dc/dw', G_j = c(w'; d2M/dq0_j dq0_k): equal in value, exact in derivative, and AD carries each tangent
+    through two n x n products instead of the n^3 form; D and d2M are symbols until then too."""
+
+    def __init__(self, n: int, q0: ca.SX) -> None:
+        self.n, self.q0, self.q_at = n, q0, ca.SX.sym("q_at", n)
+        self.slopes = [ca.SX.sym(f"dm{k}", n, n) for k in range(n)]
+        self.curves = {(k, j): ca.SX.sym(f"ddm{k}_{j}", n, n) for k in range(n) for j in range(k, n)}
+        self.points: list[tuple[ca.SX, ca.SX]] = []  # (w', the expression it stands for), in call order
+
+    def _curve(self, k: int, j: int) -> ca.SX:
+        """The d2M/dq0_k dq0_j symbol (one per pair)."""
+        return self.curves[min(k, j), max(k, j)]
+
+    def __call__(self, w: ca.SX) -> ca.SX:
+        """The linearised C(q0, w) w, w' a new symbol for this w."""
+        n = self.n
+        at = ca.SX.sym(f"w_at{len(self.points)}", n)
+        self.points.append((at, w))
+        c = christoffel(at, self.slopes)
+        g = ca.horzcat(*[christoffel(at, [self._curve(k, j) for k in range(n)]) for j in range(n)])
+        return c + ca.mtimes(ca.jacobian(c, at), w - at) + ca.mtimes(g, self.q0 - self.q_at)
+
+    def resolve(self, exprs: list[ca.SX], dms: list[ca.SX]) -> list[ca.SX]:
+        """exprs with every symbol put back: each w' by its expression in call order (a later one holds earlier
+        w'), then q0', dM and d2M (AD of the mass matrix's first derivatives)."""
+        defs = [w for _, w in self.points]
+        for i, (at, _) in enumerate(self.points):
+            done = ca.substitute([*exprs, *defs[i + 1 :]], [at], [defs[i]])
+            exprs, defs[i + 1 :] = done[: len(exprs)], done[len(exprs) :]
+        q0, keys = self.q0, list(self.curves)
+        second = [ca.densify(ca.reshape(ca.jacobian(ca.vec(dms[k]), q0[j]), self.n, self.n)) for k, j in keys]
+        syms = [self.q_at, *self.slopes, *(self.curves[key] for key in keys)]
+        return ca.substitute(exprs, syms, [q0, *dms, *second])
+
+
+def christoffel(w: ca.SX, slopes: list[ca.SX]) -> ca.SX:
+    """(sum_k w_k D_k) w - 1/2 (w^T D_i w)_i: C(q, w) w when D_k = dM/dq_k, and its derivative along q_j when
+    D_k = d2M/dq_j dq_k (the form is linear in D)."""
+    n = len(slopes)
+    bias = ca.vertcat(*[ca.bilin(slopes[i], w, w) for i in range(n)])
+    return ca.mtimes(sum((w[k] * slopes[k] for k in range(n)), ca.SX(n, n)), w) - 0.5 * bias
 
 
 def _dm(m: ca.SX, q: ca.SX, j: int) -> ca.SX:
