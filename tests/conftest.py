@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -71,6 +72,24 @@ TINY_TRAIN = [  # a real training run of a few seconds: tiny network, few points
     "trainer.enable_model_summary=false",
     "threads=1",
 ]
+
+
+def check_substep_flow(prior: Any, x0: torch.Tensor, u: torch.Tensor, eps: float, atol: float) -> None:
+    """A sub-stepped prior along t in [0, 1.07 tau] (training's t_max is past tau): it starts at x0, dq/dt = v at
+    every t (each sub-step is the exact flow of its held torques), dx/dt is the central difference inside the
+    sub-steps and the right-sided one at their boundaries (the held torques change there)."""
+    b, n, h = x0.shape[0], x0.shape[-1] // 2, prior.arm.tau / prior.steps
+    t = torch.linspace(0.0, 1.07 * prior.arm.tau, b, dtype=torch.float64).unsqueeze(-1)  # no point on a boundary
+    t[: prior.steps + 1] = torch.arange(prior.steps + 1, dtype=torch.float64).unsqueeze(-1) * h  # the boundaries
+    np.testing.assert_allclose(prior(0 * t, x0, u)[0].numpy(), x0.numpy(), atol=1e-14)
+    x, dx = prior(t, x0, u)
+    np.testing.assert_allclose(dx[:, :n].numpy(), x[:, n:].numpy(), rtol=1e-12, atol=1e-12)
+    up, down = (prior(t + s, x0, u)[0] for s in (eps, -eps))
+    edge = prior.steps + 1
+    np.testing.assert_allclose(dx[edge:].numpy(), ((up - down) / (2 * eps))[edge:].numpy(), rtol=1e-6, atol=atol)
+    right = prior(t + eps / 10, x0, u)[0]
+    np.testing.assert_allclose(dx[:edge].numpy(), ((right - x) / (eps / 10))[:edge].numpy(), rtol=1e-4, atol=10 * atol)
+    assert float((x - x0).abs().max()) > 1e-2  # it moves
 
 
 def central_jacobian(

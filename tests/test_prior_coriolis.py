@@ -14,7 +14,7 @@ from pinnmpc.surrogate.prior import FRICTION_STEPS, FrozenArmPrior
 from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
 from pinnmpc.systems import build_system, system_config
 from pinnmpc.training.data import reference_flow
-from tests.conftest import central_jacobian
+from tests.conftest import central_jacobian, check_substep_flow
 
 KIND = "frozen_arm_moving"
 
@@ -49,13 +49,8 @@ def test_the_coriolis_torques_at_the_moving_velocity_bring_the_prior_closer(arm,
 
 
 def test_it_starts_at_x0_and_its_time_derivative_is_exact(arm, points) -> None:
-    prior, (x0, u) = FrozenArmPrior(arm, KIND), points
-    t = torch.linspace(0.0, arm.tau, 64, dtype=torch.float64).unsqueeze(-1)
-    np.testing.assert_allclose(prior(0 * t, x0, u)[0].numpy(), x0.numpy(), atol=1e-14)
-    x, dx = prior(t, x0, u)
-    eps = 1e-7  # the fast modes' curvature makes a wider difference quotient miss by 1e-4
-    up, down = (prior(t + s, x0, u)[0] for s in (eps, -eps))
-    np.testing.assert_allclose(dx[1:].numpy(), ((up - down) / (2 * eps))[1:].numpy(), rtol=1e-6, atol=1e-5)
+    # eps: the fast modes' curvature makes a wider difference quotient miss by 1e-4
+    check_substep_flow(FrozenArmPrior(arm, KIND), *points, eps=1e-7, atol=1e-5)
 
 
 def test_its_compiled_forms_and_jacobians_match_torch_and_finite_differences(arm, points) -> None:

@@ -14,7 +14,7 @@ from pinnmpc.surrogate.casadi_network import prior_function
 from pinnmpc.surrogate.prior import FRICTION_STEPS, FrozenArmPrior
 from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
 from pinnmpc.training.data import reference_flow
-from tests.conftest import central_jacobian
+from tests.conftest import central_jacobian, check_substep_flow
 
 TAU = 0.1
 KIND = "frozen_arm_friction"
@@ -57,14 +57,7 @@ def test_moving_friction_predicts_a_servo_with_dry_friction_closer_than_settled_
 
 
 def test_it_starts_at_x0_and_its_time_derivative_is_exact(servo, points) -> None:
-    prior, (x0, u) = FrozenArmPrior(servo[1], KIND), points
-    t = torch.linspace(0.0, TAU, 64, dtype=torch.float64).unsqueeze(-1)
-    np.testing.assert_allclose(prior(0 * t, x0, u)[0].numpy(), x0.numpy(), atol=1e-14)
-    x, dx = prior(t, x0, u)
-    eps = 1e-6
-    up, down = (prior(t + s, x0, u)[0] for s in (eps, -eps))
-    np.testing.assert_allclose(dx[1:].numpy(), ((up - down) / (2 * eps))[1:].numpy(), rtol=1e-6, atol=1e-6)
-    assert float((x - x0).abs().max()) > 1e-2  # it moves
+    check_substep_flow(FrozenArmPrior(servo[1], KIND), *points, eps=1e-6, atol=1e-6)
 
 
 def test_its_compiled_forms_and_jacobians_match_torch_and_finite_differences(servo, points) -> None:

@@ -58,23 +58,31 @@ class CompiledPrior:
 
 
 def friction_substeps(
-    x0: tuple[Any, Any], vss: Any, friction: Callable[[Any], Any], kv: Any, h: Any, relax: Callable, steps: int
+    x0: tuple[Any, Any],
+    vss: Any,
+    friction: Callable[[Any], Any],
+    kv: Any,
+    h: Any,
+    relax: Callable,
+    steps: int,
+    spans: list[tuple[Any, Callable]] | None = None,
 ) -> tuple[Any, Any]:
     """(q, v) after `steps` sub-steps of h of the arm frozen at q0 with its dry friction at the moving velocity: per
     sub-step the friction is held at the mean of the start velocity and a predicted end velocity (exponential Heun),
     the linear rest solved exactly; relax(d) -> (kv^-1 M (I - E(h)) d, E(h) d); any array namespace. x0 = (q0, v0),
-    vss = c0 / kv of the drive without the friction."""
+    vss = c0 / kv of the drive without the friction. spans: per sub-step the (length, relax) it advances by, its
+    torques still predicted over h (FrozenArmPrior._solve_moving: x_p(t) for t anywhere on the grid of h)."""
     q, v = x0
 
-    def sub(q: Any, v: Any, w: Any) -> tuple[Any, Any]:
+    def sub(q: Any, v: Any, w: Any, h: Any, relax: Callable) -> tuple[Any, Any]:
         """One exact step of M dv/dt = c0 - friction(w) - kv v."""
         ss = vss - friction(w) / kv
         lag_d, e_d = relax(v - ss)
         return q + ss * h + lag_d, ss + e_d
 
-    for _ in range(steps):
-        predicted = sub(q, v, v)[1]
-        q, v = sub(q, v, 0.5 * (v + predicted))
+    for k in range(steps):
+        predicted = sub(q, v, v, h, relax)[1]
+        q, v = sub(q, v, 0.5 * (v + predicted), *(spans[k] if spans else (h, relax)))
     return q, v
 
 
@@ -173,20 +181,32 @@ class FrozenArmPrior(nn.Module):
     def _solve_moving(
         self, t: Tensor, x0: tuple[Tensor, Tensor], m: Tensor, a: Tensor, vss: Tensor
     ) -> tuple[Tensor, Tensor]:
-        """x_p(t) with the friction at the moving velocity (friction_substeps), and dx_p/dt by forward-mode AD."""
-        kv = self.kv.to(vss.device)
+        """x_p(t) with the moving torques (friction_substeps), and dx_p/dt by forward-mode AD. The sub-steps sit on a
+        fixed grid of h = tau / steps (the arm's tau), the one a period is cut into: the sub-step holding t advances
+        by t less its start, later ones by nothing. Within a sub-step x_p is the exact flow of the arm with its
+        torques held, so dq_p/dt = v_p at every t and the physics residual sees only what the held torques miss
+        (sub-steps of t / steps instead, as the formula reads at tau, would not: the held torques would change
+        with t); at t = tau both are the same flow."""
+        kv, h = self.kv.to(vss.device), self.arm.tau / self.steps
+        count = max(self.steps, math.floor(float(t.max()) / h) + 1)  # t_max is a little beyond tau
 
-        def flow(t: Tensor) -> Tensor:
-            """x_p at t (B, 1)."""
-            h = t / self.steps
-            e = torch.linalg.matrix_exp(-a * h.unsqueeze(-1))
+        def relax_by(e: Tensor) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
+            """d -> (kv^-1 M (I - E) d, E d) for this E."""
 
             def relax(d: Tensor) -> tuple[Tensor, Tensor]:
-                """kv^-1 M (I - E) d and E d."""
                 ed = (e @ d.unsqueeze(-1)).squeeze(-1)
                 return (m @ (d - ed).unsqueeze(-1)).squeeze(-1) / kv, ed
 
-            return torch.cat(friction_substeps(x0, vss, self.moving_torque(x0[0]), kv, h, relax, self.steps), -1)
+            return relax
+
+        def flow(t: Tensor) -> Tensor:
+            """x_p at t (B, 1)."""
+            # the sub-step holding t (k h <= t < (k + 1) h) moves with it: one active span, so dx_p/dt is one-sided
+            spans = [torch.where(t >= (k + 1) * h, h, torch.where(t >= k * h, t - k * h, 0.0)) for k in range(count)]
+            spans = [(s, relax_by(torch.linalg.matrix_exp(-a * s.unsqueeze(-1)))) for s in spans]
+            full = relax_by(torch.linalg.matrix_exp(-a * h))
+            torque = self.moving_torque(x0[0])
+            return torch.cat(friction_substeps(x0, vss, torque, kv, h, full, count, spans), -1)
 
         return torch.func.jvp(flow, (t,), (torch.ones_like(t),))
 
@@ -233,6 +253,11 @@ class FrozenArmPrior(nn.Module):
         eigendecomposition (pinnmpc.surrogate.prior_eigen); built once per tau and checked against the torch form."""
         if tau in self._compiled:
             return self._compiled[tau]
+        if self.steps and not math.isclose(tau, self.arm.tau, rel_tol=1e-12):
+            raise ValueError(
+                f"a {self.kind} prior's sub-steps cut the arm's period ({self.arm.tau} s); a flow over tau={tau} s "
+                "would be another function: use the system's tau"
+            )
         from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
         n, h, kv = self.nq, tau / max(1, self.steps), ca.DM(self.kv.numpy())
