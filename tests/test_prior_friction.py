@@ -82,3 +82,10 @@ def test_its_compiled_forms_and_jacobians_match_torch_and_finite_differences(ser
 def test_an_unknown_kind_is_refused() -> None:
     with pytest.raises(ValueError, match="model.prior='frozen_arm_rk4'; expected null or one of"):
         FrozenArmPrior("planar3", "frozen_arm_rk4")
+
+
+def test_a_flow_over_another_period_than_the_arms_is_refused(servo) -> None:
+    """The sub-steps cut the arm's tau: compiled at another tau the C would not be the torch prior's flow."""
+    prior = FrozenArmPrior(servo[1], KIND)
+    with pytest.raises(ValueError, match=r"frozen_arm_friction prior's sub-steps cut the arm's period \(0.1 s\)"):
+        prior.compiled(0.05)
