@@ -164,50 +164,55 @@ def _moving(
 
 
 class HeldCoriolis:
-    """C(q0, w) w of the sub-steps for AD at the cost of its linearisation: with the Christoffel form
-    c(w; D) = (sum_k w_k D_k) w - 1/2 (w^T D_i w)_i, D_k = dM/dq0_k, each call at an expression w returns
-    c(w') + J(w') (w - w') + G(w') (q0 - q0'), w' and q0' symbols resolved to w and q0 after differentiation,
-    J = dc/dw', G_j = c(w'; d2M/dq0_j dq0_k): equal in value, exact in derivative, and AD carries each tangent
-    through two n x n products instead of the n^3 form; D and d2M are symbols until then too."""
+    """C(q0, w) w of the sub-steps for AD at the cost of its linearisation. In Christoffel form each torque is a
+    quadratic form in w, c_i = w^T A_i w with A_i[k, l] = dM_il/dq0_k - 1/2 dM_kl/dq0_i, and its derivative along q0_j
+    the same with d2M; both sets of forms are computed once per sample, packed over the pairs k <= l. Each call at an
+    expression w returns c(w') + J(w') (w - w') + G(w') (q0 - q0'), w' and q0' symbols resolved to w and q0 after
+    differentiation, J = dc/dw', G_ij = dc_i/dq0_j: equal in value, exact in derivative, and AD carries each tangent
+    through two n x n products instead of the n^3 form; the forms are symbols until then too."""
 
     def __init__(self, n: int, q0: ca.SX) -> None:
         self.n, self.q0, self.q_at = n, q0, ca.SX.sym("q_at", n)
-        self.slopes = [ca.SX.sym(f"dm{k}", n, n) for k in range(n)]
-        self.curves = {(k, j): ca.SX.sym(f"ddm{k}_{j}", n, n) for k in range(n) for j in range(k, n)}
+        self.pairs = [(k, m) for k in range(n) for m in range(k, n)]
+        self.forms = ca.SX.sym("forms", n, len(self.pairs))  # row i: c_i's packed form
+        self.slopes = ca.SX.sym("slopes", n * n, len(self.pairs))  # row i n + j: dc_i/dq0_j's
         self.points: list[tuple[ca.SX, ca.SX]] = []  # (w', the expression it stands for), in call order
-
-    def _curve(self, k: int, j: int) -> ca.SX:
-        """The d2M/dq0_k dq0_j symbol (one per pair)."""
-        return self.curves[min(k, j), max(k, j)]
 
     def __call__(self, w: ca.SX) -> ca.SX:
         """The linearised C(q0, w) w, w' a new symbol for this w."""
         n = self.n
         at = ca.SX.sym(f"w_at{len(self.points)}", n)
         self.points.append((at, w))
-        c = christoffel(at, self.slopes)
-        g = ca.horzcat(*[christoffel(at, [self._curve(k, j) for k in range(n)]) for j in range(n)])
+        products = ca.vertcat(*[at[k] * at[m] for k, m in self.pairs])
+        c = ca.mtimes(self.forms, products)
+        g = ca.reshape(ca.mtimes(self.slopes, products), n, n).T  # column-major: row i n + j reads back as G_ij
         return c + ca.mtimes(ca.jacobian(c, at), w - at) + ca.mtimes(g, self.q0 - self.q_at)
 
     def resolve(self, exprs: list[ca.SX], dms: list[ca.SX]) -> list[ca.SX]:
         """exprs with every symbol put back: each w' by its expression in call order (a later one holds earlier
-        w'), then q0', dM and d2M (AD of the mass matrix's first derivatives)."""
+        w'), then q0' and the forms from dM/dq0 and d2M/dq0 dq0 (AD of the mass matrix's first derivatives)."""
         defs = [w for _, w in self.points]
         for i, (at, _) in enumerate(self.points):
             done = ca.substitute([*exprs, *defs[i + 1 :]], [at], [defs[i]])
             exprs, defs[i + 1 :] = done[: len(exprs)], done[len(exprs) :]
-        q0, keys = self.q0, list(self.curves)
-        second = [ca.densify(ca.reshape(ca.jacobian(ca.vec(dms[k]), q0[j]), self.n, self.n)) for k, j in keys]
-        syms = [self.q_at, *self.slopes, *(self.curves[key] for key in keys)]
-        return ca.substitute(exprs, syms, [q0, *dms, *second])
+        n, q0 = self.n, self.q0
+        second = {}
+        for k in range(n):
+            for j in range(k, n):
+                second[k, j] = second[j, k] = ca.densify(ca.reshape(ca.jacobian(ca.vec(dms[k]), q0[j]), n, n))
+        forms = self._packed(dms)
+        slopes = ca.vertcat(*[self._packed([second[k, j] for k in range(n)])[i, :] for i in range(n) for j in range(n)])
+        return ca.substitute(exprs, [self.q_at, self.forms, self.slopes], [q0, forms, slopes])
 
+    def _packed(self, d: list[ca.SX]) -> ca.SX:
+        """Rows i: A_i[k, l] = d[k]_il - 1/2 d[i]_kl over the pairs k <= l, off-diagonal pairs taking A_kl + A_lk."""
+        n = self.n
 
-def christoffel(w: ca.SX, slopes: list[ca.SX]) -> ca.SX:
-    """(sum_k w_k D_k) w - 1/2 (w^T D_i w)_i: C(q, w) w when D_k = dM/dq_k, and its derivative along q_j when
-    D_k = d2M/dq_j dq_k (the form is linear in D)."""
-    n = len(slopes)
-    bias = ca.vertcat(*[ca.bilin(slopes[i], w, w) for i in range(n)])
-    return ca.mtimes(sum((w[k] * slopes[k] for k in range(n)), ca.SX(n, n)), w) - 0.5 * bias
+        def a(i: int, k: int, m: int) -> ca.SX:
+            return d[k][i, m] - 0.5 * d[i][k, m]
+
+        rows = [[a(i, k, m) + a(i, m, k) if k != m else a(i, k, k) for k, m in self.pairs] for i in range(n)]
+        return ca.vertcat(*[ca.horzcat(*row) for row in rows])
 
 
 def _dm(m: ca.SX, q: ca.SX, j: int) -> ca.SX:
