@@ -37,10 +37,10 @@ GPU_RUN = $(PY) -m pinnmpc.train progress=false self_loop_figure.every_n_epochs=
 gpu-curves: install  ## on one GPU: PowerCube default 1.5 min, Panda recipes 3.3 min each; RMSE vs minutes (+ CPU_RUNS="dir=label ...")
 	d=outputs/gpu-curves/$$(date +%Y-%m-%d_%H-%M-%S) && \
 	$(GPU_RUN) trainer=gpu threads=0 trainer.max_time=00:00:01:30 hydra.run.dir=$$d/powercube $(OVERRIDES) && \
-	$(GPU_RUN) experiment=panda trainer=gpu threads=0 trainer.max_time=00:00:03:20 hydra.run.dir=$$d/panda $(OVERRIDES) && \
+	$(GPU_RUN) experiment=panda-frozen trainer=gpu threads=0 trainer.max_time=00:00:03:20 hydra.run.dir=$$d/panda $(OVERRIDES) && \
 	$(GPU_RUN) experiment=panda-gpu trainer.max_time=00:00:03:20 hydra.run.dir=$$d/panda-gpu $(OVERRIDES) && \
-	$(PY) -m pinnmpc.curves $$d/powercube="PowerCube, GPU" $$d/panda="Panda, GPU" \
-		$$d/panda-gpu="Panda, GPU, 4x points" $(CPU_RUNS) --out $$d/curves.png
+	$(PY) -m pinnmpc.curves $$d/powercube="PowerCube, GPU" $$d/panda="Panda (frozen_arm), GPU" \
+		$$d/panda-gpu="Panda (frozen_arm), GPU, 4x points" $(CPU_RUNS) --out $$d/curves.png
 
 self-loop: install  ## the paper's 20-step self-loop test with the shipped checkpoint
 	$(PY) -m pinnmpc.self_loop $(OVERRIDES)

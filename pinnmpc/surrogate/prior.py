@@ -188,7 +188,8 @@ class FrozenArmPrior(nn.Module):
         (sub-steps of t / steps instead, as the formula reads at tau, would not: the held torques would change
         with t); at t = tau both are the same flow."""
         kv, h = self.kv.to(vss.device), self.arm.tau / self.steps
-        count = max(self.steps, math.floor(float(t.max()) / h) + 1)  # t_max is a little beyond tau
+        top = float(t.max()) if t.numel() else 0.0  # an empty batch has no t
+        count = max(self.steps, math.floor(top / h) + 1)  # t_max is a little beyond tau
 
         def relax_by(e: Tensor) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
             """d -> (kv^-1 M (I - E) d, E d) for this E."""
