@@ -195,6 +195,7 @@ class FrozenArmPrior(nn.Module):
             """d -> (kv^-1 M (I - E) d, E d) for this E."""
 
             def relax(d: Tensor) -> tuple[Tensor, Tensor]:
+                """kv^-1 M (I - E) d and E d."""
                 ed = (e @ d.unsqueeze(-1)).squeeze(-1)
                 return (m @ (d - ed).unsqueeze(-1)).squeeze(-1) / kv, ed
 

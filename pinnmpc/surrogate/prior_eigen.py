@@ -199,7 +199,7 @@ class HeldCoriolis:
         second = {}
         for k in range(n):
             for j in range(k, n):
-                second[k, j] = second[j, k] = ca.densify(ca.reshape(ca.jacobian(ca.vec(dms[k]), q0[j]), n, n))
+                second[k, j] = second[j, k] = ca.densify(_dm(dms[k], q0, j))
         forms = self._packed(dms)
         slopes = ca.vertcat(*[self._packed([second[k, j] for k in range(n)])[i, :] for i in range(n) for j in range(n)])
         return ca.substitute(exprs, [self.q_at, self.forms, self.slopes], [q0, forms, slopes])
@@ -209,6 +209,7 @@ class HeldCoriolis:
         n = self.n
 
         def a(i: int, k: int, m: int) -> ca.SX:
+            """A_i[k, m]."""
             return d[k][i, m] - 0.5 * d[i][k, m]
 
         rows = [[a(i, k, m) + a(i, m, k) if k != m else a(i, k, k) for k, m in self.pairs] for i in range(n)]
