@@ -201,7 +201,8 @@ class HeldCoriolis:
             for j in range(k, n):
                 second[k, j] = second[j, k] = ca.densify(_dm(dms[k], q0, j))
         forms = self._packed(dms)
-        slopes = ca.vertcat(*[self._packed([second[k, j] for k in range(n)])[i, :] for i in range(n) for j in range(n)])
+        along = [self._packed([second[k, j] for k in range(n)]) for j in range(n)]  # per q0_j: every c_i's form
+        slopes = ca.vertcat(*[along[j][i, :] for i in range(n) for j in range(n)])
         return ca.substitute(exprs, [self.q_at, self.forms, self.slopes], [q0, forms, slopes])
 
     def _packed(self, d: list[ca.SX]) -> ca.SX:
