@@ -9,6 +9,8 @@ float64 agreement with torch's matrix_exp on a stiff 7-joint arm too.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import casadi as ca
 import numpy as np
 import torch
@@ -17,7 +19,7 @@ from pinnmpc.surrogate import mlp
 from pinnmpc.surrogate.activations import Ops
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.surrogate.network import PINN
-from pinnmpc.surrogate.prior import TAYLOR_DEGREE, FrozenArmPrior, friction_substeps
+from pinnmpc.surrogate.prior import TAYLOR_DEGREE, FrozenArmPrior, friction_substeps, midpoint_substeps
 
 SOFTPLUS_THRESHOLD = 20.0  # torch's softplus returns its input above this, and so does the export
 
@@ -82,11 +84,25 @@ def prior_function(prior: FrozenArmPrior, tau: float) -> ca.Function:
     s = prior.squarings(h)
     x, u = ca.MX.sym("x", 2 * n), ca.MX.sym("u", n)
     q0, v0 = x[:n], x[n:]
-    m, c0 = prior.arm.casadi_frozen_terms(settled=not prior.steps)(q0, u)
-    vss = c0 / ca.DM(kv)
-    e_minus_i = _expm1(-_relaxation(n, kv)(m) * (h / 2**s), s)
+    frozen, relaxation = prior.arm.casadi_frozen_terms(settled=not prior.steps), _relaxation(n, kv)
+
+    def held(q: ca.MX) -> tuple[ca.MX, ca.MX, ca.MX]:
+        """v_ss, kv^-1 M (I - E) and E - I over h of the arm held at q."""
+        m, c0 = frozen(q, u)
+        e_minus_i = _expm1(-relaxation(m) * (h / 2**s), s)
+        return c0 / ca.DM(kv), -ca.mtimes(ca.DM(np.diag(1 / kv)), ca.mtimes(m, e_minus_i)), e_minus_i
+
+    if prior.midpoint:
+
+        def terms(q: ca.MX) -> tuple[ca.MX, Callable]:
+            """v_ss and the relaxation over h of the arm held at q."""
+            vss, lag, e_minus_i = held(q)
+            return vss, lambda d: (ca.mtimes(lag, d), d + ca.mtimes(e_minus_i, d))
+
+        substeps = midpoint_substeps((q0, v0), terms, prior.moving_torque, ca.DM(kv), h, prior.steps)
+        return ca.Function(f"{prior.arm.name}_frozen_prior", [x, u], [ca.vertcat(*substeps)])
+    vss, lag, e_minus_i = held(q0)
     d = v0 - vss
-    lag = -ca.mtimes(ca.DM(np.diag(1 / kv)), ca.mtimes(m, e_minus_i))  # kv^-1 M (I - E)
     if prior.steps:
         relax = lambda d: (ca.mtimes(lag, d), d + ca.mtimes(e_minus_i, d))  # noqa: E731
         substeps = friction_substeps((q0, v0), vss, prior.moving_torque(q0), ca.DM(kv), h, relax, prior.steps)

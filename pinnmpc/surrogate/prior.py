@@ -11,10 +11,12 @@ A network that learns only what this misses (configuration change, Coriolis, Cou
 several times closer on the same budget (docs/training.md). Kind `frozen_arm_friction` adds the arm's dry friction
 at the moving velocity: two sub-steps, each the same exact solve with the friction held at a predicted mean velocity
 (friction_substeps); an arm without dry friction gets the plain flow. Kind `frozen_arm_moving` holds the Coriolis and
-centrifugal torques C(q0, w) w at the moving velocity in the same sub-steps too. No parameters: torch for training
-(memoised, since full-batch training evaluates it on the same points every step) and CasADi compiled to C, with its
-exact Jacobian (by AD, or by eigendecomposition on larger arms: pinnmpc.surrogate.prior_eigen), for the controller's
-numpy path.
+centrifugal torques C(q0, w) w at the moving velocity in the same sub-steps too. Kind `midpoint_arm` holds the arm
+per sub-step at its predicted mid configuration instead of q0 (M, gravity, drive and C taken there;
+midpoint_substeps): freezing M at q0 is what a frozen prior misses most on a long arm. No parameters: torch for
+training (memoised, since full-batch training evaluates it on the same points every step) and CasADi compiled to C,
+with its exact Jacobian (by AD, or by eigendecomposition on larger arms: pinnmpc.surrogate.prior_eigen; midpoint_arm
+on larger arms: frozen_arm_moving's Jacobian stands in, docs/design.md), for the controller's numpy path.
 """
 
 from __future__ import annotations
@@ -30,11 +32,15 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor, nn
 
-KINDS = ("frozen_arm", "frozen_arm_friction", "frozen_arm_moving")  # model.prior values besides null: the arm's dry
-#   friction settled in c0, or held per sub-step at the moving velocity (friction_substeps; arms without dry
-#   friction: the same flow as frozen_arm), or the same with the Coriolis and centrifugal torques C(q0, w) w too
+KINDS = ("frozen_arm", "frozen_arm_friction", "frozen_arm_moving", "midpoint_arm")  # model.prior values besides
+#   null: the arm's dry friction settled in c0, or held per sub-step at the moving velocity (friction_substeps; arms
+#   without dry friction: the same flow as frozen_arm), or the same with the Coriolis and centrifugal torques
+#   C(q0, w) w too, or with M, gravity and the Coriolis torques re-taken per sub-step at its predicted mid
+#   configuration (midpoint_substeps)
 FRICTION_STEPS = 2  # exponential Heun sub-steps of frozen_arm_friction over a period: the predicted end velocity's
 #   friction, averaged with the start's, per sub-step (docs/training.md)
+MIDPOINT_STEPS = 6  # sub-steps of midpoint_arm over a period, each with its own configuration: its miss falls as
+#   h^2; with 6 the Panda's prior alone is at 0.54x its one-step targets at worst, with 4 1.08x (docs/training.md)
 TAYLOR_DEGREE = 12  # terms of exp(X / 2^s) before squaring; with |X / 2^s| <= 1/2 the remainder is ~1e-14
 SQUARING_NORM = 0.5  # the largest 1-norm of X / 2^s the Taylor series is trusted at
 MEMO_SIZE = 8  # input sets kept, least recently used out first (collocation, anchors, validation, and the data
@@ -86,6 +92,42 @@ def friction_substeps(
     return q, v
 
 
+def predicted_mid(x0: tuple[Any, Any], held: tuple[Any, Callable, Callable], kv: Any, h: Any) -> Any:
+    """The configuration half way through a sub-step of h from x0, predicted by that sub-step (friction_substeps)
+    with the arm held as `held` = (v_ss, relax over h, moving torques) says: where midpoint_substeps takes M, gravity
+    and the Coriolis torques for it."""
+    vss, relax, torque = held
+    return 0.5 * (x0[0] + friction_substeps(x0, vss, torque, kv, h, relax, 1)[0])
+
+
+def midpoint_substeps(
+    x0: tuple[Any, Any],
+    terms: Callable[[Any], tuple[Any, Callable]],
+    torque: Callable[[Any], Callable],
+    kv: Any,
+    h: Any,
+    steps: int,
+    trail: list | None = None,
+) -> tuple[Any, Any]:
+    """(q, v) after `steps` sub-steps of h, each the frozen arm's flow (friction_substeps, one sub-step) held at its
+    mid configuration, predicted with the arm held as the sub-step before it was (at q0 for the first): an
+    exponential midpoint rule in the configuration, one M per sub-step; freezing M at q0 for a whole period is what
+    costs a frozen prior most on a long arm (docs/training.md). terms(q) -> (v_ss, relax over h) of the arm held at
+    q; torque(q) -> (w -> the torques held at the moving velocity w); any array namespace. trail: gets each
+    sub-step's start and the configuration its predictor holds the arm at, then the end's."""
+    at = x0[0]
+    held = (*terms(at), torque(at))
+    for _ in range(steps):
+        if trail is not None:
+            trail.append((x0, at))
+        at = predicted_mid(x0, held, kv, h)
+        held = (*terms(at), torque(at))
+        x0 = friction_substeps(x0, held[0], held[2], kv, h, held[1], 1)
+    if trail is not None:
+        trail.append((x0, at))
+    return x0
+
+
 class FrozenArmPrior(nn.Module):
     """x_p(t) of the arm frozen at q0 (see the module docstring) for a URDF arm: a System, its `dynamics`
     description (what a network's config stores) or the name of a shipped system; kind: one of KINDS."""
@@ -111,11 +153,14 @@ class FrozenArmPrior(nn.Module):
             )
         check_prior(kind)
         self.arm, self.nq, self.kind = arm, arm.nq, kind
-        self.coriolis = kind == "frozen_arm_moving"  # C(q0, w) w held per sub-step with the friction
+        self.midpoint = kind == "midpoint_arm"  # M, gravity and C re-taken per sub-step (midpoint_substeps)
+        self.coriolis = kind in ("frozen_arm_moving", "midpoint_arm")  # C(q0, w) w held per sub-step with friction
         moving = self.coriolis or (
             kind == "frozen_arm_friction" and bool(getattr(arm, "coulomb", None)) and any(arm.coulomb)
         )
-        self.steps = FRICTION_STEPS if moving else 0  # sub-steps with moving torques; 0: one exact solve
+        self.steps = MIDPOINT_STEPS if self.midpoint else FRICTION_STEPS if moving else 0  # sub-steps with moving
+        #   torques; 0: one exact solve
+        self._coriolis_c: ca.Function | None = None  # C(q, w) w in SX, built once
         self.kv = torch.tensor(arm.linear_gain, dtype=torch.float64)  # float64 whatever the network's dtype
         self._memo: dict[tuple[Any, ...], tuple[tuple[Tensor, ...], Tensor, Tensor]] = {}
         self._compiled: dict[float, CompiledPrior] = {}  # per tau: every numpy flow of this network shares one
@@ -128,7 +173,9 @@ class FrozenArmPrior(nn.Module):
             return self.arm.dry_friction
         if isinstance(q0, Tensor):  # adam's torch model lives on the CPU
             return lambda w: self.arm.dry_friction(w) + self.arm.coriolis_torque(q0.cpu(), w.cpu()).to(w.device)
-        coriolis = self.arm.casadi_coriolis()
+        if self._coriolis_c is None:
+            self._coriolis_c = self.arm.casadi_coriolis()
+        coriolis = self._coriolis_c
         return lambda w: self.arm.dry_friction(w) + coriolis(q0, w)
 
     def __deepcopy__(self, memo: dict) -> FrozenArmPrior:
@@ -151,7 +198,7 @@ class FrozenArmPrior(nn.Module):
 
     def _suffix(self) -> str:
         """Name suffix of the compiled functions per flow: one solve, moving friction, with Coriolis too."""
-        return "_coriolis" if self.coriolis else "_moving" if self.steps else ""
+        return "_midpoint" if self.midpoint else "_coriolis" if self.coriolis else "_moving" if self.steps else ""
 
     def _compiled_terms(self) -> Callable[[np.ndarray, np.ndarray], list[np.ndarray]]:
         """(q, u) rows -> [vec M, c0] rows, compiled once."""
@@ -169,6 +216,8 @@ class FrozenArmPrior(nn.Module):
         """x_p(t) and dx_p/dt in float64 for flat inputs."""
         n = self.nq
         q0, v0 = x0[:, :n], x0[:, n:]
+        if self.midpoint:
+            return self._solve_midpoint(t, (q0, v0), u)
         m, a, vss = self._terms(q0, u)
         if self.steps:
             return self._solve_moving(t, (q0, v0), m, a, vss)
@@ -193,13 +242,7 @@ class FrozenArmPrior(nn.Module):
 
         def relax_by(e: Tensor) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
             """d -> (kv^-1 M (I - E) d, E d) for this E."""
-
-            def relax(d: Tensor) -> tuple[Tensor, Tensor]:
-                """kv^-1 M (I - E) d and E d."""
-                ed = (e @ d.unsqueeze(-1)).squeeze(-1)
-                return (m @ (d - ed).unsqueeze(-1)).squeeze(-1) / kv, ed
-
-            return relax
+            return relaxation(m, e, kv)
 
         def flow(t: Tensor) -> Tensor:
             """x_p at t (B, 1)."""
@@ -209,6 +252,38 @@ class FrozenArmPrior(nn.Module):
             full = relax_by(torch.linalg.matrix_exp(-a * h))
             torque = self.moving_torque(x0[0])
             return torch.cat(friction_substeps(x0, vss, torque, kv, h, full, count, spans), -1)
+
+        return torch.func.jvp(flow, (t,), (torch.ones_like(t),))
+
+    def _solve_midpoint(self, t: Tensor, x0: tuple[Tensor, Tensor], u: Tensor) -> tuple[Tensor, Tensor]:
+        """x_p(t) of midpoint_arm and dx_p/dt on _solve_moving's fixed grid: the whole sub-steps before the one
+        holding t (midpoint_substeps), then that one's span from its start, differentiated in t by forward-mode AD
+        (its mid configuration and held torques are predicted over the whole sub-step, so they do not move with t:
+        within it x_p is an exact flow and dq_p/dt = v_p)."""
+        kv, h = self.kv.to(u.device), self.arm.tau / self.steps
+        top = float(t.max()) if t.numel() else 0.0  # an empty batch has no t
+        active = sum((t[:, 0] >= k * h).long() for k in range(1, max(self.steps, math.floor(top / h) + 1)))
+
+        def terms(q: Tensor) -> tuple[Tensor, Callable]:
+            """v_ss and the relaxation over h of the arm held at q."""
+            m, a, vss = self._terms(q, u)
+            return vss, relaxation(m, torch.linalg.matrix_exp(-a * h), kv)
+
+        trail: list = []  # each sub-step's start and the configuration its predictor holds the arm at
+        midpoint_substeps(x0, terms, self.moving_torque, kv, h, int(active.max()) if t.numel() else 0, trail)
+        rows = torch.arange(t.shape[0], device=t.device)
+        pick = lambda rows_k: torch.stack(rows_k)[active, rows]  # noqa: E731  each one's own sub-step
+        start = tuple(pick([x[i] for x, _ in trail]) for i in (0, 1))
+        before = pick([at for _, at in trail])
+        mid = predicted_mid(start, (*terms(before), self.moving_torque(before)), kv, h)
+        m, a, vss = self._terms(mid, u)
+        full, torque = relaxation(m, torch.linalg.matrix_exp(-a * h), kv), self.moving_torque(mid)
+
+        def flow(t: Tensor) -> Tensor:
+            """x_p at t (B, 1)."""
+            span = t - active.unsqueeze(-1).to(t.dtype) * h  # to t's dtype first: long * float would be float32
+            spans = [(span, relaxation(m, torch.linalg.matrix_exp(-a * span.unsqueeze(-1)), kv))]
+            return torch.cat(friction_substeps(start, vss, torque, kv, h, full, 1, spans), -1)
 
         return torch.func.jvp(flow, (t,), (torch.ones_like(t),))
 
@@ -266,19 +341,39 @@ class FrozenArmPrior(nn.Module):
         s = self.squarings(h)
         x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
         q0, v0 = x[:n], x[n:]
-        m, c0 = self.arm.casadi_frozen_terms(settled=not self.steps)(q0, u)
-        vss = c0 / kv
-        e = _expm(-ca.solve(m, ca.diag(kv)) * (h / 2**s), s)
+        frozen = self.arm.casadi_frozen_terms(settled=not self.steps)
+
+        def held(q: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX]:
+            """v_ss, kv^-1 M (I - E) (at q0: dq(tau)/dv0) and E over h of the arm held at q."""
+            m, c0 = frozen(q, u)
+            e = _expm(-ca.solve(m, ca.diag(kv)) * (h / 2**s), s)
+            return c0 / kv, ca.mtimes(ca.diag(1 / kv), ca.mtimes(m, ca.SX.eye(n) - e)), e
+
+        def terms(q: ca.SX) -> tuple[ca.SX, Callable]:
+            """v_ss and the relaxation over h of the arm held at q."""
+            vss, lag, e = held(q)
+            return vss, lambda d: (ca.mtimes(lag, d), ca.mtimes(e, d))
+
+        vss, lag, e = held(q0)
         d = v0 - vss
-        lag = ca.mtimes(ca.diag(1 / kv), ca.mtimes(m, ca.SX.eye(n) - e))  # kv^-1 M (I - E): dq(tau)/dv0
-        if self.steps:
+        if self.midpoint:
+            xp = ca.vertcat(*midpoint_substeps((q0, v0), terms, self.moving_torque, kv, h, self.steps))
+        elif self.steps:
             relax = lambda d: (ca.mtimes(lag, d), ca.mtimes(e, d))  # noqa: E731
             xp = ca.vertcat(*friction_substeps((q0, v0), vss, self.moving_torque(q0), kv, h, relax, self.steps))
         else:
             xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d))
         tag = f"{self.arm.name}_frozen_prior{self._suffix()}"
         value = ca.Function(f"{tag}_value", [x, u], [xp], {"cse": True})
-        if n >= EIGEN_FROM_JOINTS:
+        held_jacobian = self.midpoint and n >= EIGEN_FROM_JOINTS
+        if held_jacobian:
+            # the Jacobian of frozen_arm_moving (exact, by eigendecomposition) stands in for this one's: the same
+            # sub-stepped flow held at q0, its Jacobian within a few percent (docs/design.md); the value is exact
+            lib = compile_functions(tag, [value], opt="-O2")
+            exact = BatchedFunction(lib[value.name()])
+            held_prior = FrozenArmPrior(self.arm, "frozen_arm_moving").compiled(tau).with_jacobian
+            fast = CompiledPrior(exact, lambda x0, u: [exact(x0, u)[0], held_prior(x0, u)[1]])
+        elif n >= EIGEN_FROM_JOINTS:
             from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
 
             lib = compile_functions(tag, [value], opt="-O2")
@@ -299,12 +394,13 @@ class FrozenArmPrior(nn.Module):
             )  # dense: BatchedFunction's rows
             lib = compile_functions(tag, [value, full], opt="-O2")
             fast = CompiledPrior(BatchedFunction(lib[value.name()]), BatchedFunction(lib[full.name()]))
-        self._check_compiled(fast.with_jacobian, tau)
+        self._check_compiled(fast.with_jacobian, tau, jacobian=not held_jacobian)
         self._compiled[tau] = fast
         return fast
 
-    def _check_compiled(self, fast: Any, tau: float, samples: int = 8) -> None:
-        """Refuse a compiled prior that disagrees with the torch one (value or Jacobian) at random points."""
+    def _check_compiled(self, fast: Any, tau: float, samples: int = 8, jacobian: bool = True) -> None:
+        """Refuse a compiled prior that disagrees with the torch one (value, and Jacobian unless it stands in for
+        this one's) at random points."""
         from pinnmpc.training.data import random_pairs
 
         x0, u = (a.double() for a in random_pairs(self.arm, samples, 1))
@@ -312,7 +408,7 @@ class FrozenArmPrior(nn.Module):
         xn, jn = fast(x0.numpy(), u.numpy())
         off = max(
             float(abs(xn - x.numpy()).max() / (1 + abs(x.numpy()).max())),
-            float(abs(jn.reshape(jac.shape) - jac.numpy()).max() / (1 + abs(jac.numpy()).max())),
+            float(abs(jn.reshape(jac.shape) - jac.numpy()).max() / (1 + abs(jac.numpy()).max())) if jacobian else 0,
         )
         if not off < 1e-8:
             raise RuntimeError(
@@ -321,12 +417,28 @@ class FrozenArmPrior(nn.Module):
             )
 
 
+def relaxation(m: Tensor, e: Tensor, kv: Tensor) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
+    """d -> (kv^-1 M (I - E) d, E d): the lag in q and the decay in v of the arm held with mass matrix M."""
+
+    def relax(d: Tensor) -> tuple[Tensor, Tensor]:
+        """kv^-1 M (I - E) d and E d."""
+        ed = (e @ d.unsqueeze(-1)).squeeze(-1)
+        return (m @ (d - ed).unsqueeze(-1)).squeeze(-1) / kv, ed
+
+    return relax
+
+
 def _expm(x: ca.SX, squarings: int) -> ca.SX:
-    """exp(x 2^s) from exp(x) by a Taylor series (Horner) and s squarings: one smooth formula, no branches."""
-    eye = ca.SX.eye(x.shape[0])
-    out = eye
-    for k in range(TAYLOR_DEGREE, 0, -1):
-        out = eye + ca.mtimes(x, out) / k
+    """exp(x 2^s) from exp(x) by a Taylor series and s squarings: one smooth formula, no branches. The series is
+    evaluated Paterson-Stockmeyer style, in powers of x^3 with coefficients in I, x, x^2: 6 matrix products for
+    degree 12 where Horner takes 12, the same polynomial."""
+    block, zero = 3, ca.SX.zeros(x.shape)
+    powers = [ca.SX.eye(x.shape[0]), x, ca.mtimes(x, x)]
+    cube, out = ca.mtimes(powers[2], x), None
+    for j in range(TAYLOR_DEGREE // block, -1, -1):  # (((B_4 x^3 + B_3) x^3 + ...) + B_0, B_j = sum_i x^i / (3j + i)!
+        terms = [powers[i] / math.factorial(block * j + i) for i in range(block) if block * j + i <= TAYLOR_DEGREE]
+        b = sum(terms, zero)
+        out = b if out is None else ca.mtimes(out, cube) + b
     for _ in range(squarings):
         out = ca.mtimes(out, out)
     return out
