@@ -379,3 +379,11 @@ def test_an_interrupted_compile_kills_the_compiler_and_its_folder(tmp_path: Path
         time.sleep(0.05)
     assert not alive(), "the compiler lives on"
     assert not [p for p in (tmp_path / "cache").iterdir() if p.is_dir()]  # its build folder went with it
+
+
+def test_each_target_has_its_own_entry_and_the_default_is_this_hosts_cpu(tmp_path: Path) -> None:
+    native, portable = (run_child(child_env(tmp_path, **{cache.MARCH_ENV: m})) for m in (None, ""))
+    for r in (native, portable):
+        assert r.returncode == 0 and json.loads(r.stdout.splitlines()[-1]) == pytest.approx(EXPECTED), r.stderr
+    assert "-march=native" in native.stderr and "-march" not in portable.stderr  # the compile line says it
+    assert len(list((tmp_path / "cache").glob(f"{NAME}_*.so"))) == 2

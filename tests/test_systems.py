@@ -153,7 +153,7 @@ def test_bad_arm_settings_name_the_setting(changes: dict, fragment: str) -> None
 GROUP_OPTIONS = {
     "controller": sorted(p.stem for p in (CONF / "controller").glob("*.yaml")),  # every one there
     "reference": ["builtin"],
-    "experiment": ["paper", "planar3", "panda", "panda-frozen", "panda-gpu"],
+    "experiment": ["paper", "planar3", "panda", "panda-moving", "panda-frozen", "panda-gpu"],
 }
 
 

@@ -16,7 +16,7 @@ per sub-step at its predicted mid configuration instead of q0 (M, gravity, drive
 midpoint_substeps): freezing M at q0 is what a frozen prior misses most on a long arm. No parameters: torch for
 training (memoised, since full-batch training evaluates it on the same points every step) and CasADi compiled to C,
 with its exact Jacobian (by AD, or by eigendecomposition on larger arms: pinnmpc.surrogate.prior_eigen; midpoint_arm
-on larger arms: frozen_arm_moving's Jacobian stands in, docs/design.md), for the controller's numpy path.
+on larger arms: the frozen arm's Jacobian stands in, docs/design.md), for the controller's numpy path.
 """
 
 from __future__ import annotations
@@ -41,6 +41,9 @@ FRICTION_STEPS = 2  # exponential Heun sub-steps of frozen_arm_friction over a p
 #   friction, averaged with the start's, per sub-step (docs/training.md)
 MIDPOINT_STEPS = 6  # sub-steps of midpoint_arm over a period, each with its own configuration: its miss falls as
 #   h^2; with 6 the Panda's prior alone is at 0.54x its one-step targets at worst, with 4 1.08x (docs/training.md)
+MIDPOINT_JACOBIAN = "frozen_arm"  # the kind whose exact Jacobian (by eigendecomposition) stands in for
+#   midpoint_arm's on arms of EIGEN_FROM_JOINTS or more joints: its own, by AD, would cost several times the value;
+#   frozen_arm_moving's is 2x closer to it and 2x dearer, and tracks no closer (docs/design.md)
 TAYLOR_DEGREE = 12  # terms of exp(X / 2^s) before squaring; with |X / 2^s| <= 1/2 the remainder is ~1e-14
 SQUARING_NORM = 0.5  # the largest 1-norm of X / 2^s the Taylor series is trusted at
 MEMO_SIZE = 8  # input sets kept, least recently used out first (collocation, anchors, validation, and the data
@@ -367,11 +370,11 @@ class FrozenArmPrior(nn.Module):
         value = ca.Function(f"{tag}_value", [x, u], [xp], {"cse": True})
         held_jacobian = self.midpoint and n >= EIGEN_FROM_JOINTS
         if held_jacobian:
-            # the Jacobian of frozen_arm_moving (exact, by eigendecomposition) stands in for this one's: the same
-            # sub-stepped flow held at q0, its Jacobian within a few percent (docs/design.md); the value is exact
+            # the Jacobian of the arm held at q0 (MIDPOINT_JACOBIAN) stands in for this one's: the controller's
+            # linearisation is that arm's, its model's value exact (an inexact-Jacobian SQP; docs/design.md)
             lib = compile_functions(tag, [value], opt="-O2")
             exact = BatchedFunction(lib[value.name()])
-            held_prior = FrozenArmPrior(self.arm, "frozen_arm_moving").compiled(tau).with_jacobian
+            held_prior = FrozenArmPrior(self.arm, MIDPOINT_JACOBIAN).compiled(tau).with_jacobian
             fast = CompiledPrior(exact, lambda x0, u: [exact(x0, u)[0], held_prior(x0, u)[1]])
         elif n >= EIGEN_FROM_JOINTS:
             from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian

@@ -34,6 +34,9 @@ log = logging.getLogger(__name__)
 
 CACHE_ENV = "PINNMPC_CACHE"  # where compiled functions are kept (default: ~/.cache/pinnmpc)
 CFLAGS = ("-fPIC", "-shared")  # a shared library that ca.external can load
+MARCH_ENV = "PINNMPC_MARCH"  # the -march compiled code targets; default native, this host's vector instructions
+#   (fused multiply-adds, AVX), each entry keyed to the host's CPU; empty: the compiler's default target, code
+#   that any machine of the architecture runs, for a cache shared between machines (docs/design.md)
 BUILD_PREFIX = ".build-"  # a build folder in the cache: .build-<pid>-<host tag>-<random>
 LEGACY_BUILD = re.compile(r"tmp[a-z0-9_]{8}")  # build folders of older pinnmpc versions (tempfile names)
 STALE_AFTER_S = 3600.0  # a build folder this old whose owner cannot be checked is an orphan
@@ -66,8 +69,31 @@ def cache_dir() -> Path | None:
 
 
 def entry_key(name: str, source: str, opt: str) -> str:
-    """An entry's file stem: the same C at the same optimisation level is the same library."""
-    return f"{name}_{hashlib.sha256((source + opt).encode()).hexdigest()[:16]}"
+    """An entry's file stem: the same C at the same optimisation level for the same target is the same library."""
+    target = " ".join(march_flags()) + (f" {cpu_tag()}" if march() == "native" else "")
+    return f"{name}_{hashlib.sha256((source + opt + target).encode()).hexdigest()[:16]}"
+
+
+def march() -> str:
+    """The -march compiled code targets ($PINNMPC_MARCH, default native)."""
+    return os.environ.get(MARCH_ENV, "native").strip()
+
+
+def march_flags() -> tuple[str, ...]:
+    """The compiler flags for march() (none where it is empty: the compiler's default target)."""
+    return (f"-march={march()}",) if march() else ()
+
+
+def cpu_tag() -> str:
+    """This host's CPU (model and feature flags): code built for one CPU's native target may not run on another."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        import platform
+
+        lines = [platform.machine(), platform.processor()]
+    wanted = [line for line in lines if line.split(":")[0].strip() in ("model name", "flags", "Features")][:2]
+    return hashlib.sha256("\n".join(wanted or lines[:1]).encode()).hexdigest()[:12]
 
 
 def record_path(lib: Path) -> Path:
@@ -191,8 +217,9 @@ def _build(name: str, source: str, opt: str, lib: Path) -> None:
         src.write_text(source)
         out = build / lib.name
         # a large arm's generated code is slow to compile: say what the wait is (once; the library is cached)
-        print(f"compiling {name} ({len(source) // 1024} kB of C, {opt}) into {lib.parent}", file=sys.stderr)
-        run_compiler([compiler, opt, *CFLAGS, str(src), "-o", str(out), "-lm"], name, src)
+        flags = " ".join((opt, *march_flags()))
+        print(f"compiling {name} ({len(source) // 1024} kB of C, {flags}) into {lib.parent}", file=sys.stderr)
+        run_compiler([compiler, opt, *march_flags(), *CFLAGS, str(src), "-o", str(out), "-lm"], name, src)
         publish(out, lib)
     except CompileError:
         raise  # the build folder keeps the source the message names; a later run removes it
