@@ -104,3 +104,32 @@ def central_jacobian(
         up, down = (flow((z + s * d)[:, :nx].clone(), (z + s * d)[:, nx:].clone()) for s in (1, -1))
         cols.append((up - down) / (2 * eps))
     return torch.stack(cols, -1)
+
+
+def prior_misses(arm: Any, kinds: tuple[str, ...], x0: torch.Tensor, u: torch.Tensor) -> list[torch.Tensor]:
+    """Per prior kind, its RMSE per state at tau against fine RK4 (h = 0.1 ms) on the points (x0, u)."""
+    from pinnmpc.surrogate.prior import FrozenArmPrior
+    from pinnmpc.training.data import reference_flow
+
+    t = torch.full((x0.shape[0], 1), arm.tau, dtype=torch.float64)
+    true = reference_flow(arm, x0, u, arm.tau, 1e-4).double()
+    return [(FrozenArmPrior(arm, kind)(t, x0, u)[0] - true).square().mean(0).sqrt() for kind in kinds]
+
+
+def check_compiled_prior(prior: Any, x0: torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A prior's controller C (value and Jacobian) against its torch form, its export (MX) against the C, and the
+    torch Jacobian against central differences; returns the torch value and Jacobian at tau."""
+    from pinnmpc.surrogate.casadi_network import prior_function
+
+    tau = prior.arm.tau
+    t = torch.full((x0.shape[0], 1), tau, dtype=torch.float64)
+    x, jac = prior.with_jacobian(t, x0, u)
+    xn, jn = prior.compiled(tau).with_jacobian(x0.numpy(), u.numpy())
+    np.testing.assert_allclose(xn, x.numpy(), atol=1e-12)
+    np.testing.assert_allclose(jn.reshape(jac.shape), jac.numpy(), atol=1e-10)
+    exported = prior_function(prior, tau)
+    for k in range(x0.shape[0]):
+        np.testing.assert_allclose(np.asarray(exported(x0[k].numpy(), u[k].numpy())).ravel(), xn[k], atol=1e-12)
+    numeric = central_jacobian(lambda a, b: prior(t, a, b)[0], x0, u)
+    np.testing.assert_allclose(jac.numpy(), numeric.numpy(), atol=1e-6)
+    return x, jac
