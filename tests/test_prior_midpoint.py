@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from pinnmpc import load_system
+from pinnmpc import load_surrogate, load_system
 from pinnmpc.surrogate.prior import MIDPOINT_JACOBIAN, MIDPOINT_STEPS, FrozenArmPrior
 from pinnmpc.training.data import random_pairs
 from tests.conftest import check_compiled_prior, check_substep_flow, prior_misses
@@ -51,3 +51,7 @@ def test_on_a_long_arm_its_value_is_exact_and_the_frozen_arms_jacobian_stands_in
     np.testing.assert_array_equal(jn, held.compiled(arm.tau).with_jacobian(x0.numpy(), u.numpy())[1])
     miss = np.linalg.norm(jn.reshape(jac.shape) - jac.numpy(), axis=(1, 2)) / np.linalg.norm(jac.numpy(), axis=(1, 2))
     assert 0.01 < float(np.median(miss)) < 0.25  # measured 0.12 (a stand-in: not the exact Jacobian, but close)
+    shipped = load_surrogate(system="panda")  # the controller is told: its solvers treat their models as inexact
+    assert prior.compiled(arm.tau).stand_in_jacobian and shipped.approximate_jacobians
+    assert shipped.numpy_flow().approximate_jacobians
+    assert not FrozenArmPrior(ARM, KIND).compiled(ARM.tau).stand_in_jacobian  # planar3: its own, by AD

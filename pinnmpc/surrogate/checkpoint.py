@@ -129,6 +129,13 @@ class Surrogate(Dimensions):
         x1, jac = self.model.with_jacobian(torch.full_like(x0[..., :1], self.tau), x0, u)
         return x1, jac[..., : self.nx], jac[..., self.nx :]
 
+    @property
+    def approximate_jacobians(self) -> bool:
+        """Whether its numpy path's A, B stand in for the derivatives of its step (NumpyFlow.approximate_jacobians:
+        a prior whose Jacobian is another's); the torch path's are exact."""
+        prior = getattr(self.model, "prior", None)
+        return prior is not None and prior.stand_in_jacobian
+
     def numpy_flow(self) -> NumpyFlow:
         """The same x(tau) as plain numpy (weights copied, t = tau folded in): the controller's batch-1 fast path."""
         return NumpyFlow.from_pinn(self.model, self.tau, self.state_names, self.input_names)

@@ -135,6 +135,12 @@ class NumpyFlow:
 
     array_api: ClassVar[str] = "numpy"
 
+    @property
+    def approximate_jacobians(self) -> bool:
+        """Whether A, B are not the derivatives of step(): a prior whose Jacobian stands in (solvers then treat
+        their Gauss-Newton models as inexact, as for controller.model=exact_values)."""
+        return self.start is not None and self.start.stand_in_jacobian
+
     def __post_init__(self) -> None:
         if self.periodic is None:
             self.periodic = np.empty(0, dtype=np.intp)

@@ -64,6 +64,7 @@ class CompiledPrior:
 
     value: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]  # -> [x_p (B, nx)]
     with_jacobian: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]  # -> [x_p, J (B, nx (nx + nu)) row-major]
+    stand_in_jacobian: bool = False  # J is another prior's (MIDPOINT_JACOBIAN), not the derivative of x_p
 
 
 def friction_substeps(
@@ -180,6 +181,11 @@ class FrozenArmPrior(nn.Module):
             self._coriolis_c = self.arm.casadi_coriolis()
         coriolis = self._coriolis_c
         return lambda w: self.arm.dry_friction(w) + coriolis(q0, w)
+
+    @property
+    def stand_in_jacobian(self) -> bool:
+        """Whether the compiled Jacobian is another prior's (MIDPOINT_JACOBIAN): midpoint_arm on a long arm."""
+        return self.midpoint and self.nq >= EIGEN_FROM_JOINTS
 
     def __deepcopy__(self, memo: dict) -> FrozenArmPrior:
         """Shared, not copied: it has no state to diverge (its robot model holds modules that do not copy)."""
@@ -368,14 +374,13 @@ class FrozenArmPrior(nn.Module):
             xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d))
         tag = f"{self.arm.name}_frozen_prior{self._suffix()}"
         value = ca.Function(f"{tag}_value", [x, u], [xp], {"cse": True})
-        held_jacobian = self.midpoint and n >= EIGEN_FROM_JOINTS
-        if held_jacobian:
+        if self.stand_in_jacobian:
             # the Jacobian of the arm held at q0 (MIDPOINT_JACOBIAN) stands in for this one's: the controller's
             # linearisation is that arm's, its model's value exact (an inexact-Jacobian SQP; docs/design.md)
             lib = compile_functions(tag, [value], opt="-O2")
             exact = BatchedFunction(lib[value.name()])
             held_prior = FrozenArmPrior(self.arm, MIDPOINT_JACOBIAN).compiled(tau).with_jacobian
-            fast = CompiledPrior(exact, lambda x0, u: [exact(x0, u)[0], held_prior(x0, u)[1]])
+            fast = CompiledPrior(exact, lambda x0, u: [exact(x0, u)[0], held_prior(x0, u)[1]], True)
         elif n >= EIGEN_FROM_JOINTS:
             from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
 
@@ -397,7 +402,7 @@ class FrozenArmPrior(nn.Module):
             )  # dense: BatchedFunction's rows
             lib = compile_functions(tag, [value, full], opt="-O2")
             fast = CompiledPrior(BatchedFunction(lib[value.name()]), BatchedFunction(lib[full.name()]))
-        self._check_compiled(fast.with_jacobian, tau, jacobian=not held_jacobian)
+        self._check_compiled(fast.with_jacobian, tau, jacobian=not self.stand_in_jacobian)
         self._compiled[tau] = fast
         return fast
 
