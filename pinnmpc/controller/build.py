@@ -11,10 +11,10 @@ from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers import make_solver
 from pinnmpc.controller.solvers.lifted import valid_trust
 from pinnmpc.surrogate.checkpoint import Surrogate
-from pinnmpc.surrogate.flowmap import CompiledRK4, ExactValues, FlowMap
+from pinnmpc.surrogate.flowmap import CompiledRK4, ExactValues, FlowMap, PriorOnly
 from pinnmpc.systems.base import System
 
-MODELS = ("surrogate", "exact_values")  # controller.model: what the OCP predicts with
+MODELS = ("surrogate", "exact_values", "prior")  # controller.model: what the OCP predicts with
 GAUSS_NEWTON = ("lifted_gauss_newton", "gauss_newton")  # the solvers that take a numpy model's Jacobians
 
 REQUIRED = ("horizon", "Q", "R")  # what every NMPC config names
@@ -34,8 +34,9 @@ OPTIONAL = {  # what a Python caller may leave out (conf/controller/nmpc.yaml se
 
 
 def prediction_model(cfg: dict[str, Any], surrogate: Surrogate, system: System | None) -> FlowMap:
-    """What the OCP predicts with (controller.model): the surrogate alone (the PINN replaces integration), or the
-    true model's values, integrated by compiled RK4, with the surrogate's Jacobians (plans obey the true dynamics)."""
+    """What the OCP predicts with (controller.model): the surrogate alone (the PINN replaces integration), the
+    true model's values, integrated by compiled RK4, with the surrogate's Jacobians (plans obey the true dynamics),
+    or the surrogate's physics prior alone (what the network adds, measured)."""
     kind = cfg["model"]
     if kind not in MODELS:
         raise ValueError(f"controller.model={kind!r}; expected one of {list(MODELS)}")
@@ -43,9 +44,11 @@ def prediction_model(cfg: dict[str, Any], surrogate: Surrogate, system: System |
         return surrogate
     if cfg["solver"] not in GAUSS_NEWTON:
         raise ValueError(
-            f"controller.model=exact_values needs a Gauss-Newton solver {list(GAUSS_NEWTON)} (its values are numpy, "
+            f"controller.model={kind} needs a Gauss-Newton solver {list(GAUSS_NEWTON)} (its values are numpy, "
             f"not differentiable by torch), got controller.solver={cfg['solver']!r}"
         )
+    if kind == "prior":
+        return PriorOnly(surrogate)
     if system is None:
         raise ValueError("controller.model=exact_values needs the system's true model (build_nmpc(..., system=...))")
     steps = cfg["exact_rk4_steps"]

@@ -95,7 +95,8 @@ class NMPC:
         return self.ocp.horizon
 
     def describe(self) -> dict[str, Any]:
-        """Solver, offset-free gain and what predicts (surrogate or exact_values), for metrics.json and headlines."""
+        """Solver, offset-free gain and what predicts (surrogate, exact_values or prior), for metrics.json and
+        headlines."""
         return {
             "controller": "pinn",
             "solver": type(self.solver).__name__,

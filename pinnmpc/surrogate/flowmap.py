@@ -5,6 +5,7 @@ bench and the tests take any of them alike."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import casadi as ca
@@ -148,7 +149,37 @@ class RK4Model(_TrueModel):
         return y.detach()[:, 0], A, B
 
 
-class CompiledRK4(_TrueModel):
+class CompiledRows:
+    """step and step_with_jacobian over compiled functions of rows: _step(x, u) -> [x1], _full(x, u) -> [x1, J]
+    with J = [A, B] row-major, flat; numpy in and out, any leading shape."""
+
+    nx: int
+    nu: int
+    _step: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]
+    _full: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]
+
+    def _rows(self, x0: np.ndarray, u: np.ndarray) -> tuple[tuple[int, ...], np.ndarray, np.ndarray]:
+        """Leading shape and the batch as float64 rows (B, nx), (B, nu)."""
+        x0, u = np.asarray(x0, dtype=np.float64), np.asarray(u, dtype=np.float64)
+        if x0.shape[-1] != self.nx or u.shape[-1] != self.nu:
+            raise ValueError(f"expected x0 (..., {self.nx}) and u (..., {self.nu}), got {x0.shape} and {u.shape}")
+        return x0.shape[:-1], x0.reshape(-1, self.nx), u.reshape(-1, self.nu)
+
+    def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """x(tau) (..., nx)."""
+        lead, xf, uf = self._rows(x0, u)
+        (x1,) = self._step(xf, uf)
+        return x1.reshape(*lead, self.nx)
+
+    def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x(tau), A (..., nx, nx) and B (..., nx, nu)."""
+        lead, xf, uf = self._rows(x0, u)
+        x1, jac = self._full(xf, uf)
+        jac = jac.reshape(*lead, self.nx, self.nx + self.nu)
+        return x1.reshape(*lead, self.nx), jac[..., : self.nx], jac[..., self.nx :]
+
+
+class CompiledRK4(CompiledRows, _TrueModel):
     """The true dynamics integrated by RK4 over the system's CasADi rhs, generated as C and compiled once: the
     classical integrator at its fastest, numpy in and out, with exact Jacobians by CasADi's AD."""
 
@@ -175,26 +206,6 @@ class CompiledRK4(_TrueModel):
         """Itself: it already works on numpy arrays."""
         return self
 
-    def _rows(self, x0: np.ndarray, u: np.ndarray) -> tuple[tuple[int, ...], np.ndarray, np.ndarray]:
-        """Leading shape and the batch as float64 rows (B, nx), (B, nu)."""
-        x0, u = np.asarray(x0, dtype=np.float64), np.asarray(u, dtype=np.float64)
-        if x0.shape[-1] != self.nx or u.shape[-1] != self.nu:
-            raise ValueError(f"expected x0 (..., {self.nx}) and u (..., {self.nu}), got {x0.shape} and {u.shape}")
-        return x0.shape[:-1], x0.reshape(-1, self.nx), u.reshape(-1, self.nu)
-
-    def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """x(tau) (..., nx)."""
-        lead, xf, uf = self._rows(x0, u)
-        (x1,) = self._step(xf, uf)
-        return x1.reshape(*lead, self.nx)
-
-    def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """x(tau), A (..., nx, nx) and B (..., nx, nu)."""
-        lead, xf, uf = self._rows(x0, u)
-        x1, jac = self._full(xf, uf)
-        jac = jac.reshape(*lead, self.nx, self.nx + self.nu)
-        return x1.reshape(*lead, self.nx), jac[..., : self.nx], jac[..., self.nx :]
-
 
 class ExactValues(Dimensions):
     """The true model's predictions with the surrogate's Jacobians: Gauss-Newton on this map converges to plans
@@ -218,12 +229,7 @@ class ExactValues(Dimensions):
                 f"{list(surrogate.state_names)} (a surrogate of another system?)"
             )
         self.jacobians, self.exact = jac, numpy_path(exact) or exact
-        self.tau = float(surrogate.tau)
-        self.state_names, self.input_names = tuple(surrogate.state_names), tuple(surrogate.input_names)
-        self.state_box: Box = surrogate.state_box
-        self.input_box: Box = surrogate.input_box
-        self.domain = getattr(surrogate, "domain", None)
-        self.meta = getattr(surrogate, "meta", None)  # the network's provenance, for reports
+        _take_facts(self, surrogate)
 
     def numpy_flow(self) -> ExactValues:
         """Itself: it already works on numpy arrays."""
@@ -237,3 +243,37 @@ class ExactValues(Dimensions):
         """x(tau) by the true model; A and B by the surrogate."""
         _, A, B = self.jacobians.step_with_jacobian(x0, u)
         return self.exact.step(x0, u), A, B
+
+
+class PriorOnly(CompiledRows, Dimensions):
+    """A network's physics prior without the network (controller.model=prior): the exact solve of the arm held as
+    its model.prior says (pinnmpc.surrogate.prior), compiled with its Jacobian, for comparing what the network adds
+    with what the physics it was trained on already gets. On a long arm with midpoint_arm its Jacobian stands in."""
+
+    array_api: ClassVar[str] = "numpy"
+    prediction: ClassVar[str] = "prior"  # controller.model that builds it, for metrics.json
+
+    def __init__(self, surrogate: Any) -> None:
+        prior = getattr(getattr(surrogate, "model", None), "prior", None)
+        if prior is None:
+            raise ValueError(
+                "controller.model=prior needs a network with a physics prior (model.prior); this one has none: "
+                "use controller.model=surrogate"
+            )
+        compiled = prior.compiled(surrogate.tau)
+        self._step, self._full = compiled.value, compiled.with_jacobian
+        self.approximate_jacobians = compiled.stand_in_jacobian  # A, B another prior's: solvers' models inexact
+        _take_facts(self, surrogate)
+
+    def numpy_flow(self) -> PriorOnly:
+        """Itself: it already works on numpy arrays."""
+        return self
+
+
+def _take_facts(flow: Any, surrogate: Any) -> None:
+    """A flow map built on a network takes its period, names, boxes, domain and provenance (meta, for reports)."""
+    flow.tau = float(surrogate.tau)
+    flow.state_names, flow.input_names = tuple(surrogate.state_names), tuple(surrogate.input_names)
+    flow.state_box, flow.input_box = surrogate.state_box, surrogate.input_box
+    flow.domain = getattr(surrogate, "domain", None)
+    flow.meta = getattr(surrogate, "meta", None)
