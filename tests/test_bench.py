@@ -320,6 +320,18 @@ def test_classical_alone_runs_its_own_pinn_row_and_extra_solvers(tmp_path: Path)
     assert "| classical NMPC, casadi-ipopt |" in (tmp_path / "bench.md").read_text()
 
 
+def test_a_network_with_a_prior_gets_a_row_on_that_prior_alone(tmp_path: Path) -> None:
+    off = [o for o in SECTIONS_OFF if not o.startswith("classical")]
+    overrides = [*TINY, *off, "system=planar3", "classical.enabled=true", "closed_loop.max_steps=3"]
+    overrides += ["classical.friction_scales=[]", "classical.rti=false", "classical.exact_values=false"]
+    cl = run_bench(_cfg(overrides), tmp_path)["classical"]
+    assert list(cl["rows"])[:2] == ["pinn_lifted_gauss_newton", "pinn_lifted_gauss_newton_prior"]  # then classical
+    prior = cl["rows"]["pinn_lifted_gauss_newton_prior"]
+    assert prior["prediction"] == "prior" and prior["status"] == "ok" and prior["steps"] == 3
+    md = (tmp_path / "bench.md").read_text()
+    assert "| PINN-MPC, lifted_gauss_newton, physics prior alone (no network)" in md and "Rows 'physics prior" in md
+
+
 def test_rk4_model_jacobians_agree() -> None:
     system = PowerCube()
     x0 = torch.tensor([[0.3, -0.4, 0.5, 1e-3], [-1.0, 0.8, -0.2, 0.7]], dtype=torch.float64)

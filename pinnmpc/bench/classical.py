@@ -10,6 +10,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.bench.loops import loop_row, run_controller
+from pinnmpc.controller.build import GAUSS_NEWTON
 from pinnmpc.references.files import Reference
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.systems.base import System
@@ -76,13 +77,17 @@ def mismatch_rows(
 
 
 EXACT = "exact values (true model's values, PINN's Jacobians)"  # label of controller.model=exact_values rows
+PRIOR = "physics prior alone (no network)"  # label of controller.model=prior rows
 
 
-def pinn_variants(cfg: DictConfig, solver: str, rti: bool, fast: bool) -> list[tuple[str, str, dict[str, Any]]]:
+def pinn_variants(
+    cfg: DictConfig, solver: str, rti: bool, fast: bool, prior: bool = False
+) -> list[tuple[str, str, dict[str, Any]]]:
     """The PINN rows beside the configured controller (fast: whether it runs as a real-time iteration), as (key
-    suffix, label tail, controller changes): its other mode, converged or real-time (classical.rti), and the true
+    suffix, label tail, controller changes): its other mode, converged or real-time (classical.rti), the true
     model's values, converged and as a real-time iteration (classical.exact_values) with the system's steps per
-    sample, as controller=exact runs it."""
+    sample, as controller=exact runs it, and for a network with a physics prior (prior) that prior alone in the
+    configured mode (classical.prior_alone)."""
     lifted = solver == "lifted_gauss_newton"
     out = []
     if rti and lifted:
@@ -97,6 +102,8 @@ def pinn_variants(cfg: DictConfig, solver: str, rti: bool, fast: bool) -> list[t
             )
             steps = {"rti_steps": int(cfg.system.control.get("rti_steps", 1))} if real_time else {}
             out.append((suffix, tail, {"model": "exact_values", "solvers": {solver: {"rti": real_time, **steps}}}))
+    if prior and solver in GAUSS_NEWTON and cfg.classical.get("prior_alone", False):
+        out.append(("_prior", f", {PRIOR}", {"model": "prior"}))
     return out
 
 
@@ -139,7 +146,8 @@ def bench_classical(
     tag = ", real-time iteration" if fast else ""
     rows = {f"pinn_{solver}": {**pinn, "label": f"PINN-MPC, {solver}{tag}", "model": "pinn"}}
     rti = bool(cfg.classical.get("rti", False))
-    for suffix, tail, changes in pinn_variants(cfg, solver, rti, fast):  # e.g. both controllers at their cheapest too
+    prior = getattr(surrogate.model, "prior", None) is not None
+    for suffix, tail, changes in pinn_variants(cfg, solver, rti, fast, prior):  # e.g. both at their cheapest too
         row, _ = run_controller(cfg, system, surrogate, ref, solver, record=False, **changes)
         rows[f"pinn_{solver}{suffix}"] = {**row, "label": f"PINN-MPC, {solver}{tail}", "model": "pinn"}
         log.info("classical: PINN %s%s done in %.1f s", solver, tail, row["wall_s"])

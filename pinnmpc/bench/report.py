@@ -308,6 +308,11 @@ MISMATCH_NOTE = (
     " both controllers, so both estimate the offset (the classical NMPC with the PINN controller's estimator)."
 )
 
+PRIOR_NOTE = (
+    " Rows 'physics prior alone': the PINN controller predicting with the network's physics prior (model.prior)"
+    " without the network (controller.model=prior)."
+)
+
 EXACT_NOTE = (
     " Rows 'exact values': the PINN controller predicting with the true model's values (RK4 as the classical NMPC's,"
     " compiled, no sensitivities) and the PINN's Jacobians (controller.model=exact_values)."
@@ -352,7 +357,8 @@ def md_classical(cl: dict[str, Any], system: dict[str, Any], plant: str) -> str:
             "transcription and QP, conf/system/<arm>.yaml control.casadi); "
             f"taken from the PINN controller: {', '.join(cl['shared']) or 'nothing'}."
             + MISMATCH_NOTE * any("plant_friction_scale" in r for r in cl["rows"].values())
-            + EXACT_NOTE * any(r.get("prediction") == "exact_values" for r in cl["rows"].values()),
+            + EXACT_NOTE * any(r.get("prediction") == "exact_values" for r in cl["rows"].values())
+            + PRIOR_NOTE * any(r.get("prediction") == "prior" for r in cl["rows"].values()),
             "",
             md_table(headers, rows),
             "",

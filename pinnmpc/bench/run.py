@@ -59,7 +59,8 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     if cfg.controller.get("model", "surrogate") != "surrogate":
         raise ValueError(
             f"controller.model={cfg.controller.model!r}: the bench studies the surrogate's controller and adds the "
-            "exact_values rows to section 6 itself (classical.exact_values=true); leave controller.model=surrogate"
+            "exact_values and prior rows to section 6 itself (classical.exact_values, classical.prior_alone); leave "
+            "controller.model=surrogate"
         )
     system: System = build_system(cfg.system)
     validate_bench(cfg, system)
