@@ -22,6 +22,7 @@ from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.systems import load_system
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
+SHIPPED = Path(__file__).resolve().parents[1] / "pinnmpc" / "checkpoints"
 H = 4  # a short horizon keeps the panda's Jacobians cheap
 Q7 = [1.0] * 7 + [0.0] * 7
 R7 = [1e-6] * 7
@@ -141,7 +142,10 @@ def test_shipped_references_stay_inside_the_limits(panda: Any, panda_cfg: Any) -
 
 
 def test_limit_jacobian_matches_finite_differences(panda: Any, surrogate: Surrogate) -> None:
-    ocp = HorizonOCP(surrogate, H, Q7, R7, [1e-3] * 7, limits(panda))
+    # a network whose numpy Jacobians are exact: the shipped panda.pt's prior Jacobian stands in (docs/design.md)
+    exact = load_surrogate(SHIPPED / "panda-frozen.pt")
+    assert surrogate.approximate_jacobians and not exact.approximate_jacobians
+    ocp = HorizonOCP(exact, H, Q7, R7, [1e-3] * 7, limits(panda))
     assert ocp.n_limits == 7 and ocp.n_residuals == H * (14 + 7 + 7 + 7)
     x0 = near_limits()
     U = np.zeros((H, 7))
