@@ -19,7 +19,8 @@ from pinnmpc.surrogate import mlp
 from pinnmpc.surrogate.activations import Ops
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.surrogate.network import PINN
-from pinnmpc.surrogate.prior import TAYLOR_DEGREE, FrozenArmPrior, friction_substeps, midpoint_substeps
+from pinnmpc.surrogate.prior import TAYLOR_DEGREE, FrozenArmPrior
+from pinnmpc.surrogate.substeps import friction_substeps, midpoint_substeps
 
 SOFTPLUS_THRESHOLD = 20.0  # torch's softplus returns its input above this, and so does the export
 

@@ -32,6 +32,8 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor, nn
 
+from pinnmpc.surrogate.substeps import friction_substeps, midpoint_substeps, predicted_mid, relaxation
+
 KINDS = ("frozen_arm", "frozen_arm_friction", "frozen_arm_moving", "midpoint_arm")  # model.prior values besides
 #   null: the arm's dry friction settled in c0, or held per sub-step at the moving velocity (friction_substeps; arms
 #   without dry friction: the same flow as frozen_arm), or the same with the Coriolis and centrifugal torques
@@ -65,71 +67,6 @@ class CompiledPrior:
     value: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]  # -> [x_p (B, nx)]
     with_jacobian: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]  # -> [x_p, J (B, nx (nx + nu)) row-major]
     stand_in_jacobian: bool = False  # J is another prior's (MIDPOINT_JACOBIAN), not the derivative of x_p
-
-
-def friction_substeps(
-    x0: tuple[Any, Any],
-    vss: Any,
-    friction: Callable[[Any], Any],
-    kv: Any,
-    h: Any,
-    relax: Callable,
-    steps: int,
-    spans: list[tuple[Any, Callable]] | None = None,
-) -> tuple[Any, Any]:
-    """(q, v) after `steps` sub-steps of h of the arm frozen at q0 with its dry friction at the moving velocity: per
-    sub-step the friction is held at the mean of the start velocity and a predicted end velocity (exponential Heun),
-    the linear rest solved exactly; relax(d) -> (kv^-1 M (I - E(h)) d, E(h) d); any array namespace. x0 = (q0, v0),
-    vss = c0 / kv of the drive without the friction. spans: per sub-step the (length, relax) it advances by, its
-    torques still predicted over h (FrozenArmPrior._solve_moving: x_p(t) for t anywhere on the grid of h)."""
-    q, v = x0
-
-    def sub(q: Any, v: Any, w: Any, h: Any, relax: Callable) -> tuple[Any, Any]:
-        """One exact step of M dv/dt = c0 - friction(w) - kv v."""
-        ss = vss - friction(w) / kv
-        lag_d, e_d = relax(v - ss)
-        return q + ss * h + lag_d, ss + e_d
-
-    for k in range(steps):
-        predicted = sub(q, v, v, h, relax)[1]
-        q, v = sub(q, v, 0.5 * (v + predicted), *(spans[k] if spans else (h, relax)))
-    return q, v
-
-
-def predicted_mid(x0: tuple[Any, Any], held: tuple[Any, Callable, Callable], kv: Any, h: Any) -> Any:
-    """The configuration half way through a sub-step of h from x0, predicted by that sub-step (friction_substeps)
-    with the arm held as `held` = (v_ss, relax over h, moving torques) says: where midpoint_substeps takes M, gravity
-    and the Coriolis torques for it."""
-    vss, relax, torque = held
-    return 0.5 * (x0[0] + friction_substeps(x0, vss, torque, kv, h, relax, 1)[0])
-
-
-def midpoint_substeps(
-    x0: tuple[Any, Any],
-    terms: Callable[[Any], tuple[Any, Callable]],
-    torque: Callable[[Any], Callable],
-    kv: Any,
-    h: Any,
-    steps: int,
-    trail: list | None = None,
-) -> tuple[Any, Any]:
-    """(q, v) after `steps` sub-steps of h, each the frozen arm's flow (friction_substeps, one sub-step) held at its
-    mid configuration, predicted with the arm held as the sub-step before it was (at q0 for the first): an
-    exponential midpoint rule in the configuration, one M per sub-step; freezing M at q0 for a whole period is what
-    costs a frozen prior most on a long arm (docs/training.md). terms(q) -> (v_ss, relax over h) of the arm held at
-    q; torque(q) -> (w -> the torques held at the moving velocity w); any array namespace. trail: gets each
-    sub-step's start and the configuration its predictor holds the arm at, then the end's."""
-    at = x0[0]
-    held = (*terms(at), torque(at))
-    for _ in range(steps):
-        if trail is not None:
-            trail.append((x0, at))
-        at = predicted_mid(x0, held, kv, h)
-        held = (*terms(at), torque(at))
-        x0 = friction_substeps(x0, held[0], held[2], kv, h, held[1], 1)
-    if trail is not None:
-        trail.append((x0, at))
-    return x0
 
 
 class FrozenArmPrior(nn.Module):
@@ -423,17 +360,6 @@ class FrozenArmPrior(nn.Module):
                 f"the compiled frozen-arm prior of {self.arm.name} disagrees with its torch form (relative {off:.1e}, "
                 "expected < 1e-8): set system.network.prior=null"
             )
-
-
-def relaxation(m: Tensor, e: Tensor, kv: Tensor) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
-    """d -> (kv^-1 M (I - E) d, E d): the lag in q and the decay in v of the arm held with mass matrix M."""
-
-    def relax(d: Tensor) -> tuple[Tensor, Tensor]:
-        """kv^-1 M (I - E) d and E d."""
-        ed = (e @ d.unsqueeze(-1)).squeeze(-1)
-        return (m @ (d - ed).unsqueeze(-1)).squeeze(-1) / kv, ed
-
-    return relax
 
 
 def _expm(x: ca.SX, squarings: int) -> ca.SX:

@@ -140,7 +140,7 @@ def _moving(
     no n x n matrix formed. With coriolis, each sub-step's C(q0, w) w enters linearised at its own point
     (HeldCoriolis). inputs (x0, u); solve (v_ss, (f0, f1), kv, w -> the dry friction); eigen (Kh^-1 V, V^T Kh,
     V^T Kh M^-1, F0, F1); steps (h, count)."""
-    from pinnmpc.surrogate.prior import friction_substeps
+    from pinnmpc.surrogate.substeps import friction_substeps
 
     (x0, u), (vss, (f0, f1), kv, dry), (left, right, p, big0, big1), (h, count) = inputs, solve, eigen, steps
     q0 = x0[:n]

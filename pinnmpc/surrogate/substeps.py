@@ -1,0 +1,87 @@
+"""The sub-step formulas of the frozen-arm priors (pinnmpc.surrogate.prior), written once for every array namespace:
+torch in training, CasADi SX in the controller's C and MX in the export. Each sub-step is the exact flow of the arm
+held with its torques fixed; what changes between the kinds is where the arm is held and at which velocity its
+moving torques are taken."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from torch import Tensor
+
+
+def friction_substeps(
+    x0: tuple[Any, Any],
+    vss: Any,
+    friction: Callable[[Any], Any],
+    kv: Any,
+    h: Any,
+    relax: Callable,
+    steps: int,
+    spans: list[tuple[Any, Callable]] | None = None,
+) -> tuple[Any, Any]:
+    """(q, v) after `steps` sub-steps of h of the arm frozen at q0 with its dry friction at the moving velocity: per
+    sub-step the friction is held at the mean of the start velocity and a predicted end velocity (exponential Heun),
+    the linear rest solved exactly; relax(d) -> (kv^-1 M (I - E(h)) d, E(h) d); any array namespace. x0 = (q0, v0),
+    vss = c0 / kv of the drive without the friction. spans: per sub-step the (length, relax) it advances by, its
+    torques still predicted over h (FrozenArmPrior._solve_moving: x_p(t) for t anywhere on the grid of h)."""
+    q, v = x0
+
+    def sub(q: Any, v: Any, w: Any, h: Any, relax: Callable) -> tuple[Any, Any]:
+        """One exact step of M dv/dt = c0 - friction(w) - kv v."""
+        ss = vss - friction(w) / kv
+        lag_d, e_d = relax(v - ss)
+        return q + ss * h + lag_d, ss + e_d
+
+    for k in range(steps):
+        predicted = sub(q, v, v, h, relax)[1]
+        q, v = sub(q, v, 0.5 * (v + predicted), *(spans[k] if spans else (h, relax)))
+    return q, v
+
+
+def predicted_mid(x0: tuple[Any, Any], held: tuple[Any, Callable, Callable], kv: Any, h: Any) -> Any:
+    """The configuration half way through a sub-step of h from x0, predicted by that sub-step (friction_substeps)
+    with the arm held as `held` = (v_ss, relax over h, moving torques) says: where midpoint_substeps takes M, gravity
+    and the Coriolis torques for it."""
+    vss, relax, torque = held
+    return 0.5 * (x0[0] + friction_substeps(x0, vss, torque, kv, h, relax, 1)[0])
+
+
+def midpoint_substeps(
+    x0: tuple[Any, Any],
+    terms: Callable[[Any], tuple[Any, Callable]],
+    torque: Callable[[Any], Callable],
+    kv: Any,
+    h: Any,
+    steps: int,
+    trail: list | None = None,
+) -> tuple[Any, Any]:
+    """(q, v) after `steps` sub-steps of h, each the frozen arm's flow (friction_substeps, one sub-step) held at its
+    mid configuration, predicted with the arm held as the sub-step before it was (at q0 for the first): an
+    exponential midpoint rule in the configuration, one M per sub-step; freezing M at q0 for a whole period is what
+    costs a frozen prior most on a long arm (docs/training.md). terms(q) -> (v_ss, relax over h) of the arm held at
+    q; torque(q) -> (w -> the torques held at the moving velocity w); any array namespace. trail: gets each
+    sub-step's start and the configuration its predictor holds the arm at, then the end's."""
+    at = x0[0]
+    held = (*terms(at), torque(at))
+    for _ in range(steps):
+        if trail is not None:
+            trail.append((x0, at))
+        at = predicted_mid(x0, held, kv, h)
+        held = (*terms(at), torque(at))
+        x0 = friction_substeps(x0, held[0], held[2], kv, h, held[1], 1)
+    if trail is not None:
+        trail.append((x0, at))
+    return x0
+
+
+def relaxation(m: Tensor, e: Tensor, kv: Tensor) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
+    """d -> (kv^-1 M (I - E) d, E d): the lag in q and the decay in v of the arm held with mass matrix M."""
+
+    def relax(d: Tensor) -> tuple[Tensor, Tensor]:
+        """kv^-1 M (I - E) d and E d."""
+        ed = (e @ d.unsqueeze(-1)).squeeze(-1)
+        return (m @ (d - ed).unsqueeze(-1)).squeeze(-1) / kv, ed
+
+    return relax
