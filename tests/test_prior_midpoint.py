@@ -9,6 +9,7 @@ import torch
 
 from pinnmpc import load_surrogate, load_system
 from pinnmpc.surrogate.prior import MIDPOINT_JACOBIAN, MIDPOINT_STEPS, FrozenArmPrior
+from pinnmpc.surrogate.substeps import midpoint_substeps, relaxation
 from pinnmpc.training.data import random_pairs
 from tests.conftest import check_compiled_prior, check_substep_flow, prior_misses
 
@@ -55,3 +56,32 @@ def test_on_a_long_arm_its_value_is_exact_and_the_frozen_arms_jacobian_stands_in
     assert prior.compiled(arm.tau).stand_in_jacobian and shipped.approximate_jacobians
     assert shipped.numpy_flow().approximate_jacobians
     assert not FrozenArmPrior(ARM, KIND).compiled(ARM.tau).stand_in_jacobian  # planar3: its own, by AD
+
+
+def test_each_sub_step_takes_one_mass_matrix_and_one_coriolis_torque() -> None:
+    """The predictor holds the arm without its moving torques, and the end velocity is predicted with the torques the
+    sub-step before held: per period steps + 1 of each (the first at x0 itself), what the value costs most."""
+    prior = FrozenArmPrior(ARM, KIND)
+    calls = {"torque": 0, "terms": 0}
+    kv, h = prior.kv, ARM.tau / prior.steps
+    x0, u = POINTS
+
+    def terms(q: torch.Tensor) -> tuple:
+        calls["terms"] += 1
+        m, a, vss = prior._terms(q, u)
+        return vss, relaxation(m, torch.linalg.matrix_exp(-a * h), kv)
+
+    def moving(q: torch.Tensor) -> object:
+        held = prior.moving_torque(q)
+
+        def torque(w: torch.Tensor) -> torch.Tensor:
+            calls["torque"] += 1
+            return held(w)
+
+        return torque
+
+    with torch.no_grad():
+        end = midpoint_substeps((x0[:, : ARM.nq], x0[:, ARM.nq :]), terms, moving, kv, h, prior.steps)
+        x = prior(torch.full((x0.shape[0], 1), ARM.tau, dtype=torch.float64), x0, u)[0]
+    assert calls == {"torque": MIDPOINT_STEPS + 1, "terms": MIDPOINT_STEPS + 1}, calls
+    torch.testing.assert_close(torch.cat(end, -1), x, rtol=0, atol=1e-12)  # the formula the controller's C takes

@@ -18,8 +18,9 @@ import torch
 from pinnmpc.surrogate import mlp
 from pinnmpc.surrogate.activations import Ops
 from pinnmpc.surrogate.checkpoint import Surrogate
+from pinnmpc.surrogate.decay import TAYLOR_DEGREE
 from pinnmpc.surrogate.network import PINN
-from pinnmpc.surrogate.prior import TAYLOR_DEGREE, FrozenArmPrior
+from pinnmpc.surrogate.prior import FrozenArmPrior
 from pinnmpc.surrogate.substeps import friction_substeps, midpoint_substeps
 
 SOFTPLUS_THRESHOLD = 20.0  # torch's softplus returns its input above this, and so does the export

@@ -32,7 +32,14 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor, nn
 
-from pinnmpc.surrogate.substeps import friction_substeps, midpoint_substeps, predicted_mid, relaxation
+from pinnmpc.surrogate import decay
+from pinnmpc.surrogate.substeps import (
+    friction_substeps,
+    midpoint_step,
+    midpoint_substeps,
+    predicted_mid,
+    relaxation,
+)
 
 KINDS = ("frozen_arm", "frozen_arm_friction", "frozen_arm_moving", "midpoint_arm")  # model.prior values besides
 #   null: the arm's dry friction settled in c0, or held per sub-step at the moving velocity (friction_substeps; arms
@@ -46,8 +53,9 @@ MIDPOINT_STEPS = 6  # sub-steps of midpoint_arm over a period, each with its own
 MIDPOINT_JACOBIAN = "frozen_arm"  # the kind whose exact Jacobian (by eigendecomposition) stands in for
 #   midpoint_arm's on arms of EIGEN_FROM_JOINTS or more joints: its own, by AD, would cost several times the value;
 #   frozen_arm_moving's is 2x closer to it and 2x dearer, and tracks no closer (docs/design.md)
-TAYLOR_DEGREE = 12  # terms of exp(X / 2^s) before squaring; with |X / 2^s| <= 1/2 the remainder is ~1e-14
-SQUARING_NORM = 0.5  # the largest 1-norm of X / 2^s the Taylor series is trusted at
+SQUARING_NORM = 0.5  # the largest 1-norm of X / 2^s the export's general Taylor series (degree
+#   decay.TAYLOR_DEGREE) is trusted at: its remainder is then ~1e-14
+RATE_MARGIN = 1.5  # the largest rate of M^-1 kv sampled over the box, times this, is what squarings plan for
 MEMO_SIZE = 8  # input sets kept, least recently used out first (collocation, anchors, validation, and the data
 #   loss's t = 0, new at every step): each holds its inputs alive
 EIGEN_FROM_JOINTS = 5  # arms with this many joints or more differentiate the prior by eigendecomposition
@@ -215,21 +223,21 @@ class FrozenArmPrior(nn.Module):
             m, a, vss = self._terms(q, u)
             return vss, relaxation(m, torch.linalg.matrix_exp(-a * h), kv)
 
-        trail: list = []  # each sub-step's start and the configuration its predictor holds the arm at
+        trail: list = []  # each sub-step's start, the configuration its predictor holds the arm at, its lagged torques
         midpoint_substeps(x0, terms, self.moving_torque, kv, h, int(active.max()) if t.numel() else 0, trail)
         rows = torch.arange(t.shape[0], device=t.device)
         pick = lambda rows_k: torch.stack(rows_k)[active, rows]  # noqa: E731  each one's own sub-step
-        start = tuple(pick([x[i] for x, _ in trail]) for i in (0, 1))
-        before = pick([at for _, at in trail])
-        mid = predicted_mid(start, (*terms(before), self.moving_torque(before)), kv, h)
+        start = tuple(pick([x[i] for x, _, _ in trail]) for i in (0, 1))
+        before, lagged = (pick([entry[i] for entry in trail]) for i in (1, 2))
+        mid = predicted_mid(start, terms(before), h)
         m, a, vss = self._terms(mid, u)
-        full, torque = relaxation(m, torch.linalg.matrix_exp(-a * h), kv), self.moving_torque(mid)
+        held, torque = (vss, relaxation(m, torch.linalg.matrix_exp(-a * h), kv)), self.moving_torque(mid)
 
         def flow(t: Tensor) -> Tensor:
             """x_p at t (B, 1)."""
             span = t - active.unsqueeze(-1).to(t.dtype) * h  # to t's dtype first: long * float would be float32
-            spans = [(span, relaxation(m, torch.linalg.matrix_exp(-a * span.unsqueeze(-1)), kv))]
-            return torch.cat(friction_substeps(start, vss, torque, kv, h, full, 1, spans), -1)
+            relax = relaxation(m, torch.linalg.matrix_exp(-a * span.unsqueeze(-1)), kv)
+            return torch.cat(midpoint_step(start, held, torque, kv, h, lagged, (span, relax))[0], -1)
 
         return torch.func.jvp(flow, (t,), (torch.ones_like(t),))
 
@@ -260,15 +268,23 @@ class FrozenArmPrior(nn.Module):
         jac = torch.stack([torch.cat(r, -1) for r in rows], -2)
         return x.detach().to(x0.dtype), jac.to(x0.dtype)
 
-    def squarings(self, tau: float, samples: int = 4096) -> int:
-        """Squarings s so that |A tau / 2^s| <= SQUARING_NORM over the boxes (sampled, with a 1.5x margin)."""
+    def squarings(self, tau: float, symmetric: bool = False) -> int:
+        """Squarings s of exp(-A tau): general, so that |A tau / 2^s| <= SQUARING_NORM (the export's series);
+        symmetric, the fewest the symmetric series needs for A's eigenvalues (pinnmpc.surrogate.decay). Both over
+        the boxes, sampled, with a 1.5x margin."""
+        a = self._box_rates()
+        if symmetric:
+            return decay.squarings(float(torch.linalg.eigvals(a).real.max()) * tau * RATE_MARGIN)
+        norm = float(torch.linalg.matrix_norm(a * tau, ord=1).max()) * RATE_MARGIN
+        return max(0, math.ceil(math.log2(norm / SQUARING_NORM)))
+
+    def _box_rates(self, samples: int = 4096) -> Tensor:
+        """A = M^-1 kv at configurations sampled over the box (a fixed draw)."""
         from pinnmpc.training.data import random_pairs
 
         q = random_pairs(self.arm, samples, 0)[0].double()[:, : self.nq]
         with torch.no_grad():
-            a = self._terms(q, torch.zeros_like(q))[1]
-        norm = float(torch.linalg.matrix_norm(a * tau, ord=1).max()) * 1.5
-        return max(0, math.ceil(math.log2(norm / SQUARING_NORM)))
+            return self._terms(q, torch.zeros_like(q))[1]
 
     def compiled(self, tau: float) -> CompiledPrior:
         """x_p(tau), and with its Jacobian, for numpy rows: the value as a fixed Taylor-and-squaring exponential
@@ -284,33 +300,37 @@ class FrozenArmPrior(nn.Module):
         from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
         n, h, kv = self.nq, tau / max(1, self.steps), ca.DM(self.kv.numpy())
-        s = self.squarings(h)
-        x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
-        q0, v0 = x[:n], x[n:]
+        s = self.squarings(h, symmetric=True)
+        tag = f"{self.arm.name}_frozen_prior{self._suffix()}"
         frozen = self.arm.casadi_frozen_terms(settled=not self.steps)
 
-        def held(q: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX]:
+        def held(q: ca.SX, u: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX]:
             """v_ss, kv^-1 M (I - E) (at q0: dq(tau)/dv0) and E over h of the arm held at q."""
             m, c0 = frozen(q, u)
-            e = _expm(-ca.solve(m, ca.diag(kv)) * (h / 2**s), s)
+            e = decay.decay(m, self.kv.numpy(), h, s)
             return c0 / kv, ca.mtimes(ca.diag(1 / kv), ca.mtimes(m, ca.SX.eye(n) - e)), e
 
-        def terms(q: ca.SX) -> tuple[ca.SX, Callable]:
-            """v_ss and the relaxation over h of the arm held at q."""
-            vss, lag, e = held(q)
-            return vss, lambda d: (ca.mtimes(lag, d), ca.mtimes(e, d))
+        if self.midpoint:  # sub-steps at configurations of their own: the held arm compiled once, called per sub-step
+            q, u = ca.SX.sym("q", n), ca.SX.sym("u", n)
+            held_arm = ca.Function(f"{tag}_held", [q, u], list(held(q, u)), {"cse": True})
+            x, u = ca.MX.sym("x", 2 * n), ca.MX.sym("u", n)
 
-        if self.midpoint:  # its sub-steps hold the arm at configurations of their own, not at q0
-            xp = ca.vertcat(*midpoint_substeps((q0, v0), terms, self.moving_torque, kv, h, self.steps))
+            def terms(q: ca.MX) -> tuple[ca.MX, Callable]:
+                """v_ss and the relaxation over h of the arm held at q."""
+                vss, lag, e = held_arm(q, u)
+                return vss, lambda d: (ca.mtimes(lag, d), ca.mtimes(e, d))
+
+            xp = ca.vertcat(*midpoint_substeps((x[:n], x[n:]), terms, self.moving_torque, kv, h, self.steps))
         else:
-            vss, lag, e = held(q0)
+            x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
+            q0, v0 = x[:n], x[n:]
+            vss, lag, e = held(q0, u)
             if self.steps:
                 relax = lambda d: (ca.mtimes(lag, d), ca.mtimes(e, d))  # noqa: E731
                 xp = ca.vertcat(*friction_substeps((q0, v0), vss, self.moving_torque(q0), kv, h, relax, self.steps))
             else:
                 d = v0 - vss
                 xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d))
-        tag = f"{self.arm.name}_frozen_prior{self._suffix()}"
         value = ca.Function(f"{tag}_value", [x, u], [xp], {"cse": True})
         if self.stand_in_jacobian:
             # the Jacobian of the arm held at q0 (MIDPOINT_JACOBIAN) stands in for this one's: the controller's
@@ -367,22 +387,6 @@ class FrozenArmPrior(nn.Module):
                 f"the compiled frozen-arm prior of {self.arm.name} disagrees with its torch form (relative {off:.1e}, "
                 "expected < 1e-8): set system.network.prior=null"
             )
-
-
-def _expm(x: ca.SX, squarings: int) -> ca.SX:
-    """exp(x 2^s) from exp(x) by a Taylor series and s squarings: one smooth formula, no branches. The series is
-    evaluated Paterson-Stockmeyer style, in powers of x^3 with coefficients in I, x, x^2: 6 matrix products for
-    degree 12 where Horner takes 12, the same polynomial."""
-    block, zero = 3, ca.SX.zeros(x.shape)
-    powers = [ca.SX.eye(x.shape[0]), x, ca.mtimes(x, x)]
-    cube, out = ca.mtimes(powers[2], x), None
-    for j in range(TAYLOR_DEGREE // block, -1, -1):  # (((B_4 x^3 + B_3) x^3 + ...) + B_0, B_j = sum_i x^i / (3j + i)!
-        terms = [powers[i] / math.factorial(block * j + i) for i in range(block) if block * j + i <= TAYLOR_DEGREE]
-        b = sum(terms, zero)
-        out = b if out is None else ca.mtimes(out, cube) + b
-    for _ in range(squarings):
-        out = ca.mtimes(out, out)
-    return out
 
 
 def check_prior(kind: str | None) -> None:

@@ -40,12 +40,37 @@ def friction_substeps(
     return q, v
 
 
-def predicted_mid(x0: tuple[Any, Any], held: tuple[Any, Callable, Callable], kv: Any, h: Any) -> Any:
-    """The configuration half way through a sub-step of h from x0, predicted by that sub-step (friction_substeps)
-    with the arm held as `held` = (v_ss, relax over h, moving torques) says: where midpoint_substeps takes M, gravity
-    and the Coriolis torques for it."""
-    vss, relax, torque = held
-    return 0.5 * (x0[0] + friction_substeps(x0, vss, torque, kv, h, relax, 1)[0])
+def predicted_mid(x0: tuple[Any, Any], held: tuple[Any, Callable], h: Any) -> Any:
+    """The configuration half way through a sub-step of h from x0, predicted by the arm held as `held` = (v_ss,
+    relax over h) says, without its moving torques: where midpoint_substeps takes M, gravity and the Coriolis
+    torques for it (the moving torques would move it by nothing the targets see: docs/training.md)."""
+    vss, relax = held
+    return x0[0] + 0.5 * (vss * h + relax(x0[1] - vss)[0])
+
+
+def midpoint_step(
+    x0: tuple[Any, Any],
+    held: tuple[Any, Callable],
+    torque: Callable[[Any], Any],
+    kv: Any,
+    h: Any,
+    lagged: Any,
+    span: tuple[Any, Callable] | None = None,
+) -> tuple[tuple[Any, Any], Any]:
+    """One sub-step of h of the arm held as held = (v_ss, relax over h), its moving torques (torque: w -> them)
+    held at the mean of the start velocity and an end velocity predicted with the torques `lagged` (those the
+    sub-step before held, already at hand: as close as the start's own, docs/training.md); (q, v) and the torques
+    it held. span: the (length, relax) it advances by, its torques still predicted over h (_solve_midpoint)."""
+    (q, v), (vss, relax) = x0, held
+
+    def sub(held_torque: Any, length: Any, relax: Callable) -> tuple[Any, Any]:
+        """The exact step of M dv/dt = c0 - held_torque - kv v over length."""
+        ss = vss - held_torque / kv
+        lag_d, e_d = relax(v - ss)
+        return q + ss * length + lag_d, ss + e_d
+
+    mean = torque(0.5 * (v + sub(lagged, h, relax)[1]))
+    return sub(mean, *(span or (h, relax))), mean
 
 
 def midpoint_substeps(
@@ -57,22 +82,23 @@ def midpoint_substeps(
     steps: int,
     trail: list | None = None,
 ) -> tuple[Any, Any]:
-    """(q, v) after `steps` sub-steps of h, each the frozen arm's flow (friction_substeps, one sub-step) held at its
-    mid configuration, predicted with the arm held as the sub-step before it was (at q0 for the first): an
-    exponential midpoint rule in the configuration, one M per sub-step; freezing M at q0 for a whole period is what
-    costs a frozen prior most on a long arm (docs/training.md). terms(q) -> (v_ss, relax over h) of the arm held at
-    q; torque(q) -> (w -> the torques held at the moving velocity w); any array namespace. trail: gets each
-    sub-step's start and the configuration its predictor holds the arm at, then the end's."""
-    at = x0[0]
-    held = (*terms(at), torque(at))
+    """(q, v) after `steps` sub-steps of h (midpoint_step), each held at its mid configuration, predicted with the
+    arm held as the sub-step before it was (at q0 for the first): an exponential midpoint rule in the
+    configuration, one M and one C(q, w) w per sub-step; freezing M at q0 for a whole period is what costs a frozen
+    prior most on a long arm (docs/training.md). terms(q) -> (v_ss, relax over h) of the arm held at q; torque(q) ->
+    (w -> the torques held at the moving velocity w), the first prediction's taken at x0 itself; any array namespace.
+    trail: gets each sub-step's start, the configuration its predictor holds the arm at and the torques it
+    predicts with, then the end's."""
+    at, lagged = x0[0], torque(x0[0])(x0[1])
+    held = terms(at)
     for _ in range(steps):
         if trail is not None:
-            trail.append((x0, at))
-        at = predicted_mid(x0, held, kv, h)
-        held = (*terms(at), torque(at))
-        x0 = friction_substeps(x0, held[0], held[2], kv, h, held[1], 1)
+            trail.append((x0, at, lagged))
+        at = predicted_mid(x0, held, h)
+        held = terms(at)
+        x0, lagged = midpoint_step(x0, held, torque(at), kv, h, lagged)
     if trail is not None:
-        trail.append((x0, at))
+        trail.append((x0, at, lagged))
     return x0
 
 
