@@ -311,8 +311,8 @@ class FrozenArmPrior(nn.Module):
             return c0 / kv, ca.mtimes(ca.diag(1 / kv), ca.mtimes(m, ca.SX.eye(n) - e)), e
 
         if self.midpoint:  # sub-steps at configurations of their own: the held arm compiled once, called per sub-step
-            q, u = ca.SX.sym("q", n), ca.SX.sym("u", n)
-            held_arm = ca.Function(f"{tag}_held", [q, u], list(held(q, u)), {"cse": True})
+            qs, us = ca.SX.sym("q", n), ca.SX.sym("u", n)
+            held_arm = ca.Function(f"{tag}_held", [qs, us], list(held(qs, us)), {"cse": True})
             x, u = ca.MX.sym("x", 2 * n), ca.MX.sym("u", n)
 
             def terms(q: ca.MX) -> tuple[ca.MX, Callable]:
