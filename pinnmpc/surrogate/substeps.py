@@ -26,18 +26,19 @@ def friction_substeps(
     the linear rest solved exactly; relax(d) -> (kv^-1 M (I - E(h)) d, E(h) d); any array namespace. x0 = (q0, v0),
     vss = c0 / kv of the drive without the friction. spans: per sub-step the (length, relax) it advances by, its
     torques still predicted over h (FrozenArmPrior._solve_moving: x_p(t) for t anywhere on the grid of h)."""
-    q, v = x0
-
-    def sub(q: Any, v: Any, w: Any, h: Any, relax: Callable) -> tuple[Any, Any]:
-        """One exact step of M dv/dt = c0 - friction(w) - kv v."""
-        ss = vss - friction(w) / kv
-        lag_d, e_d = relax(v - ss)
-        return q + ss * h + lag_d, ss + e_d
-
     for k in range(steps):
-        predicted = sub(q, v, v, h, relax)[1]
-        q, v = sub(q, v, 0.5 * (v + predicted), *(spans[k] if spans else (h, relax)))
-    return q, v
+        predicted = held_flow(x0, vss, friction(x0[1]), kv, h, relax)[1]
+        x0 = held_flow(x0, vss, friction(0.5 * (x0[1] + predicted)), kv, *(spans[k] if spans else (h, relax)))
+    return x0
+
+
+def held_flow(x0: tuple[Any, Any], vss: Any, torque: Any, kv: Any, length: Any, relax: Callable) -> tuple[Any, Any]:
+    """(q, v) after `length` of M dv/dt = c0 - torque - kv v, dq/dt = v from x0 with the torque held: the exact flow
+    every sub-step is; relax(d) -> (kv^-1 M (I - E(length)) d, E(length) d)."""
+    q, v = x0
+    ss = vss - torque / kv
+    lag_d, e_d = relax(v - ss)
+    return q + ss * length + lag_d, ss + e_d
 
 
 def predicted_mid(x0: tuple[Any, Any], held: tuple[Any, Callable], h: Any) -> Any:
@@ -61,16 +62,9 @@ def midpoint_step(
     held at the mean of the start velocity and an end velocity predicted with the torques `lagged` (those the
     sub-step before held, already at hand: as close as the start's own, docs/training.md); (q, v) and the torques
     it held. span: the (length, relax) it advances by, its torques still predicted over h (_solve_midpoint)."""
-    (q, v), (vss, relax) = x0, held
-
-    def sub(held_torque: Any, length: Any, relax: Callable) -> tuple[Any, Any]:
-        """The exact step of M dv/dt = c0 - held_torque - kv v over length."""
-        ss = vss - held_torque / kv
-        lag_d, e_d = relax(v - ss)
-        return q + ss * length + lag_d, ss + e_d
-
-    mean = torque(0.5 * (v + sub(lagged, h, relax)[1]))
-    return sub(mean, *(span or (h, relax))), mean
+    vss, relax = held
+    mean = torque(0.5 * (x0[1] + held_flow(x0, vss, lagged, kv, h, relax)[1]))
+    return held_flow(x0, vss, mean, kv, *(span or (h, relax))), mean
 
 
 def midpoint_substeps(
