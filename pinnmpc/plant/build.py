@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.plant.base import Plant
 from pinnmpc.plant.scipy_plant import ScipyPlant
-from pinnmpc.plant.settings import MujocoPlantSettings, plant_settings
+from pinnmpc.plant.settings import FrankaPlantSettings, MujocoPlantSettings, plant_settings
 from pinnmpc.systems.base import System
 
 
@@ -31,13 +32,19 @@ def simulated_arm(system: System, system_cfg: Any) -> System:
     return load_system(str(origin["system"]))
 
 
-def make_plant(system: System, cfg: Any, tau: float, robots: Mapping[str, Any] | None = None) -> Plant:
+def make_plant(
+    system: System, cfg: Any, tau: float, robots: Mapping[str, Any] | None = None, run_dir: Path | None = None
+) -> Plant:
     """The simulated robot of every closed loop (and of the bench's plant rows) from the plant settings (a config
     node or dict, checked: pinnmpc/plant/settings.py): scipy's solve_ivp on the model, or MuJoCo on the arm's
     URDF as one of the system's `robots` (read here alone)."""
     if isinstance(cfg, DictConfig):
         cfg = OmegaConf.to_container(cfg, resolve=True)
     settings = plant_settings(cfg)
+    if isinstance(settings, FrankaPlantSettings):
+        from pinnmpc.plant.franka import FrankaPlant  # franky loads only for its plant
+
+        return FrankaPlant(system, tau, settings, run_dir)
     if isinstance(settings, MujocoPlantSettings):
         from pinnmpc.plant.mujoco_robot import make_mujoco_plant  # MuJoCo loads only for its plant
 

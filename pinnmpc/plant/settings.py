@@ -95,10 +95,96 @@ class MujocoPlantSettings(MismatchSettings):
         check_settings("plant", self, MUJOCO_CHECKS)
 
 
-PLANTS: dict[str, type[MismatchSettings]] = {"scipy": ScipyPlantSettings, "mujoco": MujocoPlantSettings}
+def _gains(v: Any, _d: Any) -> str | None:
+    """null or one positive gain per joint."""
+    ok = v is None or (isinstance(v, (list, tuple)) and all(isinstance(g, (int, float)) and g > 0 for g in v))
+    return None if ok else "null or a list of positive gains, N m s/rad"
 
 
-def plant_settings(cfg: Any) -> ScipyPlantSettings | MujocoPlantSettings:
+FRANKA_CHECKS: dict[str, Check] = {
+    "simulator": one_of("mujoco", "none"),
+    "host": lambda v, _d: None if v is None or (isinstance(v, str) and v) else "null or a robot's address",
+    "servo_gain": _gains,
+    "initial_q": lambda v, _d: None if v is None or isinstance(v, (list, tuple)) else "null or joint angles, rad",
+    "relative_dynamics_factor": positive(),
+    "start_dynamics_factor": positive(),
+    "hold_periods": positive(),
+    "watchdog_periods": positive(),
+    "limit_margin": real(0.0),
+    "brake_acceleration": positive(),
+    "start_timeout": positive(),
+    "stall_timeout": positive(),
+    "start_tolerance": positive(),
+    "rest_speed": positive(),
+    "poll_s": positive(),
+}
+
+
+@dataclass
+class FrankaPlantSettings(MismatchSettings):
+    """`plant=franka`: a Franka arm through libfranka (franky), by default franky-sim's MuJoCo FR3 started on a
+    free loopback address; `plant.simulator=none plant.host=<robot>` drives a real arm (pinnmpc/plant/franka.py,
+    docs/franka.md)."""
+
+    kind: str = "franka"
+    """Which plant: franka (scipy, mujoco: the simulated models)."""
+    simulator: str = "mujoco"
+    """mujoco: start franky-sim (MuJoCo) for the run and stop it by its pid at the end; none: a robot is at host."""
+    host: str | None = None
+    """The robot's address (its FCI); with the simulator null picks a free 127.0.0.x (x >= 2)."""
+    realtime_kernel: bool = False
+    """Require a real-time kernel (libfranka's RealtimeConfig.Enforce): true for a real arm, as Franka asks."""
+    servo_gain: list[float] | None = None
+    """Joint velocity gains franky-sim is served with, N m s/rad; null: the system's servo_gain."""
+    initial_q: list[float] | None = None
+    """Where franky-sim's arm starts, rad; null: the middle of the joint limits."""
+    relative_dynamics_factor: float = 1.0
+    """franky's scale of its velocity, acceleration and jerk limits for the control period's motions (<= 1)."""
+    move_to_start: bool = True
+    """Move the arm to the reference's start before the loop (a jerk-limited joint motion)."""
+    start_dynamics_factor: float = 0.2
+    """... at this fraction of franky's limits: slow, for a first motion whose path nobody planned."""
+    start_tolerance: float = 0.01
+    """... and refuse to run when the arm stopped farther than this from the start, rad."""
+    hold_periods: float = 2.0
+    """Each command is held this many periods, then the arm brakes by itself: the robot-side watchdog when this
+    process stalls (a new command replaces the last long before)."""
+    watchdog_periods: float = 1.0
+    """Stop the arm and end the run when a command comes this many periods of robot time after its state."""
+    limit_margin: float = 0.05
+    """rad: the safety layer slows each joint so that it comes to rest this far inside its joint limits."""
+    brake_acceleration: float = 2.0
+    """rad/s^2 the slowing plans to brake with: well inside franky's joint acceleration limits (7.5-20 rad/s^2)."""
+    start_timeout: float = 120.0
+    """Wall seconds to wait for franky-sim to serve."""
+    stall_timeout: float = 30.0
+    """Wall seconds the robot's clock may stand still before the run ends as a plant failure."""
+    rest_speed: float = 0.01
+    """rad/s: the arm counts as at rest at the end when every joint is slower."""
+    poll_s: float = 0.0005
+    """Wall seconds between two reads of the robot's clock while a period runs."""
+    record_fine: bool = False
+    """Record the 1 kHz state stream within each period (collect sets it)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.kind != "franka":
+            _refuse("kind", self.kind, "franka with plant=franka (choose the plant with plant=<kind>)")
+        if self.friction_scale != 1.0 or self.mass_scale != 1.0:
+            _refuse("friction_scale", self.friction_scale, "1.0 with plant=franka (a robot is what it is)")
+        if self.simulator == "none" and not self.host:
+            _refuse("host", self.host, "the robot's address with plant.simulator=none")
+        check_settings("plant", self, FRANKA_CHECKS)
+
+
+PLANTS: dict[str, type[MismatchSettings]] = {
+    "scipy": ScipyPlantSettings,
+    "mujoco": MujocoPlantSettings,
+    "franka": FrankaPlantSettings,
+}
+
+
+def plant_settings(cfg: Any) -> ScipyPlantSettings | MujocoPlantSettings | FrankaPlantSettings:
     """The checked settings of a plant config node (or dict) by its kind: a bad value is one line naming it."""
     values = dict(cfg.items()) if hasattr(cfg, "items") else dict(cfg)
     kind = values.get("kind", "scipy")

@@ -25,11 +25,12 @@ FINAL_SAMPLES = 10  # the last samples whose worst joint-angle error says where 
 def _stats(values: np.ndarray) -> dict[str, float]:
     """Summary of a timing series in seconds."""
     if values.size == 0:
-        return {"mean": float("nan"), "median": float("nan"), "p95": float("nan"), "max": float("nan")}
+        return {"mean": float("nan"), "median": float("nan"), "p95": float("nan"), "p99": float("nan"), "max": float("nan")}
     return {
         "mean": float(values.mean()),
         "median": float(np.median(values)),
         "p95": float(np.percentile(values, 95)),
+        "p99": float(np.percentile(values, 99)),
         "max": float(values.max()),
     }
 
@@ -222,6 +223,7 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
         trouble.append(f"did not follow: it ends {m['final_position_error_max']:.2g} rad off the reference")
     if m.get("over_period"):
         trouble.append(f"{m['over_period']} solves longer than the control period ({1e3 * m['tau']:g} ms)")
+    trouble += franka_trouble(m.get("franka"))
     if m.get("joint_limit_samples"):
         past = f"{m['joint_limit_samples']} samples past a joint limit"
         trouble.append(f"{past} (by up to {m['joint_limit_excess_max']:.1e} rad)")
@@ -250,10 +252,22 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
         f"{m['status']}: {m['steps']} steps on {m['reference']} with {m['solver']}"
         + real_time_note(m)
         + estimator_note(m)
-        + f"; MAE {mae}; OCP median {1e3 * m['ocp_time_s']['median']:.2f} ms "
+        + f"; MAE {mae}; OCP median {1e3 * m['ocp_time_s']['median']:.2f} ms, p99 "
+        f"{1e3 * m['ocp_time_s'].get('p99', math.nan):.2f} ms "
         f"(plant step {1e3 * m['plant_step_time_s']['median']:.2f} ms)"
         + monitor_note(m)
         + faults_note(m)
         + (f"; {', '.join(trouble)}" if trouble else "")
         + f"; outputs in {run_dir}"
     )
+
+
+def franka_trouble(report: dict[str, Any] | None) -> list[str]:
+    """What a robot run's headline says of the robot: libfranka's errors, the safety layer's actions, the end."""
+    if not report:
+        return []
+    safety = report.get("safety", {})
+    said = [f"{len(report['errors'])} libfranka errors ({report['errors'][0]})"] if report.get("errors") else []
+    said += [f"{v} {k.replace('_', ' ')}" for k, v in safety.items() if v]
+    said += [f"{report['late_commands']} commands after their period"] if report.get("late_commands") else []
+    return said + ([] if report.get("at_rest") else ["the arm was not at rest at the end"])

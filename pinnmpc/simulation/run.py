@@ -75,7 +75,32 @@ def run_closed_loop(
         what = "the surrogate's training box" if domain is not None else "the system's state box"
         log.warning("reference leaves %s by up to %.3g; tracking there is extrapolation", what, dist)
     arm = simulated_arm(system, cfg.system)  # the robot's arm: for an identified model, the nominal one
-    plant = make_plant(arm, cfg.plant, tau, cfg.system.get("robots"))
+    plant = make_plant(arm, cfg.plant, tau, cfg.system.get("robots"), run_dir)
+    try:  # a robot plant stops its arm and its server however the run ends (the end, an error, a signal)
+        return _run_on_plant(cfg, run_dir, stop, announce, system, controller, domain, tau, ref, start, arm, plant)
+    finally:
+        if hasattr(plant, "close"):
+            plant.close()
+
+
+def _run_on_plant(
+    cfg: DictConfig,
+    run_dir: Path,
+    stop: StopSignal | None,
+    announce: Callable[[dict[str, Any]], None] | None,
+    system: System,
+    controller: Controller,
+    domain: Any,
+    tau: float,
+    ref: Reference,
+    start: Any,
+    arm: System,
+    plant: Any,
+) -> dict[str, Any]:
+    """The loop on a built plant, its metrics and files (run_closed_loop closes the plant afterwards)."""
+    differs = arm_differences(getattr(getattr(controller, "surrogate", None), "meta", None), cfg)
+    if hasattr(plant, "start"):  # a robot: moved to the reference's start, the loop begins where it measures
+        start = plant.start(np.asarray(ref.x[0] if start is None else start))
     monitor = getattr(controller, "prediction_error", None)
     plan = plan_faults(
         cfg.get("faults"),
@@ -119,6 +144,11 @@ def run_closed_loop(
     # how far a user's start x0 lies off the reference's first state (0: it starts on it)
     result["start_off_reference"] = 0.0 if start is None else float(np.abs(np.asarray(start) - ref.x[0]).max())
     result["network_arm_differs"] = differs  # system.dynamics keys
+    if hasattr(plant, "report"):  # a robot: its errors, what the safety layer did, whether it ended at rest
+        plant.close()
+        result["franka"] = plant.report()
+        if result["franka"]["errors"] and result["status"] == "ok":
+            result["status"] = f"failed: libfranka: {result['franka']['errors'][0]}"
     write_outputs(cfg, system, ref, run, controller, run_dir, result, announce)
     return result
 

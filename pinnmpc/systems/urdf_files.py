@@ -13,6 +13,7 @@ from typing import Any
 from pinnmpc.systems.base import Box
 
 URDF_DIR = Path(__file__).resolve().parent / "urdf"  # URDFs shipped with the package
+_JOINT_TAGS = {"origin", "parent", "child", "axis", "calibration", "dynamics", "limit", "mimic", "safety_controller"}
 
 
 def resolve_urdf(path: str | Path) -> Path:
@@ -56,6 +57,9 @@ def locked_urdf(path: Path, joints: Sequence[str]) -> str:
     for dyn in root.iter("dynamics"):  # vendor attributes (Franka's K, D, mu_*) make URDF parsers warn per joint
         for key in [k for k in dyn.attrib if k not in ("damping", "friction")]:
             del dyn.attrib[key]
+    for j in root.findall("joint"):  # and so do vendor tags (the FR3's position_based_velocity_limits)
+        for child in [c for c in j if c.tag not in _JOINT_TAGS]:
+            j.remove(child)
     return ET.tostring(root, encoding="unicode")
 
 

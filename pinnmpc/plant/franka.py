@@ -1,0 +1,222 @@
+"""plant=franka: a Franka arm (FR3, Panda) driven through libfranka with franky, one joint velocity command per
+control period, time from the robot's clock, behind a safety layer of ours (docs/franka.md)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pinnmpc.plant.base import PlantError
+from pinnmpc.plant.franka_safety import SafetyLayer
+from pinnmpc.plant.franka_sim import SimServer, free_loopback
+from pinnmpc.plant.settings import FrankaPlantSettings
+from pinnmpc.systems.base import System
+
+log = logging.getLogger(__name__)
+
+
+class FrankaPlant:
+    """The robot as a plant: step(x, u) sends u (made safe) as an asynchronous joint velocity motion that replaces
+    the last, waits until the robot's clock is one period past the state the command answers, and returns the
+    measured state. close() stops the arm, recovers from errors and stops an embedded server, however a run ends."""
+
+    def __init__(self, system: System, tau: float, settings: FrankaPlantSettings, run_dir: Path | None = None) -> None:
+        """Start franky-sim when plant.simulator asks for it, connect with franky; nothing moves yet."""
+        import franky
+
+        self.franky = franky
+        self.tau, self.settings, self.nq = float(tau), settings, system.nq
+        self.step_times: list[float] = []
+        self.stick_slip_steps = 0
+        self.errors: list[str] = []
+        self.fine: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []  # (t, q, dq, dq_d) at 1 kHz
+        self.server: SimServer | None = None
+        self.robot: Any = None
+        self.closed = False
+        gains = settings.servo_gain or list(system.servo_gain)
+        self.safety = SafetyLayer(system, tau, settings)
+        self.period_start: float | None = None  # robot time of the state the next command answers, s
+        self.late = 0  # commands that came after their period had ended
+        self.robot_periods: list[float] = []  # robot time between measurements, s
+        try:
+            host = settings.host
+            if settings.simulator != "none":
+                host = host or free_loopback()
+                start_q = np.asarray(settings.initial_q or np.mean(self.safety.limits, axis=0), dtype=float)
+                log_path = None if run_dir is None else Path(run_dir) / "franky_sim.log"
+                self.server = SimServer(host, gains, start_q, log_path)
+                self.server.wait_ready(settings.start_timeout)
+            self.host = host
+            realtime = franky.RealtimeConfig.Enforce if settings.realtime_kernel else franky.RealtimeConfig.Ignore
+            self.robot = franky.Robot(host, realtime_config=realtime)
+            self.robot.relative_dynamics_factor = settings.relative_dynamics_factor
+            self.safety.cap_velocity(np.asarray(self.robot.joint_velocity_limit.max, dtype=float)[: self.nq])
+            if self.robot.has_errors:
+                self.errors.append(f"at connect: {self.robot.state.current_errors}")
+                self.robot.recover_from_errors()
+        except BaseException:
+            self.close()
+            raise
+
+    def now(self) -> float:
+        """The robot's clock, s."""
+        return float(self.robot.state.time.to_sec())
+
+    def measure(self) -> tuple[float, np.ndarray]:
+        """The robot's time and state (q, dq) read together."""
+        s = self.robot.state
+        return float(s.time.to_sec()), np.concatenate([np.asarray(s.q, dtype=float), np.asarray(s.dq, dtype=float)])
+
+    def start(self, x0: np.ndarray) -> np.ndarray:
+        """Move the arm to x0's joint angles at rest (a jerk-limited joint motion), then return the measured state:
+        the closed loop starts from where the robot is, not from where the model says."""
+        q0 = np.asarray(x0, dtype=float)[: self.nq]
+        self.safety.check_target(q0)
+        if self.settings.move_to_start:
+            motion = self.franky.JointMotion(
+                self.franky.JointState(q0.tolist()), relative_dynamics_factor=self.settings.start_dynamics_factor
+            )
+            self._guarded(lambda: self.robot.move(motion, asynchronous=False), "move to the start")
+        t, x = self.measure()
+        off = float(np.abs(x[: self.nq] - q0).max())
+        if self.settings.move_to_start and off > self.settings.start_tolerance:
+            raise PlantError(
+                f"plant=franka: the arm stopped {off:.3g} rad from the reference's start (plant.start_tolerance="
+                f"{self.settings.start_tolerance})"
+            )
+        self.period_start = t
+        return x
+
+    def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Send u for the period that began at the last measurement, wait one period of robot time, measure."""
+        wall = time.perf_counter()
+        if self.period_start is None:
+            self.period_start, _ = self.measure()
+        t_send, x_now = self.measure()
+        elapsed = t_send - self.period_start
+        if elapsed > self.tau:
+            self.late += 1
+        if elapsed > self.settings.watchdog_periods * self.tau:
+            self.safety.events["watchdog_stops"] += 1
+            self.stop_arm()
+            raise PlantError(
+                f"watchdog: the command came {elapsed * 1e3:.1f} ms of robot time after its state, past "
+                f"plant.watchdog_periods={self.settings.watchdog_periods} periods of {self.tau * 1e3:.0f} ms; the arm "
+                "was stopped"
+            )
+        command = self.safety.command(np.asarray(u, dtype=float), x_now)
+        hold = self.franky.Duration(int(round(self.settings.hold_periods * self.tau * 1e3)))
+        motion = self.franky.JointVelocityMotion(command.tolist(), duration=hold)
+        if self.settings.record_fine:
+            motion.register_callback(self._record)
+        self._guarded(lambda: self.robot.move(motion, asynchronous=True), "send a command")
+        target = self.period_start + self.tau
+        t, x = self._wait_until(target)
+        self.robot_periods.append(t - self.period_start)
+        self.period_start = t
+        self.step_times.append(time.perf_counter() - wall)
+        return x
+
+    def _record(self, state: Any, _step: Any, _rel: Any, _abs: Any, _signal: Any) -> None:
+        """The 1 kHz stream within each period (collect's fine samples), from franky's control thread."""
+        self.fine.append(
+            (float(state.time.to_sec()), np.asarray(state.q), np.asarray(state.dq), np.asarray(state.dq_d))
+        )
+
+    def _wait_until(self, target: float) -> tuple[float, np.ndarray]:
+        """Poll the robot's clock until it reaches target; motion errors are recorded and end the run."""
+        deadline = time.monotonic() + self.settings.stall_timeout
+        while True:
+            t, x = self.measure()
+            if t >= target - 5e-4:  # the state stream's 1 ms tick
+                return t, x
+            self._guarded(self.robot.poll_motion, "wait for the period's end")
+            if time.monotonic() > deadline:
+                self.stop_arm()
+                raise PlantError(
+                    f"plant=franka: the robot's clock stood still for plant.stall_timeout="
+                    f"{self.settings.stall_timeout} s of wall time (connection lost?)"
+                )
+            time.sleep(self.settings.poll_s)
+
+    def _guarded(self, call: Any, what: str) -> Any:
+        """Run a franky call; a libfranka error is recorded, recovered from, and ends the run as a plant failure."""
+        try:
+            return call()
+        except self.franky.Exception as e:
+            message = f"{what}: {type(e).__name__}: {e}"
+            self.errors.append(message)
+            self._recover()
+            raise PlantError(f"libfranka: {message}") from None
+
+    def _recover(self) -> None:
+        """libfranka's automatic error recovery, recorded when it fails."""
+        with contextlib.suppress(Exception):
+            if self.robot is not None and self.robot.has_errors and not self.robot.recover_from_errors():
+                self.errors.append("automatic error recovery failed")
+
+    def stop_arm(self) -> None:
+        """A joint velocity stop motion, waited for, then error recovery: the arm at rest."""
+        if self.robot is None:
+            return
+        try:
+            self.robot.move(self.franky.JointVelocityStopMotion(), asynchronous=False)
+        except self.franky.Exception as e:
+            self.errors.append(f"stop motion: {type(e).__name__}: {e}")
+            self._recover()
+            with contextlib.suppress(self.franky.Exception):
+                self.robot.move(self.franky.JointVelocityStopMotion(), asynchronous=False)
+        self._recover()
+
+    def at_rest(self) -> bool:
+        """Whether every joint speed is below plant.rest_speed."""
+        try:
+            _, x = self.measure()
+        except Exception:
+            return False
+        return bool(np.abs(x[self.nq :]).max() <= self.settings.rest_speed)
+
+    def close(self) -> None:
+        """Stop the arm and the embedded server; safe to call twice and from a signal's unwinding."""
+        if self.closed:
+            return
+        self.closed = True
+        self.rest = False
+        try:
+            if self.robot is not None:
+                self.stop_arm()
+                self.rest = self.at_rest()
+        finally:
+            self.robot = None  # franky's destructor closes the connection before the server goes
+            if self.server is not None:
+                self.server.stop()
+
+    def report(self) -> dict[str, Any]:
+        """What the run's metrics.json says of the robot: its address, errors, the safety layer's actions, timing."""
+        periods = np.asarray(self.robot_periods)
+        return {
+            "host": self.host if hasattr(self, "host") else self.settings.host,
+            "simulator": self.settings.simulator,
+            "server_pid": None if self.server is None else self.server.pid,
+            "errors": list(self.errors),
+            "safety": dict(self.safety.events),
+            "late_commands": int(self.late),
+            "robot_period_s": {
+                "median": float(np.median(periods)) if periods.size else float("nan"),
+                "max": float(periods.max()) if periods.size else float("nan"),
+            },
+            "at_rest": bool(getattr(self, "rest", False)),
+        }
+
+    def fine_samples(self) -> dict[str, np.ndarray]:
+        """The recorded 1 kHz stream as arrays (t, q, dq, dq_d), empty where plant.record_fine is off."""
+        if not self.fine:
+            return {k: np.zeros((0, self.nq if k != "t" else 0)).reshape(0, -1) for k in ("t", "q", "dq", "dq_d")}
+        t, q, dq, dqd = zip(*self.fine)
+        return {"t": np.asarray(t), "q": np.stack(q), "dq": np.stack(dq), "dq_d": np.stack(dqd)}
+
