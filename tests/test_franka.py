@@ -1,0 +1,173 @@
+"""plant=franka with the real parts: franky-sim served on a loopback address of its own, libfranka through franky,
+closed loops of every controller kind, the safety layer, the watchdog, SIGINT mid-motion."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pinnmpc.plant.franka_sim import SimServer, franky_missing
+
+pytestmark = pytest.mark.skipif(bool(franky_missing()), reason=franky_missing() or "franky present")
+
+ROOT = Path(__file__).resolve().parents[1]
+FR3_GAINS = [450.0, 450.0, 350.0, 350.0, 100.0, 100.0, 50.0]
+FR3_HOME = [0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.0]
+
+
+def own_loopback(offset: int) -> str:
+    """A loopback address per xdist worker and use: servers on fixed ports never meet."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    return f"127.0.0.{10 + 20 * offset + int(worker.removeprefix('gw') or 0)}"
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether a process of that id still runs (a zombie counts as gone)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split()[2] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def sim_host(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """A real franky-sim (MuJoCo FR3) on this worker's own loopback address, stopped by its pid afterwards."""
+    host = own_loopback(0)
+    server = SimServer(host, FR3_GAINS, FR3_HOME, tmp_path_factory.mktemp("sim") / "franky_sim.log")
+    try:
+        server.wait_ready(120.0)
+        yield host
+    finally:
+        server.stop()
+    assert not pid_alive(server.pid)
+
+
+@pytest.mark.parametrize("controller", ["nmpc", "exact", "casadi"])
+def test_each_controller_kind_closes_the_loop_through_libfranka(
+    sim_host: str, controller: str, make_cfg, tmp_path: Path
+) -> None:
+    from pinnmpc.simulation.run import run_closed_loop
+
+    overrides = ["system=fr3", "plant=franka", "plant.simulator=none", f"plant.host={sim_host}"]
+    cfg = make_cfg("closed_loop", [*overrides, f"controller={controller}", "max_steps=12", "progress=false"])
+    m = run_closed_loop(cfg, tmp_path)
+    assert m["status"] == "ok", m["status"]
+    assert m["franka"]["errors"] == [] and m["franka"]["at_rest"]
+    assert m["steps"] == 12 and m["joint_limit_samples"] == 0
+    assert abs(m["franka"]["robot_period_s"]["median"] - 0.05) <= 1.5e-3  # the robot's clock, not the wall's
+    assert max(m["mae"][f"q_joint{j}"] for j in range(1, 8)) < 5e-3
+
+
+def test_the_safety_layer_slows_before_the_limits_and_clips_the_speed() -> None:
+    from pinnmpc.plant.franka_safety import SafetyLayer
+    from pinnmpc.plant.settings import FrankaPlantSettings
+    from pinnmpc.systems import load_system
+
+    fr3 = load_system("fr3")
+    layer = SafetyLayer(fr3, fr3.tau, FrankaPlantSettings())
+    high = np.array(fr3.joint_limits.high)
+    x = np.concatenate([np.array(FR3_HOME), np.zeros(7)])
+    free = layer.command(np.full(7, 0.5), x)
+    assert np.allclose(free, 0.5) and layer.events["slowed_commands"] == 0
+    layer.events["slowed_commands"] = 0
+    fast = layer.command(np.full(7, 50.0), x)
+    up, _ = layer.allowed(x[:7])
+    assert np.allclose(fast, np.minimum(layer.vmax, up)) and layer.events["clipped_commands"] == 1
+    near = x.copy()
+    near[:7] = high - 0.06  # 1 cm of room before the margin
+    slowed = layer.command(np.full(7, 2.0), near)
+    assert np.all(slowed * fr3.tau <= 0.01 + 1e-12) and np.all(slowed > 0)
+    past = near.copy()
+    past[:7] = high - 0.01  # inside the margin: only away from the limit
+    assert np.all(layer.command(np.full(7, 1.0), past) == 0.0)
+    assert np.allclose(layer.command(np.full(7, -1.0), past), -1.0)
+    nan = layer.command(np.full(7, np.nan), x)
+    assert np.all(nan == 0.0) and layer.events["non_finite_commands"] == 1
+
+
+def test_the_watchdog_stops_the_arm_when_the_controller_misses_its_period(sim_host: str) -> None:
+    from pinnmpc.plant.base import PlantError
+    from pinnmpc.plant.franka import FrankaPlant
+    from pinnmpc.plant.settings import FrankaPlantSettings
+    from pinnmpc.systems import load_system
+
+    fr3 = load_system("fr3")
+    plant = FrankaPlant(fr3, fr3.tau, FrankaPlantSettings(simulator="none", host=sim_host))
+    try:
+        x = plant.start(np.concatenate([np.array(FR3_HOME), np.zeros(7)]))
+        x = plant.step(x, np.full(7, 0.2))
+        late = plant.period_start + 1.5 * fr3.tau
+        while plant.now() < late:  # the controller "thinks" past its period (robot time, not wall time)
+            time.sleep(0.005)
+        with pytest.raises(PlantError, match="watchdog"):
+            plant.step(x, np.full(7, 0.2))
+        assert plant.safety.events["watchdog_stops"] == 1 and plant.at_rest()
+    finally:
+        plant.close()
+    assert plant.report()["errors"] == []
+
+
+def test_a_target_outside_the_limits_is_refused_before_the_arm_moves(sim_host: str) -> None:
+    from pinnmpc.plant.base import PlantError
+    from pinnmpc.plant.franka import FrankaPlant
+    from pinnmpc.plant.settings import FrankaPlantSettings
+    from pinnmpc.systems import load_system
+
+    fr3 = load_system("fr3")
+    plant = FrankaPlant(fr3, fr3.tau, FrankaPlantSettings(simulator="none", host=sim_host))
+    try:
+        before = plant.measure()[1]
+        bad = before.copy()
+        bad[3] = 0.0  # joint 4 lives below -0.1169 rad
+        with pytest.raises(PlantError, match="joint 4 target"):
+            plant.start(bad)
+        assert np.abs(plant.measure()[1][:7] - before[:7]).max() < 1e-3
+    finally:
+        plant.close()
+
+
+def test_bad_franka_settings_are_one_line_each() -> None:
+    from pinnmpc.plant.settings import plant_settings
+
+    with pytest.raises(ValueError, match=r"plant.host=None: expected the robot's address with plant.simulator=none"):
+        plant_settings({"kind": "franka", "simulator": "none"})
+    with pytest.raises(ValueError, match=r"plant.simulator='genesis'"):
+        plant_settings({"kind": "franka", "simulator": "genesis"})
+    with pytest.raises(ValueError, match=r"plant.friction_scale=1.2"):
+        plant_settings({"kind": "franka", "friction_scale": 1.2})
+
+
+def test_the_embedded_robot_ends_at_rest_and_leaves_no_server_after_sigint(tmp_path: Path) -> None:
+    host = own_loopback(1)
+    run_dir = tmp_path / "run"
+    cmd = [sys.executable, "-m", "pinnmpc.closed_loop", "system=fr3", "plant=franka", f"plant.host={host}"]
+    cmd += ["controller=casadi", "progress=true", f"hydra.run.dir={run_dir}"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    seen = ""
+    try:
+        while not re.search(r"closed loop: .*\| *([5-9]|\d\d+)/\d+", seen[-200:]):  # a few steps into the motion
+            chunk = proc.stdout.read(1) if proc.stdout else ""
+            if not chunk:
+                break
+            seen += chunk
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    out = seen + rest
+    assert proc.returncode != 0 and "interrupted by SIGINT" in out, out[-2000:]
+    m = json.loads((run_dir / "metrics.json").read_text())
+    assert m["status"] == "interrupted" and m["franka"]["at_rest"] and m["franka"]["errors"] == []
+    assert not pid_alive(m["franka"]["server_pid"])
