@@ -14,6 +14,7 @@ from pinnmpc.references.data import Reference
 from pinnmpc.simulation.fault_setup import Recovery
 from pinnmpc.simulation.faults import fault_report, position_error
 from pinnmpc.simulation.loop import LoopResult
+from pinnmpc.simulation.model_fit import fit_note
 from pinnmpc.systems.base import System
 
 SATURATED_NOTE = 0.05  # the headline notes inputs at their bounds from this share of the steps on (display only)
@@ -25,7 +26,7 @@ FINAL_SAMPLES = 10  # the last samples whose worst joint-angle error says where 
 def _stats(values: np.ndarray) -> dict[str, float]:
     """Summary of a timing series in seconds."""
     if values.size == 0:
-        return {"mean": float("nan"), "median": float("nan"), "p95": float("nan"), "p99": float("nan"), "max": float("nan")}
+        return {k: float("nan") for k in ("mean", "median", "p95", "p99", "max")}
     return {
         "mean": float(values.mean()),
         "median": float(np.median(values)),
@@ -167,14 +168,15 @@ def verdict(m: dict[str, Any], max_fallback_fraction: float) -> str:
 
 
 def monitor_note(m: dict[str, Any]) -> str:
-    """The headline's model monitor: the worst joint angle's p95 one-step miss of the model on the robot."""
+    """The headline's model monitor: the worst joint angle's p95 one-step miss of the model on the robot, and
+    whether the model fits the robot at all (model_fit)."""
     mon = m.get("model_monitor")
     if not mon:
         return ""
     names = list(mon["p95"])[: len(mon["p95"]) // 2]
     worst = max(names, key=lambda n: mon["p95"][n])
     unit = (m.get("state_units") or {}).get(worst, "")
-    return f"; model one-step miss p95 {mon['p95'][worst]:.1e} {unit} ({worst})".replace("  ", " ")
+    return f"; model one-step miss p95 {mon['p95'][worst]:.1e} {unit} ({worst})".replace("  ", " ") + fit_note(m)
 
 
 def estimator_note(m: dict[str, Any]) -> str:

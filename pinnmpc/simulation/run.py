@@ -19,6 +19,7 @@ from pinnmpc.references.files import out_of_box
 from pinnmpc.simulation.fault_setup import plan_faults
 from pinnmpc.simulation.loop import LoopResult, divergence_box, model_step, run_loop
 from pinnmpc.simulation.metrics import faults_metrics, limits_and_saturation, metrics, verdict
+from pinnmpc.simulation.model_fit import model_fit
 from pinnmpc.simulation.setup import (
     arm_differences,
     bounds_outside,
@@ -128,6 +129,7 @@ def _run_on_plant(
         guard=plan.guard,
     )
     result = metrics(ref, run, controller, plan.plant, system.state_names, system.state_units)
+    result.update(model_fit(result["model_monitor"], controller, system, float(cfg.noise_sigma)))
     result["faults"] = faults_metrics(run, ref, system.nq, tau, plan.recovery)
     failure = cfg.get("failure") or {}
     result.update(limits_and_saturation(run, controller, system))
