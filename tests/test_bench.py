@@ -23,6 +23,7 @@ from pinnmpc.surrogate.checkpoint import CHECKPOINTS
 from pinnmpc.surrogate.flowmap import RK4Model
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems import PowerCube, load_system
+from tests.conftest import SHARED
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -211,8 +212,6 @@ def test_markdown_has_every_table(bench: tuple[dict[str, Any], Path]) -> None:
         "without offset-free",
         "true model (RK4 h=0.02), gauss_newton",
         "autodiff through RK4 in torch",
-        "paper (RMSprop",
-        "7.53e-03",
         "### Built-in references",
         "| rest | lifted_gauss_newton, offset-free (gain 0.7) |",
         "## 3. OCP optimality",
@@ -231,6 +230,31 @@ def test_markdown_has_every_table(bench: tuple[dict[str, Any], Path]) -> None:
     ):
         assert text in md, text
     assert "4.14e-04" in md and "1.77e-03" in md  # the paper's one-step numbers sit next to ours
+    on_paper = (SHARED / "reference" / "y_soll.mat").is_file()  # reference.path=auto tracked the paper's reference
+    assert ("paper (RMSprop" in md) == ("7.53e-03" in md) == on_paper
+
+
+@pytest.mark.parametrize("case", ["paper", "missing", "builtin"])
+def test_the_papers_closed_loop_row_stands_only_beside_loops_on_the_papers_reference(
+    tmp_path: Path, request: pytest.FixtureRequest, case: str
+) -> None:
+    only = [*TINY, *(o for o in SECTIONS_OFF if not o.startswith("closed_loop")), "closed_loop.max_steps=2"]
+    only += ["closed_loop.solvers=[lifted_gauss_newton]", "closed_loop.true_model=false"]
+    only += ["closed_loop.paper_controller=false", "closed_loop.more_references=[]"]
+    extra = {
+        "missing": ["system.paper_reference=no/such/folder"],  # auto without the paper's data: the built-in
+        "builtin": ["reference.path=null"],
+    }.get(case) or [f"reference.path={request.getfixturevalue('paper_reference_dir')}"]  # the paper's, named outright
+    result = run_bench(_cfg([*only, *extra]), tmp_path)
+    md = (tmp_path / "bench.md").read_text()
+    paper = result["paper"]
+    assert ("closed_loop" in paper) == ("paper (RMSprop" in md) == (case == "paper")
+    assert paper["step_mean_s"]["pinn"] == 4.14e-4  # the one-step costs do not depend on the reference
+    if case != "paper":
+        assert "builtin:default" in paper["closed_loop_left_out"]
+        assert "The paper's row is left out: it was measured on the paper's reference" in md
+        on_disk = json.loads((tmp_path / "bench.json").read_text())["paper"]
+        assert "closed_loop" not in on_disk and on_disk["closed_loop_left_out"] == paper["closed_loop_left_out"]
 
 
 def test_targets_sit_next_to_the_measured_numbers(bench: tuple[dict[str, Any], Path]) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -10,7 +11,7 @@ from omegaconf import DictConfig, OmegaConf
 from pinnmpc.plant.base import Plant
 from pinnmpc.plant.build import make_plant as closed_loop_plant
 from pinnmpc.plant.build import simulated_arm
-from pinnmpc.references.files import Reference
+from pinnmpc.references.files import PROJECT_ROOT, Reference, resolve_reference_path
 from pinnmpc.simulation.setup import system_reference
 from pinnmpc.systems.base import System
 from pinnmpc.training.data import random_pairs
@@ -38,6 +39,33 @@ def bench_reference(cfg: DictConfig, system: System, tau: float, name: str | Non
         }
     )
     return system_reference(node, system, tau)
+
+
+def paper_reference_used(cfg: DictConfig) -> bool:
+    """Whether the closed loops track the reference the paper's published row was measured on
+    (system.paper_reference): only then does that row belong beside ours."""
+    paper = cfg.system.get("paper_reference")
+    used = resolve_reference_path(cfg.reference.path, paper)
+    if not isinstance(paper, str) or used is None:
+        return False
+    return Path(used).resolve() == (PROJECT_ROOT / paper).resolve()
+
+
+def paper_rows(cfg: DictConfig, reference: str | None) -> dict[str, Any] | None:
+    """bench.json's `paper` block: the system's published numbers, without the closed-loop row where this bench
+    did not track the paper's reference (`closed_loop_left_out` says so instead: a row beside ours on another
+    reference compares nothing)."""
+    paper = cfg.get("paper")
+    if paper is None:
+        return None
+    out = OmegaConf.to_container(paper, resolve=True)
+    if reference is not None and out.get("closed_loop") and not paper_reference_used(cfg):
+        del out["closed_loop"]
+        out["closed_loop_left_out"] = (
+            f"measured on the paper's reference ({cfg.system.get('paper_reference')}), absent here or not chosen; "
+            f"these closed loops tracked {reference}"
+        )
+    return out
 
 
 def controller_cfg(cfg: DictConfig, **changes: Any) -> DictConfig:

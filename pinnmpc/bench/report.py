@@ -129,12 +129,19 @@ def md_closed_loop(
             f"Reference: {cl['reference']}; horizon {cl['horizon']}; plant {plant}; MAE per state in its unit. "
             "The true-model rows run the same controller on an RK4 model of the physics (exact Jacobians, "
             + TRUE_MODEL_JACOBIANS.get(cl.get("true_model_backend", "torch"), "")
-            + "). Optimality gap: section 3.",
+            + "). Optimality gap: section 3."
+            + _left_out(paper),
             "",
             md_table(headers, rows),
             "",
         ]
     )
+
+
+def _left_out(paper: dict[str, Any] | None) -> str:
+    """Why the paper's closed-loop row is not in the table, where it was left out (another reference ran)."""
+    why = (paper or {}).get("closed_loop_left_out")
+    return f" The paper's row is left out: it was {why}." if why else ""
 
 
 def md_other_references(cl: dict[str, Any], names: Sequence[str]) -> str:

@@ -12,7 +12,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.bench.classical import CASADI_CONFIG, available, bench_classical, classical_plot
-from pinnmpc.bench.common import bench_reference, optimality_solvers
+from pinnmpc.bench.common import bench_reference, optimality_solvers, paper_rows
 from pinnmpc.bench.loops import OCPProblem, bench_closed_loop, run_controller
 from pinnmpc.bench.optimality import bench_optimality
 from pinnmpc.bench.report import render_markdown
@@ -66,11 +66,12 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     validate_bench(cfg, system)
     names = tuple(system.state_names)
     pinn64 = load_pinn(cfg, system)
-    paper = cfg.get("paper")
+    need_ref = cfg.closed_loop.enabled or cfg.optimality.enabled or cfg.classical.enabled
+    ref = bench_reference(cfg, system, pinn64.tau) if need_ref else None
     result: dict[str, Any] = {
         "machine": machine_info(),
         "system": system_facts(system),
-        "paper": None if paper is None else OmegaConf.to_container(paper, resolve=True),
+        "paper": paper_rows(cfg, None if ref is None else ref.name),
         "config": OmegaConf.to_container(cfg, resolve=True),
     }
     elapsed: dict[str, float] = {}
@@ -82,8 +83,6 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         elapsed[section] = time.perf_counter() - t0
         return out
 
-    need_ref = cfg.closed_loop.enabled or cfg.optimality.enabled or cfg.classical.enabled
-    ref = bench_reference(cfg, system, pinn64.tau) if need_ref else None
     if cfg.step.enabled:
         pinn32 = load_pinn(cfg, system, torch.float32)
         result["step"] = timed("step", lambda: bench_step(cfg, system, pinn64, pinn32))
