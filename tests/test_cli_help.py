@@ -177,3 +177,49 @@ def test_the_help_page_answers_before_torch_loads() -> None:
         assert timed.returncode == (0 if args == ["--help"] else 2)
         loaded = {line.rsplit("|", 1)[-1].strip() for line in timed.stderr.splitlines() if "|" in line}
         assert "torch" not in loaded and "lightning" not in loaded, args
+
+
+@pytest.mark.parametrize("module", sorted(COMMANDS))
+def test_an_override_hydra_cannot_parse_is_one_line_and_exit_2(module: str) -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", f"pinnmpc.{module}", "seed=1", "reference.name=it's", "hydra.run.dir=/nonexistent/n"],
+        capture_output=True, text=True, cwd=ROOT, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 2 and r.stdout == "", r.stderr[-2000:]
+    assert r.stderr.strip().splitlines() == [
+        f'pinnmpc.{module}: error: cannot parse the override "reference.name=it\'s" (unexpected "\'" at character '
+        "18); expected Hydra's override grammar: quote a value with quotes, brackets, commas or '=', e.g. "
+        "reference.name='it\\'s' (docs/troubleshooting.md)"
+    ]
+
+
+@pytest.mark.parametrize(
+    "args, said",
+    [
+        (["x0=[0.1,0"], "'x0=[0.1,0' (no viable alternative at input '[0.1,0'); expected a list as [a,b,...]"),
+        (["-m", "--config-dir", ".", "seed=0,1", "a=b=c"], "'a=b=c' (mismatched input '=' expecting <EOF>)"),
+        (["--cfg", "job", "-p", "seed", "key"], "'key' (missing EQUAL at '<EOF>'); expected key=value"),
+        (['reference.name="x'], "(unexpected '\"' at character 16)"),
+    ],
+)
+def test_every_grammar_error_is_named_before_hydra_starts(capsys, args: list[str], said: str) -> None:
+    from pinnmpc.cli import check_choices
+    from pinnmpc.cli.args import grammar_error
+    from pinnmpc.util.commands import hydra_quote
+
+    with pytest.raises(SystemExit) as stop:
+        check_choices("pinnmpc.closed_loop", args)
+    assert stop.value.code == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("pinnmpc.closed_loop: error: cannot parse the override ") and said in line, line
+    # what the hint suggests parses, to the very text that was meant
+    key, _, value = args[-1].partition("=")
+    assert value.startswith("[") or grammar_error(f"{key}={hydra_quote(value)}") is None
+
+
+def test_overrides_hydra_parses_pass_the_grammar_check() -> None:
+    from pinnmpc.cli import check_choices
+
+    fine = ["seed=0,1", "x0=[0.1, 0, 0, 0]", "reference.name='it\\'s'", "hydra.run.dir=/tmp/a b", "x0=null", "~faults"]
+    check_choices("pinnmpc.closed_loop", ["-m", *fine, "+extra=${oc.env:HOME}", "--config-dir", str(CONF)])
+    check_choices("pinnmpc.closed_loop", ["--version"])  # Hydra answers that itself

@@ -213,11 +213,12 @@ def check_choices(prog: str, argv: list[str] | None = None) -> None:
 def _check_command_line(prog: str, args: list[str]) -> None:
     """check_choices' checks of the command line, in the order that answers --help before anything else."""
     dirs = _config_dirs(args)
+    if dirs is not None and len(dirs) == 1 and ("--help" in args or "-h" in args) and help_text(prog) is not None:
+        print(help_text(prog))
+        sys.exit(0)
+    check_grammar(prog, args)
     if dirs is None:
         return
-    if len(dirs) == 1 and ("--help" in args or "-h" in args) and (page := help_text(prog)) is not None:
-        print(page)
-        sys.exit(0)
     if len(dirs) == 1:  # a user's config dir may hold another primary config: its keys are not known here
         check_keys(prog, args)
     check_typed(prog, args)
@@ -233,3 +234,66 @@ def _check_command_line(prog: str, args: list[str]) -> None:
             print(f"{prog}: error: {group}={option!r}: no {group}/{option}.yaml in {where}; expected one of {have}",
                   file=sys.stderr)  # fmt: skip
             sys.exit(EXIT_BAD_INPUT)
+
+
+GRAMMAR_NOISE = ("See https://", "Error parsing override")  # Hydra's lines that say nothing about this override
+LEXER = "LexerNoViableAltException: "  # Hydra's lexer error: the override, then a caret under the bad character
+
+
+def _overrides(args: list[str]) -> list[str]:
+    """The command line's overrides as Hydra's own argument parser finds them (none where it refuses the line: Hydra
+    then says why itself)."""
+    import argparse
+    import contextlib
+    import io
+
+    from hydra._internal.utils import get_args_parser
+
+    if "--version" in args:
+        return []
+    parser = get_args_parser()
+    parser.exit_on_error = False
+    try:
+        with contextlib.redirect_stderr(io.StringIO()):
+            return list(parser.parse_intermixed_args(args).overrides or [])
+    except (argparse.ArgumentError, SystemExit, TypeError):
+        return []
+
+
+def grammar_error(arg: str) -> str | None:
+    """Why Hydra's override grammar refuses arg, in a few words (None: it parses)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        OverridesParser.create().parse_overrides([arg])
+    except (HydraException, ValueError) as e:
+        lines = [line for line in str(e).splitlines() if line.strip() and not line.startswith(GRAMMAR_NOISE)]
+        if len(lines) >= 2 and lines[0].startswith(LEXER) and "^" in lines[1]:
+            at = lines[1].index("^") - len(LEXER)
+            if 0 <= at < len(arg):
+                return f"unexpected {arg[at]!r} at character {at + 1}"
+        return lines[0].removeprefix(LEXER) if lines else type(e).__name__
+    return None
+
+
+def check_grammar(prog: str, args: list[str]) -> None:
+    """An override Hydra's grammar cannot parse (`reference.name=it's`, `x0=[0.1,0`) ends in one line naming it and
+    how to write it, exit 2 (Hydra's own message is several lines and exits 1)."""
+    from pinnmpc.util.commands import hydra_quote
+
+    for arg in _overrides(args):
+        why = grammar_error(arg)
+        if why is None:
+            continue
+        key, eq, value = arg.partition("=")
+        if not eq:
+            hint = "expected key=value"
+        elif value.lstrip().startswith(("[", "{")):
+            hint = "expected a list as [a,b,...] or a mapping as {k:v}, every bracket closed"
+        else:
+            quoted = f"{key}={hydra_quote(value)}"
+            hint = (
+                f"expected Hydra's override grammar: quote a value with quotes, brackets, commas or '=', e.g. {quoted}"
+            )
+        _refuse(prog, f"cannot parse the override {arg!r} ({why}); {hint} (docs/troubleshooting.md)")
