@@ -17,7 +17,9 @@ def main(cfg: DictConfig) -> None:
     # imported here: --help and a refused setting answer before torch loads
     from pinnmpc.surrogate.export import run_export
 
-    run_job(lambda run_dir: run_export(cfg, run_dir), "pinnmpc.export", _summary)
+    overrides = hydra.core.hydra_config.HydraConfig.get().overrides.task
+    given = any(o.lstrip("+").startswith("system=") for o in overrides)  # the checkpoint must then be of that arm
+    run_job(lambda run_dir: run_export(cfg, run_dir, system_given=given), "pinnmpc.export", _summary)
 
 
 def _summary(m: dict[str, Any], run_dir: Path) -> str:

@@ -14,8 +14,17 @@ import numpy as np
 import pytest
 import torch
 
-from pinnmpc.surrogate.checkpoint import load_surrogate, shipped
-from pinnmpc.surrogate.export import ExportCheckError, Tolerances, compile_c, export, held_out
+from pinnmpc.surrogate.checkpoint import CHECKPOINTS, load_surrogate, shipped
+from pinnmpc.surrogate.export import (
+    ExportCheckError,
+    Tolerances,
+    check_system,
+    compile_c,
+    export,
+    held_out,
+    trained_system,
+)
+from pinnmpc.systems import load_system
 from tests.conftest import ROOT
 
 POINTS = 300  # held-out points per comparison here; the export itself checks on conf/export.yaml's points
@@ -129,6 +138,45 @@ def test_cli_exports_and_refuses_bad_input_in_one_line(tmp_path: Path) -> None:
         assert len(r.stderr.strip().splitlines()) == 1 and "pinnmpc.export: error:" in r.stderr, (name, r.stderr)
         assert not (tmp_path / name).exists()
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists() and (tmp_path / "file").read_text() == ""
+
+
+def test_an_explicit_system_refuses_a_checkpoint_of_another_in_one_line(tmp_path: Path) -> None:
+    refused = _cli("system=planar3", f"checkpoint={shipped('powercube')}", f"out={tmp_path / 'flow'}",
+                   f"hydra.run.dir={tmp_path / 'run'}")  # fmt: skip
+    assert refused.returncode == 2, refused.stderr[-2000:]
+    assert refused.stderr.strip().splitlines() == [
+        f"pinnmpc.export: error: checkpoint={shipped('powercube')} is a network of powercube, not of system=planar3; "
+        "expected a checkpoint of planar3, or no system= to export this one (HYDRA_FULL_ERROR=1 for a traceback)"
+    ]
+    assert not (tmp_path / "flow").exists() and not (tmp_path / "run").exists()
+    # the checkpoint's own system, named or not, exports it
+    for args in ([], ["system=planar3"]):
+        ok = _cli(*args, f"checkpoint={shipped('planar3')}", f"out={tmp_path / 'ok'}", "points=50",
+                  f"hydra.run.dir={tmp_path / 'ok_run'}")  # fmt: skip
+        assert ok.returncode == 0 and (tmp_path / "ok" / "flow.casadi").is_file(), ok.stderr[-2000:]
+
+
+def test_every_shipped_checkpoint_is_its_systems_and_no_other(tmp_path: Path) -> None:
+    systems = {name: load_system(name) for name in ("powercube", "planar3", "panda")}
+    for ckpt in sorted(CHECKPOINTS.glob("*.pt")):
+        net = load_surrogate(path=ckpt)
+        own = trained_system(net.meta)
+        assert own in systems, (ckpt.name, own)
+        for name, system in systems.items():
+            if name == own:
+                check_system(net, ckpt, system)
+            else:
+                with pytest.raises(ValueError, match=f"is a network of {own}, not of system={name}"):
+                    check_system(net, ckpt, system)
+    # the same states, another arm (an FR3 network beside the Panda): its training config tells them apart
+    net = load_surrogate(path=shipped("panda"))
+    net.meta = {"config": {"system": {"dynamics": {"name": "fr3"}}}}
+    with pytest.raises(ValueError, match="is a network of fr3, not of system=panda"):
+        check_system(net, Path("fr3.pt"), systems["panda"])
+    net.meta = {}  # no training record: the states alone decide
+    check_system(net, Path("bare.pt"), systems["panda"])
+    with pytest.raises(ValueError, match=r"is a network of another system \(states \['q_joint1'"):
+        check_system(net, Path("bare.pt"), systems["planar3"])
 
 
 def test_the_casadi_ocp_example_runs(capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch) -> None:

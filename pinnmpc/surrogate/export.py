@@ -201,13 +201,17 @@ def export(
     compiler: str = "gcc",
     opt: str = "-O1",
     opset: int = 17,
+    system: System | None = None,
 ) -> dict[str, Any]:
     """Write the flow map of checkpoint in format fmt into out, after checking it on held-out points; returns what
-    export.json holds. ValueError for bad input (nothing written), ExportCheckError when the check fails."""
+    export.json holds. ValueError for bad input (nothing written; a checkpoint of another system than `system`, where
+    one is given), ExportCheckError when the check fails."""
     if fmt not in FORMATS:
         raise ValueError(f"format={fmt!r}: expected one of {list(FORMATS)}")
     out, checkpoint = _out_folder(Path(out)), Path(checkpoint)
     surrogate = load_surrogate(path=checkpoint)
+    if system is not None:
+        check_system(surrogate, checkpoint, system)
     x0, u = held_out(surrogate, points, seed)
     info = {**summary(surrogate, checkpoint.resolve()), "format": fmt, "out": str(out), "points": points, "seed": seed}
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.") as tmp:
@@ -247,8 +251,33 @@ def export(
     return info
 
 
-def run_export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Export, check and write the files; the returned dict is the export.json written next to them."""
+def trained_system(meta: dict[str, Any] | None) -> str | None:
+    """The name of the system a network was trained for, from the training config in its meta (None: no record)."""
+    node = ((meta or {}).get("config") or {}).get("system")
+    if not isinstance(node, dict):
+        return None
+    if isinstance(node.get("dynamics"), dict):  # conf/system/<name>.yaml; older networks kept the System node alone
+        node = node["dynamics"]
+    name = node.get("name") or str(node.get("_target_", "")).rsplit(".", 1)[-1].lower()
+    return str(name) if name else None
+
+
+def check_system(surrogate: Surrogate, checkpoint: Path, system: System) -> None:
+    """A checkpoint of another system than an explicit system=: refused, since its files would carry that network
+    under this arm's name."""
+    trained = trained_system(surrogate.meta)
+    if tuple(surrogate.state_names) == tuple(system.state_names) and trained in (None, system.name):
+        return
+    what = trained or f"another system (states {list(surrogate.state_names)})"
+    raise ValueError(
+        f"checkpoint={checkpoint} is a network of {what}, not of system={system.name}; expected a checkpoint of "
+        f"{system.name}, or no system= to export this one"
+    )
+
+
+def run_export(cfg: DictConfig, run_dir: Path, system_given: bool = False) -> dict[str, Any]:
+    """Export, check and write the files; the returned dict is the export.json written next to them. With
+    system_given (system= on the command line) the checkpoint must be a network of that system."""
     system: System = job_system(cfg, validate_export)
     checkpoint = shipped(system.name) if cfg.checkpoint is None else Path(cfg.checkpoint)
     out = run_dir if cfg.out is None else Path(cfg.out)
@@ -256,5 +285,5 @@ def run_export(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     return export(
         checkpoint, cfg.format, out, points=cfg.points, jacobian_points=cfg.jacobian_points, seed=cfg.seed,
         tolerances=Tolerances(tol.float64, tol.float32, tol.jacobian), compiler=cfg.compiler, opt=cfg.opt,
-        opset=cfg.opset,
+        opset=cfg.opset, system=system if system_given else None,
     )  # fmt: skip
