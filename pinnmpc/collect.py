@@ -26,9 +26,12 @@ def main(cfg: DictConfig) -> None:
 
 
 def _summary(m: dict[str, Any]) -> str:
-    """One line: how much was logged, how long it took and where it went."""
+    """One line: how much was logged, how long it took and where it went; a log cut short says so first."""
+    if not m["files"]:
+        return f"collect cut short ({m['cut_short']}) in {m['wall_s']:.1f} s; no log written"
+    head = f"collect cut short ({m['cut_short']}): " if m["cut_short"] else ""
     return (
-        f"collected {m['robot_time_s']:.1f} s of robot time in {m['episodes']} episodes ({m['samples']} samples, "
+        f"{head}collected {m['robot_time_s']:.1f} s of robot time in {m['episodes']} episodes ({m['samples']} samples, "
         f"{m['fine_samples']} fine) in {m['wall_s']:.1f} s; log in {m['files'][0]}"
     )
 

@@ -72,8 +72,13 @@ def test_round_trip_npz_and_csv(tmp_path: Path) -> None:
     assert (tmp_path / "log.csv").read_text().startswith("# meta: {")
     same(read_log(tmp_path / "log.npz", ARM), log)
     same(read_log(tmp_path / "log.csv", ARM), log)
-    (tmp_path / "log_fine.csv").unlink()
-    bare = read_log(tmp_path / "log.csv", ARM)
+    (tmp_path / "log_fine.csv").unlink()  # the meta promises a fine part: read at the control rate, 4x coarser
+    with pytest.raises(ValueError, match=r"log\.csv: meta fine=4 but log_fine\.csv is missing; expected it beside"):
+        read_log(tmp_path / "log.csv", ARM)
+    write_log(
+        tmp_path / "bare", replace(log, t_fine=None, x_fine=None, episode_fine=None, meta={**log.meta, "fine": 1})
+    )
+    bare = read_log(tmp_path / "bare.csv", ARM)
     assert bare.t_fine is None and bare.fine == 1
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left
 

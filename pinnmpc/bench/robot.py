@@ -62,6 +62,10 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
             f"robot.enabled=true with plant.kind={cfg.plant.get('kind', 'scipy')}, plant.robot="
             f"{cfg.plant.get('robot')}; expected plant=mujoco plant.robot=<name> (a robot that is not the model)"
         )
+    if cfg.robot.logs:  # refused before the closed loops, not after them
+        from pinnmpc.robot_data.logs import read_logs
+
+        read_logs([str(p) for p in cfg.robot.logs], system)
     refs = [bench_reference(cfg, system, system.tau, str(name)) for name in cfg.robot.references]
     networks = {"pinn_shipped": shipped}  # each network loaded once: its rows and its one-step RMSE
     if cfg.robot.adapted is not None:
@@ -118,9 +122,9 @@ def held_out_rmse(
     transition of the given logs (logs the fine-tuning did not see: another collect run): how well it predicts the
     robot, the model monitor's figure offline."""
     from pinnmpc.plant.integrators import rk4_fixed
-    from pinnmpc.robot_data.logs import read_log, transitions
+    from pinnmpc.robot_data.logs import read_logs, transitions
 
-    t, x0, u, x1 = transitions([read_log(path, system) for path in logs], system.tau)
+    t, x0, u, x1 = transitions(read_logs(logs, system), system.tau)
     at_tau = (t[:, 0] - system.tau).abs() <= 1e-9 * system.tau
     x0, u, x1 = x0[at_tau], u[at_tau], x1[at_tau]
     steps = {k: net.step for k, net in networks.items()}

@@ -4,7 +4,9 @@ Episodes cycle through closed loops of the shipped controller on random-<seed> a
 input excitation (random steps held over whole periods around a weak stabilising feedback). The robot is stepped as
 a plant of period tau / fine with the input held over the control period, so the fine samples and the control-rate
 ones lie on one zero-hold trajectory; the controller sees the control rate only.
-run_collect is the job `python -m pinnmpc.collect` runs: check the settings, collect, write the log.
+run_collect is the job `python -m pinnmpc.collect` runs: refuse a run dir that holds a log already (logs are
+append-only), check the settings, collect with the .npz rewritten at each episode's end (a killed run keeps its
+finished episodes, its meta saying cut_short), then write the whole log.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from tqdm.auto import tqdm
 
 from pinnmpc.plant.base import Plant, PlantError
 from pinnmpc.plant.build import make_plant
-from pinnmpc.robot_data.logs import RobotLog, write_log
+from pinnmpc.robot_data.logs import RobotLog, log_files, write_log
 from pinnmpc.simulation.loop import run_loop
 from pinnmpc.simulation.setup import build_controller, system_reference
 from pinnmpc.systems.base import System
@@ -164,10 +166,12 @@ def collect(
     *,
     stop: Callable[[], bool] | None = None,
     meta: dict[str, Any] | None = None,
-) -> RobotLog:
+    checkpoint: Callable[[RobotLog], None] | None = None,
+) -> RobotLog | None:
     """Episodes until cfg.robot_time seconds of held input are logged (cut where a state leaves the state box);
-    states logged with Gaussian noise of cfg.noise_sigma."""
-    fine, tau = int(cfg.fine), system.tau
+    states logged with Gaussian noise of cfg.noise_sigma. checkpoint gets the log so far at each episode's end (its
+    meta marked cut short), so a killed run keeps its finished episodes; None: stopped before any episode ended."""
+    fine, tau, sigma = int(cfg.fine), system.tau, float(cfg.noise_sigma)
     recorder = fine_plant(system, cfg.plant, fine, cfg.system.get("robots"))
     total = int(round(float(cfg.robot_time) / tau))
     noise = np.random.default_rng(int(cfg.seed) + 1)
@@ -192,11 +196,24 @@ def collect(
             if not episodes and number >= 3 * len(kinds):
                 raise RuntimeError(f"no episode logged a period in {number} tries; the robot leaves the state box")
             continue
-        episodes.append((number - 1, ep.x_fine[: periods * fine + 1], ep.u[:periods]))
+        x_fine = ep.x_fine[: periods * fine + 1]
+        measured = x_fine + sigma * noise.standard_normal(x_fine.shape) if sigma > 0 else x_fine
+        episodes.append((number - 1, measured, ep.u[:periods]))
         done += periods
         bar.update(periods * tau)
+        if checkpoint is not None and done < total:
+            cut = cut_short("the collect did not finish (killed?)", done * tau, total * tau)
+            checkpoint(assemble(episodes, system, fine, sigma, {**(meta or {}), "cut_short": cut}))
     bar.close()
-    return assemble(episodes, system, fine, float(cfg.noise_sigma), noise, meta or {})
+    if not episodes:
+        return None
+    cut = None if done >= total else cut_short("stopped", done * tau, total * tau)
+    return assemble(episodes, system, fine, sigma, {**(meta or {}), "cut_short": cut})
+
+
+def cut_short(why: str, logged_s: float, asked_s: float) -> str:
+    """The meta's cut_short of a log that holds less than was asked for: why, and how much it holds."""
+    return f"{why}: {logged_s:.6g} of {asked_s:.6g} s of robot time logged"
 
 
 def assemble(
@@ -204,18 +221,16 @@ def assemble(
     system: System,
     fine: int,
     sigma: float,
-    rng: np.random.Generator,
     meta: dict[str, Any],
 ) -> RobotLog:
-    """One log from the episodes: episode after episode in time (one tau apart), the noise on the fine samples and
-    the control-rate ones taken from them; an episode's last sample repeats the input before it."""
+    """One log from the episodes (fine states as measured, inputs): episode after episode in time (one tau apart)
+    and the control-rate samples taken from the fine ones; an episode's last sample repeats the input before it."""
     tau, h = system.tau, system.tau / fine
     t, x, u, ep, tf, xf, ef, t0 = [], [], [], [], [], [], [], 0.0
-    for number, x_fine, inputs in episodes:
-        m = len(x_fine)
+    for number, measured, inputs in episodes:
+        m = len(measured)
         times = t0 + h * np.arange(m)
         times[::fine] = t0 + tau * np.arange(len(inputs) + 1)
-        measured = x_fine + sigma * rng.standard_normal(x_fine.shape) if sigma > 0 else x_fine
         tf.append(times), xf.append(measured), ef.append(np.full(m, number))
         t.append(times[::fine]), x.append(measured[::fine]), ep.append(np.full(len(inputs) + 1, number))
         u.append(np.vstack((inputs, inputs[-1:])))
@@ -235,10 +250,22 @@ def assemble(
     return RobotLog(cat(t), cat(x), cat(u), cat(ep), cat(tf), cat(xf), cat(ef), meta)
 
 
+def refuse_existing(stem: Path, out: str) -> None:
+    """Logs are append-only: a collect never replaces one, so a run dir that holds a log of this stem is refused
+    before anything runs."""
+    found = [p for p in log_files(stem) if p.exists()]
+    if found:
+        raise ValueError(
+            f"out={out}: {found[0]} already holds a log (a collect never replaces one); expected a run dir without "
+            "it: another hydra.run.dir= or out="
+        )
+
+
 def run_collect(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = None) -> dict[str, Any]:
     """Check the settings, build the robot first (a bad robot fails before the controller loads), collect, write."""
     start = time.perf_counter()
     system = job_system(cfg, validate_collect)
+    refuse_existing(run_dir / str(cfg.out), str(cfg.out))
     fine_plant(system, cfg.plant, int(cfg.fine), cfg.system.get("robots"))  # refuses an unknown or bad robot
     controller, _, tau = build_controller(cfg, system)
     if abs(tau - system.tau) > 1e-12 * system.tau:
@@ -259,16 +286,29 @@ def run_collect(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = None) 
         "sources": {"plant": plant, "controller": cfg.controller.get("kind", "pinn"), "checkpoint": cfg.checkpoint,
                     "episodes": list(cfg.episodes.kinds), "excitation": OmegaConf.to_container(cfg.excitation)},
     }  # fmt: skip
-    log = collect(
-        cfg, system, controller, reference, stop=None if stop is None else (lambda: stop.requested), meta=meta
-    )
-    files = write_log(run_dir / str(cfg.out), log)
-    return {
-        "robot_time_s": log.meta["robot_time_s"],
-        "episodes": len(log.episodes),
-        "samples": len(log.t),
-        "fine_samples": len(log.t_fine),
-        "wall_s": time.perf_counter() - start,
-        "files": [str(f) for f in files],
-        "interrupted": bool(stop is not None and stop.requested),
-    }
+    stem, written = run_dir / str(cfg.out), False
+
+    def keep(lg: RobotLog) -> None:
+        """The log so far, over this run's own .npz (the first one created new, never replacing another's)."""
+        nonlocal written
+        try:
+            write_log(stem, lg, csv=False, new=not written)
+        except FileExistsError:
+            raise ValueError(
+                f"out={cfg.out}: {log_files(stem)[0]} appeared while collecting; expected it new"
+            ) from None
+        written = True
+
+    log = collect(cfg, system, controller, reference, stop=None if stop is None else (lambda: stop.requested),
+                  meta=meta, checkpoint=keep)  # fmt: skip
+    stopped, asked = stop is not None and stop.requested, float(cfg.robot_time)
+    result = {"robot_time_s": 0.0, "episodes": 0, "samples": 0, "fine_samples": 0, "files": [], "interrupted": stopped,
+              "cut_short": "stopped before the first episode ended: nothing logged"}  # fmt: skip
+    if log is not None:
+        if stopped and log.meta["cut_short"]:
+            log.meta["cut_short"] = cut_short(f"interrupted by {stop.name}", log.meta["robot_time_s"], asked)
+        files = write_log(stem, log, new=not written)
+        result.update(robot_time_s=log.meta["robot_time_s"], episodes=len(log.episodes), samples=len(log.t),
+                      fine_samples=len(log.t_fine), files=[str(f) for f in files],
+                      cut_short=log.meta["cut_short"])  # fmt: skip
+    return {**result, "wall_s": time.perf_counter() - start}

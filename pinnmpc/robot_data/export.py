@@ -1,5 +1,6 @@
 """The identified arm as a system config: conf/system/<arm>.yaml's structure with the fitted dynamics values, and
-run_identify, the job `python -m pinnmpc.identify` runs (read the logs, fit, write that config)."""
+run_identify, the job `python -m pinnmpc.identify` runs (read the logs, fit, write that config). The config never
+replaces a file unless overwrite=true, and never goes into the project's conf/ or the package (the shipped configs)."""
 
 from __future__ import annotations
 
@@ -12,14 +13,18 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+import pinnmpc
+from pinnmpc.cli.args import CONF
+from pinnmpc.robot_data.checks import cut_short_note
 from pinnmpc.robot_data.identify import Fit, identify
 from pinnmpc.robot_data.logs import read_logs
 from pinnmpc.systems.registry import load_system
 from pinnmpc.systems.urdf import Payload, RigidArm, portable_urdf
-from pinnmpc.util.io import atomic_write, save_json
+from pinnmpc.util.io import atomic_create, atomic_write, save_json
 from pinnmpc.util.settings import job_system, validate_identify
 
 NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+PACKAGE = Path(pinnmpc.__file__).resolve().parent  # the installed package: its files are never written
 
 
 def system_name(name: str | None, out: str | None, nominal: str) -> str:
@@ -40,9 +45,12 @@ def _round(values: list[float]) -> list[float]:
     return [float(f"{v:.6g}") for v in values]
 
 
-def system_yaml(nominal: dict[str, Any], fit: Fit, logs_meta: list[dict[str, Any]], logs: list[str]) -> str:
+def system_yaml(
+    nominal: dict[str, Any], fit: Fit, logs_meta: list[dict[str, Any]], logs: list[str], notes: list[str] | None = None
+) -> str:
     """The nominal system's config (as composed) with the fitted dynamics (name, friction or servo gain, payload,
-    armature), a comment header with the fit's residuals and the logs' meta, and `identified_from` naming it."""
+    armature), a comment header with the fit's residuals and the logs' meta, and `identified_from` naming it (and
+    the warnings its logs gave, notes)."""
     cfg = copy.deepcopy(nominal)
     dyn, arm = cfg["dynamics"], fit.system
     nominal_name = dyn["name"]
@@ -66,6 +74,8 @@ def system_yaml(nominal: dict[str, Any], fit: Fit, logs_meta: list[dict[str, Any
         "torque_rms": _round(fit.torque_rms),
         "prediction_rmse": _round(fit.prediction_rmse),
     }
+    if notes:
+        cfg["identified_from"]["warnings"] = list(notes)
     fmt = lambda v: "[" + ", ".join(f"{x:.3g}" for x in v) + "]"  # noqa: E731
     header = [
         f"# {arm.name}: {nominal_name} identified by pinnmpc.identify (bounded least squares on {fit.samples} joint",
@@ -78,15 +88,35 @@ def system_yaml(nominal: dict[str, Any], fit: Fit, logs_meta: list[dict[str, Any
         "# model (whose friction is the fit's).",
     ]
     for path, meta in zip(logs, logs_meta):
-        keep = {k: meta.get(k) for k in ("system", "robot", "robot_time_s", "fine", "noise_sigma", "seed", "created")}
+        keys = ("system", "robot", "robot_time_s", "fine", "noise_sigma", "seed", "created", "cut_short")
+        keep = {k: meta.get(k) for k in keys}
         header.append(f"# log {path}: {json.dumps(keep)}")
         header.append(f"#   command: {meta.get('command')}")
     return "\n".join(header) + "\n" + OmegaConf.to_yaml(OmegaConf.create(cfg))
 
 
-def write_system(path: str | Path, text: str) -> Path:
-    """The system .yaml, atomically."""
-    return atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
+def write_system(path: str | Path, text: str, overwrite: bool = False) -> Path:
+    """The system .yaml, atomically; an existing file is replaced only with overwrite (else ValueError)."""
+    try:
+        return (atomic_write if overwrite else atomic_create)(path, lambda p: p.write_text(text, encoding="utf-8"))
+    except FileExistsError:
+        raise ValueError(f"out={path}: the file exists; expected a new path, or overwrite=true to replace it") from None
+
+
+def check_out(out: Path, given: str | None, overwrite: bool) -> None:
+    """Before the fit: the shipped configs and the package are never written, an existing file only on request."""
+    key = f"out={given}" if given else f"out=null ({out})"
+    if out.suffix not in (".yaml", ".yml"):
+        raise ValueError(f"{key}; expected a .yaml file path (or null: the run dir)")
+    target = out.resolve()
+    for folder, what in ((CONF, "the project's conf/"), (PACKAGE, "the installed package")):
+        if target == folder or folder in target.parents:
+            raise ValueError(
+                f"{key} lies inside {what} ({folder}); expected a path outside it (the shipped configs are never "
+                "written: write elsewhere and use it with --config-dir <dir>)"
+            )
+    if target.exists() and not overwrite:
+        raise ValueError(f"{key}: the file exists; expected a new path, or overwrite=true to replace it")
 
 
 def run_identify(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
@@ -98,9 +128,10 @@ def run_identify(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     nominal = cfg.system.dynamics.name
     name = system_name(cfg.name, cfg.out, nominal)
     out = Path(cfg.out) if cfg.out else run_dir / "system" / f"{name}.yaml"
-    if out.suffix not in (".yaml", ".yml"):
-        raise ValueError(f"out={cfg.out!r}; expected a .yaml file path (or null: the run dir)")
-    logs = read_logs([str(p) for p in cfg.logs], system)
+    check_out(out, cfg.out, bool(cfg.overwrite))
+    paths = [str(p) for p in cfg.logs]
+    logs = read_logs(paths, system)
+    notes = [n for n in (cut_short_note(lg, p) for lg, p in zip(logs, paths)) if n]
     pos = None if cfg.payload.pos is None else tuple(float(v) for v in cfg.payload.pos)
     fit = identify(
         system,
@@ -116,8 +147,8 @@ def run_identify(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         seed=int(cfg.seed),
     )
     composed = OmegaConf.to_container(cfg.system, resolve=True)
-    text = system_yaml(composed, fit, [lg.meta for lg in logs], [str(p) for p in cfg.logs])
-    write_system(out, text)
+    text = system_yaml(composed, fit, [lg.meta for lg in logs], paths, notes)
+    write_system(out, text, bool(cfg.overwrite))
     load_system(out)  # what closed_loop will build from it
     result = {
         "system": name,
@@ -130,6 +161,7 @@ def run_identify(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "prediction_rmse": fit.prediction_rmse,
         "nominal_prediction_rmse": fit.nominal_prediction_rmse,
         "robot_time_s": float(sum(lg.robot_time for lg in logs)),
+        "warnings": notes,
         "wall_s": time.perf_counter() - start,
     }
     save_json(run_dir / "fit.json", result)

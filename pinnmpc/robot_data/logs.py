@@ -4,7 +4,8 @@ A log holds episodes of zero-hold control: u[k] is held over [t[k], t[k] + tau) 
 The last sample of an episode starts no period; its u repeats the one before (no pair uses it). The fine part
 samples the same episodes `fine` times per period and includes the control-rate samples (every fine-th one).
 Files: <stem>.npz (arrays, meta as JSON), <stem>.csv (control rate, first line `# meta: {json}`) and
-<stem>_fine.csv (the fine part), all written at once or not at all.
+<stem>_fine.csv (the fine part), all written at once or not at all (a collect writes the .npz alone at each episode's
+end). Reading runs the checks of checks.py too, and read_logs those of a set.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import csv
 import io
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -22,25 +23,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pinnmpc.util.io import atomic_write, save_npz
+from pinnmpc.robot_data.checks import check_content, check_fine_promised, check_set, warn_cut_short
+from pinnmpc.util.io import atomic_create, atomic_write
 
 META_PREFIX = "# meta: "
 TIME_TOL = 1e-6  # relative to the sample period: spacing a log's t may miss it by (float sums of tau)
 BOX_TOL = 1e-9  # relative to an input's range: how far u may lie outside the input box
-META_KEYS = (
-    "system",
-    "tau",
-    "robot",
-    "seed",
-    "noise_sigma",
-    "state_names",
-    "input_names",
-    "fine",
-    "robot_time_s",
-    "created",
-    "command",
-    "sources",
-)
+META_KEYS = ("system", "tau", "robot", "seed", "noise_sigma", "state_names", "input_names", "fine", "robot_time_s",
+             "created", "command", "sources", "cut_short")  # fmt: skip
 
 
 @dataclass
@@ -111,23 +101,31 @@ def _table(log: RobotLog, t: np.ndarray, ep: np.ndarray, x: np.ndarray, u: np.nd
     return out.getvalue()
 
 
-def write_log(path_stem: str | Path, log: RobotLog) -> list[Path]:
-    """<stem>.npz, <stem>.csv and (with a fine part) <stem>_fine.csv, each atomically; a failure removes the ones
-    this call already wrote, so no set is left half-written."""
+def log_files(path_stem: str | Path) -> list[Path]:
+    """The files a log of this stem is: <stem>.npz, <stem>.csv and <stem>_fine.csv."""
     stem = Path(path_stem)
     stem = stem.with_suffix("") if stem.suffix in (".npz", ".csv") else stem
-    _check(log, str(stem), None)
+    return [stem.with_name(stem.name + end) for end in (".npz", ".csv", "_fine.csv")]
+
+
+def write_log(path_stem: str | Path, log: RobotLog, csv: bool = True, new: bool = False) -> list[Path]:
+    """<stem>.csv, (with a fine part) <stem>_fine.csv and <stem>.npz, each atomically; a failure removes the ones
+    this call already wrote, so no set is left half-written (the .npz last: an earlier one stays). csv=False: the
+    .npz alone; new=True: FileExistsError rather than replace a file."""
+    npz, table, fine_table = log_files(path_stem)
+    _check(log, str(npz.with_suffix("")), None)
     arrays = {"t": log.t, "x": log.x, "u": log.u, "episode": log.episode}
     if log.t_fine is not None:
         arrays.update(t_fine=log.t_fine, x_fine=log.x_fine, episode_fine=log.episode_fine)
     arrays["meta"] = np.array(json.dumps(log.meta, default=str))
-    jobs: list[tuple[Path, Any]] = [
-        (stem.with_name(stem.name + ".npz"), lambda p: save_npz(p, **arrays)),
-        (stem.with_name(stem.name + ".csv"), _text(_table(log, log.t, log.episode, log.x, log.u))),
-    ]
-    if log.t_fine is not None:
-        fine = _table(log, log.t_fine, log.episode_fine, log.x_fine, None)
-        jobs.append((stem.with_name(stem.name + "_fine.csv"), _text(fine)))
+    put = atomic_create if new else atomic_write
+    jobs: list[tuple[Path, Any]] = []
+    if csv:
+        jobs.append((table, _text(_table(log, log.t, log.episode, log.x, log.u), put)))
+        if log.t_fine is not None:
+            fine = _table(log, log.t_fine, log.episode_fine, log.x_fine, None)
+            jobs.append((fine_table, _text(fine, put)))
+    jobs.append((npz, lambda p: put(p, lambda tmp: _savez(tmp, arrays))))
     done: list[Path] = []
     try:
         for path, write in jobs:
@@ -137,12 +135,18 @@ def write_log(path_stem: str | Path, log: RobotLog) -> list[Path]:
         for path in done:
             path.unlink(missing_ok=True)
         raise
-    return done
+    return [npz, *done[:-1]]
 
 
-def _text(text: str) -> Any:
-    """A writer of text to a path, atomically."""
-    return lambda path: atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
+def _savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Compressed npz into an open file (np.savez would append .npz to a temporary name)."""
+    with open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def _text(text: str, put: Callable[[Path, Callable[[Path], None]], Path]) -> Any:
+    """A writer of text to a path through put (atomic_write or atomic_create): never a half-written file."""
+    return lambda path: put(path, lambda p: p.write_text(text, encoding="utf-8"))
 
 
 # -- reading --------------------------------------------------------------------------------------------------
@@ -159,14 +163,19 @@ def read_log(path: str | Path, system: Any) -> RobotLog:
     else:
         raise ValueError(f"robot log {path}: suffix {path.suffix!r}; expected .npz or .csv")
     _check(log, str(path), system)
+    check_fine_promised(log, path)
+    check_content(log, str(path), system)
+    warn_cut_short(log, str(path))
     return log
 
 
 def read_logs(paths: Sequence[str | Path], system: Any) -> list[RobotLog]:
-    """Several logs, each checked; an empty list is refused."""
+    """Several logs, each checked, and checked as a set (check_set); an empty list is refused."""
     if not paths:
         raise ValueError("robot logs: none given; expected at least one .npz or .csv")
-    return [read_log(p, system) for p in paths]
+    logs = [read_log(p, system) for p in paths]
+    check_set(logs, paths)
+    return logs
 
 
 def _read_npz(path: Path) -> RobotLog:

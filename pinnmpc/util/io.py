@@ -41,6 +41,22 @@ def atomic_write(path: str | Path, write: Callable[[Path], None], suffix: str = 
     return path
 
 
+def atomic_create(path: str | Path, write: Callable[[Path], None], suffix: str = ".tmp") -> Path:
+    """As atomic_write, but a file already at path is never replaced: FileExistsError (a hard link is the
+    rename that refuses an existing target), so data someone else wrote there survives."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.link(tmp, path)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+    return path
+
+
 def save_json(path: str | Path, data: Any) -> Path:
     """JSON with plain numbers, written atomically."""
     return atomic_write(path, lambda p: p.write_text(json.dumps(data, indent=2, default=_plain) + "\n"))

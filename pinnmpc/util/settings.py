@@ -216,6 +216,7 @@ COLLECT: dict[str, Check] = {  # conf/collect.yaml
 IDENTIFY: dict[str, Check] = {  # conf/identify.yaml
     "logs": listof(text()),
     "out": optional(text()),
+    "overwrite": boolean(),
     "name": optional(text()),
     "fit.viscous": boolean(),
     "fit.coulomb": boolean(),
