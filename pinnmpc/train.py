@@ -11,6 +11,18 @@ from omegaconf import DictConfig
 
 from pinnmpc.cli import StopSignal, check_choices, config_dir_args, exit_stopped, run_cli, say
 
+STOP = StopSignal()  # taken over from the command's first moment: a signal during start-up stops at the first epoch
+_FIRST_JOB = [True]  # emptied once the process's first job has taken STOP
+
+
+def job_stop() -> StopSignal:
+    """The StopSignal of this job: STOP for the process's first job (a signal during start-up counts there), a
+    fresh one for each later job of a sweep, as each job's own run."""
+    if _FIRST_JOB:
+        _FIRST_JOB.clear()
+        return STOP
+    return StopSignal()
+
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 def main(cfg: DictConfig) -> float:
@@ -22,7 +34,7 @@ def main(cfg: DictConfig) -> float:
     run_dir = Path(hydra_cfg.runtime.output_dir)
     overrides = [*config_dir_args(), *hydra_cfg.overrides.task]  # a user's own config dir travels along
     command = " ".join(["python -m pinnmpc.train", *overrides])
-    with StopSignal() as stop:
+    with job_stop() as stop:
         run = lambda: train_command(cfg, run_dir, command=command, stop=stop, overrides=overrides)  # noqa: E731
         summary = run_cli(run, "pinnmpc.train", run_dir)
     score = summary["best_val_rmse_position"]
@@ -79,5 +91,6 @@ def exit_interrupted(summary: dict[str, Any], run_dir: Path, stop: StopSignal) -
 
 
 if __name__ == "__main__":
+    STOP.install()  # before Hydra composes and torch loads: a signal from here on leaves a checkpoint to resume
     check_choices("pinnmpc.train")
     main()

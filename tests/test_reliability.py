@@ -61,7 +61,7 @@ def _wait_for(predicate, proc: subprocess.Popen, timeout: float = 240) -> None:
     """Poll until predicate() holds; the process must still be running."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and proc.poll() is None and not predicate():
-        time.sleep(0.2)
+        time.sleep(0.05)
     assert proc.poll() is None and predicate(), "the run ended (or never got there) before the signal"
 
 
@@ -115,17 +115,30 @@ def test_a_failed_run_removes_only_the_folders_it_made(tmp_path):
 # 2. signals: a resumable checkpoint or what was reached, and a non-zero exit
 
 
-def test_sigterm_during_training_checkpoints_and_says_how_to_resume(make_cfg, tmp_path):
+def _training_from_epoch_0(run_dir: Path) -> bool:
+    """train.log says the first epoch started: its L-BFGS call runs (and with ENDLESS_EPOCH never ends alone)."""
+    log = run_dir / "train.log"
+    return log.is_file() and "training from epoch 0" in log.read_text()
+
+
+SIGTERM_MOMENTS = {  # when the signal comes, as seen from outside: each moment of a training, the first epoch's too
+    "start-up": lambda run_dir: run_dir.is_dir(),  # Hydra made the run dir: no torch, no network yet
+    "setup": lambda run_dir: (run_dir / "tensorboard").is_dir(),  # Lightning's fit began; no epoch has
+    "first epoch": _training_from_epoch_0,  # inside the first L-BFGS call
+}
+
+
+@pytest.mark.parametrize("moment", sorted(SIGTERM_MOMENTS))
+def test_sigterm_during_training_checkpoints_and_says_how_to_resume(make_cfg, tmp_path, moment):
     run_dir = tmp_path / "run"
     cmd = [sys.executable, "-m", "pinnmpc.train", *TINY, *ENDLESS_EPOCH, "trainer.max_epochs=100000"]
     err = tmp_path / "stderr.txt"
     with open(err, "w") as stderr:
         proc = subprocess.Popen([*cmd, f"hydra.run.dir={run_dir}"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=stderr)
         try:
-            _wait_for(lambda: (run_dir / "tensorboard").is_dir(), proc)
-            time.sleep(3.0)  # inside the first L-BFGS call, which on its own would never end
+            _wait_for(lambda: SIGTERM_MOMENTS[moment](run_dir), proc, timeout=600)
             proc.send_signal(signal.SIGTERM)
-            rc = proc.wait(timeout=120)  # the L-BFGS call is cut short
+            rc = proc.wait(timeout=600)  # the (first) L-BFGS call is cut short: a bound for a loaded machine only
         finally:
             proc.kill()
             proc.wait()

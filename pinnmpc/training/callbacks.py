@@ -108,8 +108,10 @@ class SelfLoopFigure(L.Callback):
 class GracefulStop(L.Callback):
     """On SIGTERM/SIGINT (a StopSignal): end training after the current epoch, cutting its L-BFGS call short, so
     the epoch-end checkpoint is written and the run resumes from it (Lightning's own SIGTERM path exits 0 mid-epoch
-    without a checkpoint). Under DDP a signal may reach one process only (`kill` of rank 0): every process asks all
-    the others at each loss evaluation and each epoch end, so they cut the same L-BFGS call short and stop together."""
+    without a checkpoint). A signal before the first epoch (during start-up or setup) runs that epoch cut short
+    from its first loss evaluation: a run stopped at any moment leaves a checkpoint to resume from. Under DDP a
+    signal may reach one process only (`kill` of rank 0): every process asks all the others at each loss evaluation
+    and each epoch end, so they cut the same L-BFGS call short and stop together."""
 
     def __init__(self, stop: StopSignal) -> None:
         self.stop = stop
@@ -120,8 +122,8 @@ class GracefulStop(L.Callback):
         if trainer.world_size == 1:  # with several processes only the agreed stop of on_train_batch_end counts
             self.stop.hooks.append(lambda: setattr(trainer, "should_stop", True))
         self.stop.install()
-        if self._agreed(trainer):  # the signal came during setup
-            trainer.should_stop = True
+        # a signal during setup does not stop the run here: its first epoch runs, cut short at once, and ends in
+        # the checkpoint a resume needs (stopping before any step would leave none)
         for opt in trainer.optimizers:
             inner = getattr(opt, "optimizer", opt)
             if isinstance(inner, torch.optim.LBFGS | SSBFGS):
@@ -140,8 +142,9 @@ class GracefulStop(L.Callback):
         return signum > 0
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
-        """Under DDP: stop after this epoch on every process once any of them was asked to."""
-        if trainer.world_size > 1 and self._agreed(trainer):
+        """Stop after this epoch once asked to (a signal before the hook of on_train_start was in place too); under
+        DDP on every process once any of them was."""
+        if self._agreed(trainer):
             trainer.should_stop = True
 
     def _guarded_step(self, opt: torch.optim.Optimizer, trainer: L.Trainer) -> Any:
