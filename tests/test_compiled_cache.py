@@ -352,33 +352,74 @@ def test_concurrent_builders_of_one_entry_compile_it_once(tmp_path: Path) -> Non
     assert cache.check(entry(tmp_path / "cache")) is None
 
 
-def test_an_interrupted_compile_kills_the_compiler_and_its_folder(tmp_path: Path) -> None:
+def _process(pid: int) -> tuple[str, str] | None:
+    """(state, start time) of a process from /proc/<pid>/stat (None: no such process)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(") ", 1)[1].split()
+    except (FileNotFoundError, ProcessLookupError, IndexError):
+        return None
+    return fields[0], fields[19]  # state, starttime (clock ticks since boot)
+
+
+def _wait_until(condition: Callable[[], bool], bound: float) -> bool:
+    """Poll until condition() holds or the bound (s) passes; whether it held. The bound only guards against a hang:
+    a loaded machine may take its time."""
+    deadline = time.monotonic() + bound
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return condition()
+
+
+@pytest.mark.parametrize("when", ["as it starts", "at once", "inside the compile"])
+def test_an_interrupted_compile_kills_the_compiler_and_its_folder(tmp_path: Path, when: str) -> None:
     pidfile, cc = tmp_path / "compiler.pid", tmp_path / "slowcc"
-    cc.write_text(f"#!/bin/sh\nsleep 60 &\necho $! > {pidfile}\nwait\n")
+    # "as it starts": the compiler signals its parent itself, which may still be starting it (inside Popen)
+    own = "kill -TERM $PPID\n" if when == "as it starts" else ""
+    cc.write_text(f"#!/bin/sh\nsleep 600 &\necho $! > {pidfile}.tmp\nmv {pidfile}.tmp {pidfile}\n{own}wait\n")
     cc.chmod(0o755)
     env = full_env(child_env(tmp_path, CC=str(cc)))
     proc = subprocess.Popen([sys.executable, "-c", CHILD], env=env, cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)  # fmt: skip
-    deadline = time.monotonic() + 60
-    while not (pidfile.is_file() and pidfile.read_text().strip()) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
-    assert proc.wait(30) == 128 + signal.SIGTERM
-    proc.communicate()
-    stat = Path(f"/proc/{int(pidfile.read_text())}/stat")
+    try:
+        assert _wait_until(pidfile.is_file, 300), "the compiler never started"
+        compiler = int(pidfile.read_text())
+        started = _process(compiler)
+        assert started is not None
+        if when != "as it starts":
+            time.sleep(0.5 if when == "inside the compile" else 0.0)
+            proc.send_signal(signal.SIGTERM)
+        assert proc.wait(300) == 128 + signal.SIGTERM
+    finally:
+        proc.kill()
+        proc.communicate()
 
-    def alive() -> bool:
-        """The compiler still runs (a zombie or a dead process does not)."""
-        try:
-            return not stat.read_text().split(") ")[1].startswith(("Z", "X"))
-        except (FileNotFoundError, ProcessLookupError):
-            return False
+    def gone() -> bool:
+        """The compiler is dead: no such process, a zombie, or its pid taken by a process started later."""
+        now = _process(compiler)
+        return now is None or now[0] in ("Z", "X") or now[1] != started[1]
 
-    deadline = time.monotonic() + 5.0  # a loaded machine (two test runs on two cores) delivers the kill late
-    while alive() and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert not alive(), "the compiler lives on"
+    assert _wait_until(gone, 120), "the compiler lives on"
     assert not [p for p in (tmp_path / "cache").iterdir() if p.is_dir()]  # its build folder went with it
+
+
+@pytest.mark.parametrize("armed", [True, False])
+def test_a_sigterm_while_the_compiler_starts_is_held_until_it_can_be_killed(armed: bool) -> None:
+    """Inside Popen the compiler may already run but its process is not known yet: a SIGTERM there is held, and
+    raised where the compiler is known (arm()), or at the end where it never started."""
+    lines = [
+        "import os, signal",
+        "from pinnmpc.systems.cache import _sigterm_raises",
+        "with _sigterm_raises() as arm:",
+        "    os.kill(os.getpid(), signal.SIGTERM)",  # as if inside Popen
+        "    print('held', flush=True)",
+        *(["    arm()"] if armed else []),
+        "    print('after arm', flush=True)",
+        "print('after the compile', flush=True)",
+    ]
+    body = "\n".join(lines) + "\n"
+    r = subprocess.run([sys.executable, "-c", body], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 128 + signal.SIGTERM, r.stderr[-2000:]
+    assert r.stdout.split() == (["held"] if armed else ["held", "after", "arm"]), r.stdout
 
 
 def test_each_target_has_its_own_entry_and_the_default_is_this_hosts_cpu(tmp_path: Path) -> None:

@@ -25,7 +25,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from types import FrameType
@@ -240,7 +240,7 @@ def find_compiler(name: str) -> str:
 def run_compiler(cmd: list[str], name: str, src: Path) -> None:
     """Run the compiler in its own process group, killed with all its children if this process is interrupted
     (an orphaned compile would keep a core busy and its folder in the cache)."""
-    with _sigterm_raises():
+    with _sigterm_raises() as arm:
         try:
             proc = subprocess.Popen(
                 cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True
@@ -248,6 +248,7 @@ def run_compiler(cmd: list[str], name: str, src: Path) -> None:
         except OSError as e:
             raise CompileError(f"compiling {name} failed: {cmd[0]} cannot run ({e.strerror or e})") from None
         try:
+            arm()  # a SIGTERM held while the compiler started raises here, where the compiler is known and killed
             _, err = proc.communicate()
         finally:
             if proc.poll() is None:
@@ -262,11 +263,23 @@ def run_compiler(cmd: list[str], name: str, src: Path) -> None:
 
 
 @contextmanager
-def _sigterm_raises() -> Iterator[None]:
-    """While compiling, a SIGTERM that would kill this process outright raises instead, so the compiler dies too."""
+def _sigterm_raises() -> Iterator[Callable[[], None]]:
+    """While compiling, a SIGTERM that would kill this process outright raises instead, so the compiler dies too.
+    One that comes before the compiler's process is known (inside Popen: the compiler may already run) is held until
+    the caller arms the handler with the function this yields, and raises then; held to the end, it raises there."""
+    held: list[int] = []
+    armed = [False]
 
     def stop(signum: int, _frame: FrameType | None) -> None:
+        if not armed[0]:
+            held.append(signum)
+            return
         raise SystemExit(128 + signum)
+
+    def arm() -> None:
+        armed[0] = True
+        if held:
+            raise SystemExit(128 + held[0])
 
     installed = False
     if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:  # a handler of the caller's (the CLI's) stays
@@ -276,10 +289,12 @@ def _sigterm_raises() -> Iterator[None]:
         except ValueError:  # not the main thread: signals are not ours to take
             pass
     try:
-        yield
+        yield arm
     finally:
         if installed:
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        if held and not armed[0]:  # the compiler never started (or failed to): the signal still ends this process
+            raise SystemExit(128 + held[0])
 
 
 def publish(built: Path, lib: Path) -> None:
