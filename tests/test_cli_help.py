@@ -75,7 +75,7 @@ def test_an_unknown_config_option_is_named_in_one_line_before_hydra_starts(modul
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.strip().splitlines() == [
         f"pinnmpc.{module}: error: system='nope': no system/nope.yaml in conf; expected one of "
-        "['panda', 'planar3', 'powercube']"
+        "['fr3', 'panda', 'planar3', 'powercube']"
     ]
 
 
@@ -128,7 +128,7 @@ def test_config_dirs_of_the_command_line_count(tmp_path, capsys) -> None:
         check_choices("x", [*extra, "system=mine"])  # a user's own arm, outside the package
         with pytest.raises(SystemExit):
             check_choices("x", [*extra, "system=nope"])
-        assert "in any config dir; expected one of ['mine', 'panda', 'planar3', 'powercube']" in capsys.readouterr().err
+        assert "in any config dir; expected one of ['fr3', 'mine', 'panda', 'planar3', 'powercube']" in capsys.readouterr().err
     check_choices("x", ["hydra.searchpath=[pkg://elsewhere.conf]", "system=nope"])  # Hydra may find it there
 
 

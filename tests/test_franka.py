@@ -141,7 +141,7 @@ def test_bad_franka_settings_are_one_line_each() -> None:
     from pinnmpc.plant.settings import plant_settings
 
     with pytest.raises(ValueError, match=r"plant.host=None: expected the robot's address with plant.simulator=none"):
-        plant_settings({"kind": "franka", "simulator": "none"})
+        plant_settings({"kind": "franka", "simulator": "none"}).make_consistent()
     with pytest.raises(ValueError, match=r"plant.simulator='genesis'"):
         plant_settings({"kind": "franka", "simulator": "genesis"})
     with pytest.raises(ValueError, match=r"plant.friction_scale=1.2"):
@@ -171,3 +171,22 @@ def test_the_embedded_robot_ends_at_rest_and_leaves_no_server_after_sigint(tmp_p
     m = json.loads((run_dir / "metrics.json").read_text())
     assert m["status"] == "interrupted" and m["franka"]["at_rest"] and m["franka"]["errors"] == []
     assert not pid_alive(m["franka"]["server_pid"])
+
+
+def test_collect_logs_the_robot_stream_through_libfranka(sim_host: str, tmp_path: Path) -> None:
+    from pinnmpc.robot_data.logs import read_logs
+    from pinnmpc.systems import load_system
+
+    run_dir = tmp_path / "collect"
+    cmd = [sys.executable, "-m", "pinnmpc.collect", "system=fr3", "plant=franka", "plant.simulator=none"]
+    cmd += [f"plant.host={sim_host}", "robot_time=2", "episodes.kinds=[excitation,random]", "excitation.duration=1"]
+    r = subprocess.run([*cmd, "progress=false", f"hydra.run.dir={run_dir}"], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (log,) = read_logs([str(run_dir / "robot_log.npz")], load_system("fr3"))
+    assert log.meta["robot"] == f"franka@{sim_host}" and log.meta["fine"] == 10
+    assert sorted(set(log.episode.tolist())) == [0, 1] and len(log.x) == 42 and len(log.x_fine) == 402
+    for e in (0, 1):
+        x, xf = log.x[log.episode == e], log.x_fine[log.episode_fine == e]
+        assert np.array_equal(x, xf[:: log.meta["fine"]])  # the control rate is the fine samples' period ends
+        dq = np.diff(xf[:, :7], axis=0) / (0.05 / 10)  # each fine step moves as its mean velocity says
+        assert np.abs(dq - 0.5 * (xf[1:, 7:] + xf[:-1, 7:])).max() < 0.03

@@ -30,7 +30,7 @@ from pinnmpc.plant.build import simulated_arm
 from pinnmpc.references.files import Reference
 from pinnmpc.simulation.fault_setup import plan_faults
 from pinnmpc.simulation.loop import divergence_box, model_step, run_loop
-from pinnmpc.simulation.metrics import faults_metrics, metrics, verdict
+from pinnmpc.simulation.metrics import faults_metrics, limits_and_saturation, metrics, verdict
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.surrogate.flowmap import CompiledRK4, FlowMap, RK4Model
 from pinnmpc.systems.base import Box, System
@@ -86,11 +86,24 @@ def loop_row(
     cfg: DictConfig, system: System, controller: Controller, domain: Box | None, tau: float, ref: Reference
 ) -> dict[str, Any]:
     """One closed loop of any controller on the plant, summarised as a table row (the same protocol for all)."""
+    plant = make_plant(cfg, system, tau)
+    try:  # a robot plant (plant=franka) stops its arm and server however the loop ends
+        return _loop_row(cfg, system, controller, domain, tau, ref, plant)
+    finally:
+        if hasattr(plant, "close"):
+            plant.close()
+
+
+def _loop_row(
+    cfg: DictConfig, system: System, controller: Controller, domain: Box | None, tau: float, ref: Reference, plant: Any
+) -> dict[str, Any]:
+    """loop_row on a built plant; a robot is first moved to the reference's start."""
     monitor = getattr(controller, "prediction_error", None)
+    x0 = plant.start(np.asarray(ref.x[0])) if hasattr(plant, "start") else None
     plan = plan_faults(  # faults: as in pinnmpc.closed_loop (all off by default)
         cfg.get("faults"),
         simulated_arm(system, cfg.system),
-        make_plant(cfg, system, tau),
+        plant,
         plant_cfg=cfg.plant,
         robots=cfg.system.get("robots"),
         noise_sigma=0.0,
@@ -103,6 +116,7 @@ def loop_row(
         controller,
         plan.plant,
         ref,
+        x0=x0,
         max_steps=steps,
         domain=domain,
         state_box=box,
@@ -115,7 +129,18 @@ def loop_row(
     m = metrics(ref, run, controller, plan.plant, system.state_names)
     m["status"] = verdict(m, float(cfg.failure.max_fallback_fraction))  # too many fallbacks: failed
     ocp = m["ocp_time_s"]
+    limits = limits_and_saturation(run, controller, system)
+    robot = {}
+    if hasattr(plant, "report"):  # a robot: libfranka's errors and what the safety layer did
+        plant.close()
+        robot = {"franka": plant.report()}
+        if robot["franka"]["errors"] and m["status"] == "ok":
+            m["status"] = f"failed: libfranka: {robot['franka']['errors'][0]}"
     return {
+        **robot,
+        "joint_limit_samples": limits["joint_limit_samples"],  # measured: samples past a joint limit
+        "joint_limit_excess_max": limits["joint_limit_excess_max"],
+        "over_period": int(m["over_period"]),  # solves longer than the control period (wall time)
         "solver": str(m["solver"]),
         "disturbance_gain": float(m["disturbance_gain"]),
         "prediction": str(m["prediction"]),
@@ -123,7 +148,7 @@ def loop_row(
         "status": m["status"],
         "steps": int(m["steps"]),
         "mae": m["mae"],
-        "ocp_time_s": {"mean": ocp["mean"], "median": ocp["median"], "p95": ocp["p95"], "max": ocp["max"]},
+        "ocp_time_s": {k: ocp[k] for k in ("mean", "median", "p95", "p99", "max")},
         "plant_step_median_s": m["plant_step_time_s"]["median"],
         "ratio_ocp_to_plant": ocp["median"] / m["plant_step_time_s"]["median"],
         "iterations_mean": float(m["iterations"]["mean"]),

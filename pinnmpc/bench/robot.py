@@ -57,10 +57,11 @@ def robot_controllers(
 def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str, Any]:
     """Every controller of robot_controllers on every reference of robot.references, on the robot; then the
     shipped network on the nominal model as the plant (what fine-tuning should come back to)."""
-    if cfg.plant.get("kind", "scipy") != "mujoco" or cfg.plant.get("robot") is None:
+    kind = cfg.plant.get("kind", "scipy")
+    if kind != "franka" and (kind != "mujoco" or cfg.plant.get("robot") is None):
         raise ValueError(
-            f"robot.enabled=true with plant.kind={cfg.plant.get('kind', 'scipy')}, plant.robot="
-            f"{cfg.plant.get('robot')}; expected plant=mujoco plant.robot=<name> (a robot that is not the model)"
+            f"robot.enabled=true with plant.kind={kind}, plant.robot={cfg.plant.get('robot')}; expected "
+            "plant=mujoco plant.robot=<name> or plant=franka (a robot that is not the model)"
         )
     if cfg.robot.logs:  # refused before the closed loops, not after them
         from pinnmpc.robot_data.logs import read_logs
@@ -80,7 +81,12 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
     paired = []
     nets = {key: c for key, _, c, _ in built if key in networks}
     if cfg.robot.paired_ocp and len(nets) > 1:  # the fine-tuned network's OCP against the shipped one's, interleaved
-        plant = lambda: make_plant(cfg, system, system.tau)  # noqa: E731
+        timed = cfg  # two robots cannot take turns on their own clocks: on plant=franka, the model as the plant
+        if cfg.plant.get("kind") == "franka":
+            timed = cfg.copy()
+            with open_dict(timed):
+                timed.plant = OmegaConf.structured(ScipyPlantSettings)
+        plant = lambda: make_plant(timed, system, system.tau)  # noqa: E731
         for ref in refs:
             paired.append(paired_ocp(nets, plant, ref, cfg.closed_loop.max_steps))
             log.info("robot: paired OCP times on %s done", ref.name)
@@ -101,7 +107,7 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
     return {
         "one_step_rmse": one_step,
         "logs": [str(p) for p in cfg.robot.logs or []],
-        "robot": str(cfg.plant.robot),
+        "robot": robot_name(cfg),
         "references": [ref.name for ref in refs],
         "offset_free": bool(cfg.robot.offset_free),
         "adapted": None if cfg.robot.adapted is None else str(cfg.robot.adapted),
@@ -109,6 +115,13 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
         "rows": rows,
         "paired_ocp": paired,
     }
+
+
+def robot_name(cfg: DictConfig) -> str:
+    """The robot of the section's title: a MuJoCo robot's name, or the Franka arm's address (franky-sim: embedded)."""
+    if cfg.plant.get("kind") == "franka":
+        return f"franka@{cfg.plant.get('host') or 'franky-sim'}"
+    return str(cfg.plant.robot)
 
 
 def held_out_rmse(

@@ -29,19 +29,23 @@ class FrankaPlant:
         """Start franky-sim when plant.simulator asks for it, connect with franky; nothing moves yet."""
         import franky
 
+        settings.make_consistent()
         self.franky = franky
         self.tau, self.settings, self.nq = float(tau), settings, system.nq
         self.step_times: list[float] = []
         self.stick_slip_steps = 0
         self.errors: list[str] = []
-        self.fine: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []  # (t, q, dq, dq_d) at 1 kHz
+        self.fine: list[tuple[float, np.ndarray]] = []  # (t, x) of every state read while a period ran
         self.server: SimServer | None = None
         self.robot: Any = None
         self.closed = False
         gains = settings.servo_gain or list(system.servo_gain)
         self.safety = SafetyLayer(system, tau, settings)
         self.period_start: float | None = None  # robot time of the state the next command answers, s
+        self.measured_at: float | None = None  # robot time that state was read at (within a tick after it)
+        self.period_began = 0.0  # robot time the last period run began at, s
         self.late = 0  # commands that came after their period had ended
+        self.sent = 0  # commands sent since the arm was last brought to rest
         self.robot_periods: list[float] = []  # robot time between measurements, s
         try:
             host = settings.host
@@ -78,18 +82,23 @@ class FrankaPlant:
         q0 = np.asarray(x0, dtype=float)[: self.nq]
         self.safety.check_target(q0)
         if self.settings.move_to_start:
-            motion = self.franky.JointMotion(
-                self.franky.JointState(q0.tolist()), relative_dynamics_factor=self.settings.start_dynamics_factor
-            )
-            self._guarded(lambda: self.robot.move(motion, asynchronous=False), "move to the start")
+            self.stop_arm()
+            for _ in range(2):  # the second move takes out what the first left while the arm settled
+                motion = self.franky.JointMotion(
+                    self.franky.JointState(q0.tolist()), relative_dynamics_factor=self.settings.start_dynamics_factor
+                )
+                self._guarded(lambda m=motion: self.robot.move(m, asynchronous=False), "move to the start")
+        self.sent = 0
         t, x = self.measure()
+        self.fine = []
+        self._keep(t, x)
         off = float(np.abs(x[: self.nq] - q0).max())
         if self.settings.move_to_start and off > self.settings.start_tolerance:
             raise PlantError(
                 f"plant=franka: the arm stopped {off:.3g} rad from the reference's start (plant.start_tolerance="
                 f"{self.settings.start_tolerance})"
             )
-        self.period_start = t
+        self.period_start, self.measured_at = t, t
         return x
 
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -98,6 +107,10 @@ class FrankaPlant:
         if self.period_start is None:
             self.period_start, _ = self.measure()
         t_send, x_now = self.measure()
+        self._keep(t_send, x_now)
+        if not self.sent:  # the arm at rest waits for its first command: its period begins when it goes out
+            self.period_start = t_send
+        self.period_began = self.period_start
         elapsed = t_send - self.period_start
         if elapsed > self.tau:
             self.late += 1
@@ -112,27 +125,26 @@ class FrankaPlant:
         command = self.safety.command(np.asarray(u, dtype=float), x_now)
         hold = self.franky.Duration(int(round(self.settings.hold_periods * self.tau * 1e3)))
         motion = self.franky.JointVelocityMotion(command.tolist(), duration=hold)
-        if self.settings.record_fine:
-            motion.register_callback(self._record)
         self._guarded(lambda: self.robot.move(motion, asynchronous=True), "send a command")
+        self.sent += 1
         target = self.period_start + self.tau
         t, x = self._wait_until(target)
-        self.robot_periods.append(t - self.period_start)
-        self.period_start = t
+        self.robot_periods.append(t - (self.measured_at if self.measured_at is not None else self.period_start))
+        self.period_start, self.measured_at = target, t  # periods on the robot's clock, one tau apart
         self.step_times.append(time.perf_counter() - wall)
         return x
 
-    def _record(self, state: Any, _step: Any, _rel: Any, _abs: Any, _signal: Any) -> None:
-        """The 1 kHz stream within each period (collect's fine samples), from franky's control thread."""
-        self.fine.append(
-            (float(state.time.to_sec()), np.asarray(state.q), np.asarray(state.dq), np.asarray(state.dq_d))
-        )
+    def _keep(self, t: float, x: np.ndarray) -> None:
+        """A state read on the robot's clock, kept for the fine samples (plant.record_fine) when it is new."""
+        if self.settings.record_fine and (not self.fine or t > self.fine[-1][0]):
+            self.fine.append((t, x))
 
     def _wait_until(self, target: float) -> tuple[float, np.ndarray]:
         """Poll the robot's clock until it reaches target; motion errors are recorded and end the run."""
         deadline = time.monotonic() + self.settings.stall_timeout
         while True:
             t, x = self.measure()
+            self._keep(t, x)
             if t >= target - 5e-4:  # the state stream's 1 ms tick
                 return t, x
             self._guarded(self.robot.poll_motion, "wait for the period's end")
@@ -173,13 +185,19 @@ class FrankaPlant:
                 self.robot.move(self.franky.JointVelocityStopMotion(), asynchronous=False)
         self._recover()
 
-    def at_rest(self) -> bool:
-        """Whether every joint speed is below plant.rest_speed."""
+    def at_rest(self, settle: float = 1.0) -> bool:
+        """Whether every joint speed falls below plant.rest_speed within `settle` s of robot time."""
         try:
-            _, x = self.measure()
+            t, x = self.measure()
+            end, deadline = t + settle, time.monotonic() + self.settings.stall_timeout
+            while np.abs(x[self.nq :]).max() > self.settings.rest_speed:
+                if t >= end or time.monotonic() > deadline:
+                    return False
+                time.sleep(self.settings.poll_s)
+                t, x = self.measure()
         except Exception:
             return False
-        return bool(np.abs(x[self.nq :]).max() <= self.settings.rest_speed)
+        return True
 
     def close(self) -> None:
         """Stop the arm and the embedded server; safe to call twice and from a signal's unwinding."""
@@ -214,9 +232,8 @@ class FrankaPlant:
         }
 
     def fine_samples(self) -> dict[str, np.ndarray]:
-        """The recorded 1 kHz stream as arrays (t, q, dq, dq_d), empty where plant.record_fine is off."""
+        """The states read while periods ran (plant.record_fine): t (n,), x (n, nx), the robot's clock."""
         if not self.fine:
-            return {k: np.zeros((0, self.nq if k != "t" else 0)).reshape(0, -1) for k in ("t", "q", "dq", "dq_d")}
-        t, q, dq, dqd = zip(*self.fine)
-        return {"t": np.asarray(t), "q": np.stack(q), "dq": np.stack(dq), "dq_d": np.stack(dqd)}
-
+            return {"t": np.zeros(0), "x": np.zeros((0, 2 * self.nq))}
+        t, x = zip(*self.fine)
+        return {"t": np.asarray(t), "x": np.stack(x)}

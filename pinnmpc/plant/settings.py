@@ -172,9 +172,12 @@ class FrankaPlantSettings(MismatchSettings):
             _refuse("kind", self.kind, "franka with plant=franka (choose the plant with plant=<kind>)")
         if self.friction_scale != 1.0 or self.mass_scale != 1.0:
             _refuse("friction_scale", self.friction_scale, "1.0 with plant=franka (a robot is what it is)")
+        check_settings("plant", self, FRANKA_CHECKS)
+
+    def make_consistent(self) -> None:
+        """The checks across fields, once all are set (a field alone is checked where it is declared)."""
         if self.simulator == "none" and not self.host:
             _refuse("host", self.host, "the robot's address with plant.simulator=none")
-        check_settings("plant", self, FRANKA_CHECKS)
 
 
 PLANTS: dict[str, type[MismatchSettings]] = {

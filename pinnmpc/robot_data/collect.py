@@ -53,9 +53,10 @@ class FineRecorder:
         """The control period."""
         return self.plant.tau * self.fine
 
-    def start(self, x0: np.ndarray) -> None:
-        """A new episode from x0."""
+    def start(self, x0: np.ndarray) -> np.ndarray:
+        """A new episode from x0 (the start state, as a robot's recorder returns the measured one)."""
         self.states = [np.asarray(x0, dtype=np.float64)]
+        return self.states[0]
 
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """One control period, the input held; raises PlantError as the plant does."""
@@ -78,9 +79,21 @@ class Episode:
     status: str
 
 
+def robot_name(plant: Any) -> str | None:
+    """Which robot a log is of: a MuJoCo robot's name, franky-sim, or a Franka arm by its address."""
+    if plant.get("kind") == "franka":
+        return "franky-sim" if plant.get("simulator") != "none" else f"franka@{plant.get('host')}"
+    return plant.get("robot")
+
+
 def fine_plant(system: System, plant_cfg: DictConfig, fine: int, robots: Any) -> FineRecorder:
     """The robot as a plant of period tau / fine, MuJoCo's RK4 step kept (substeps / fine per fine period)."""
     cfg = OmegaConf.create(OmegaConf.to_container(plant_cfg, resolve=True))
+    if cfg.get("kind") == "franka":  # a robot: whole periods, the fine samples from its 1 kHz state stream
+        from pinnmpc.robot_data.franka_recorder import FrankaRecorder
+
+        cfg.record_fine = True
+        return FrankaRecorder(make_plant(system, cfg, system.tau, robots), fine)  # type: ignore[return-value]
     if cfg.get("kind") == "mujoco":
         cfg.substeps = max(1, -(-int(cfg.substeps) // fine))
     return FineRecorder(make_plant(system, cfg, system.tau / fine, robots), fine)
@@ -107,7 +120,7 @@ def excitation_episode(
     vmax = float(settings.speed) * np.minimum(-np.asarray(system.state_box.low[n:]), system.state_box.high[n:])
     hold_max, every = int(settings.hold), max(1, round(float(settings.target_every) / tau))
     x = np.concatenate((mid + half * rng.uniform(-1, 1, n), np.zeros(n)))
-    recorder.start(x)
+    x = recorder.start(x)  # a robot answers with where it is
     us, target, offset, left, status = [], x[:n], np.zeros(n), 0, "ok"
     low, high = np.asarray(box.low), np.asarray(box.high)
     for k in range(steps):
@@ -150,8 +163,8 @@ def closed_loop_episode(
 ) -> Episode:
     """The controller tracking `<kind>-<seed>` from the reference's first state, at most `steps` periods."""
     ref = reference(f"{kind}-{seed}")
-    recorder.start(ref.x[0])
-    run = run_loop(controller, recorder, ref, max_steps=steps, noise_sigma=float(cfg.noise_sigma), seed=seed,
+    x0 = recorder.start(ref.x[0])  # a robot answers with where it is
+    run = run_loop(controller, recorder, ref, x0=x0, max_steps=steps, noise_sigma=float(cfg.noise_sigma), seed=seed,
                    progress=False, stop=stop)  # fmt: skip
     periods = len(run.x) - 1  # a failed step's input has no state after it
     return Episode(kind, ref.name, np.array(recorder.states[: periods * recorder.fine + 1]), run.u[:periods],
@@ -171,8 +184,26 @@ def collect(
     """Episodes until cfg.robot_time seconds of held input are logged (cut where a state leaves the state box);
     states logged with Gaussian noise of cfg.noise_sigma. checkpoint gets the log so far at each episode's end (its
     meta marked cut short), so a killed run keeps its finished episodes; None: stopped before any episode ended."""
+    recorder = fine_plant(system, cfg.plant, int(cfg.fine), cfg.system.get("robots"))
+    try:  # a robot (plant=franka) stops its arm and its server however the collect ends
+        return _collect(cfg, system, controller, reference, recorder, stop, meta, checkpoint)
+    finally:
+        if hasattr(recorder.plant, "close"):
+            recorder.plant.close()
+
+
+def _collect(
+    cfg: DictConfig,
+    system: System,
+    controller: Any,
+    reference: Callable[[str], Any],
+    recorder: FineRecorder,
+    stop: Callable[[], bool] | None,
+    meta: dict[str, Any] | None,
+    checkpoint: Callable[[RobotLog], None] | None,
+) -> RobotLog | None:
+    """collect's episodes on a built recorder."""
     fine, tau, sigma = int(cfg.fine), system.tau, float(cfg.noise_sigma)
-    recorder = fine_plant(system, cfg.plant, fine, cfg.system.get("robots"))
     total = int(round(float(cfg.robot_time) / tau))
     noise = np.random.default_rng(int(cfg.seed) + 1)
     box = system.state_box
@@ -276,9 +307,9 @@ def run_collect(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = None) 
         return system_reference(OmegaConf.merge(cfg, {"reference": {"name": name, "path": None}}), system, tau)
 
     plant = OmegaConf.to_container(cfg.plant, resolve=True)
-    robots = OmegaConf.to_container(cfg.system.get("robots") or {}, resolve=True)
+    robots = OmegaConf.to_container(cfg.system.robots, resolve=True) if cfg.system.get("robots") else {}
     meta = {
-        "robot": cfg.plant.get("robot"),
+        "robot": robot_name(cfg.plant),
         "robot_effects": robots.get(cfg.plant.get("robot")) if cfg.plant.get("robot") else None,
         "seed": int(cfg.seed),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),

@@ -1,0 +1,51 @@
+"""A Franka arm as collect's recorder: each control period through libfranka, its fine samples the robot's state
+read at `fine` equal sub-times of the period (robot time; its 1 kHz ticks, interpolated where a read missed one)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pinnmpc.plant.franka import FrankaPlant
+
+
+@dataclass
+class FrankaRecorder:
+    """The FineRecorder of a robot: start() moves the arm, step() runs one period and keeps its fine states."""
+
+    plant: FrankaPlant
+    fine: int
+    states: list[np.ndarray] = field(default_factory=list)
+    step_times: list[float] = field(default_factory=list)
+    stick_slip_steps: int = 0
+
+    @property
+    def tau(self) -> float:
+        """The control period."""
+        return self.plant.tau
+
+    def start(self, x0: np.ndarray) -> np.ndarray:
+        """A new episode: the arm moved to x0's joint angles at rest; returns the measured start state."""
+        x = self.plant.start(np.asarray(x0, dtype=np.float64))
+        self.states = [x]
+        return x
+
+    def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """One control period through the robot; its fine states are the stream's at the period's sub-times."""
+        x = self.plant.step(x0, u)
+        begin = self.plant.period_began
+        samples = self.plant.fine_samples()
+        del self.plant.fine[:-1]  # the period's last state begins the next one's samples
+        times = begin + self.tau * np.arange(1, self.fine + 1) / self.fine
+        self.states.extend(self.resample(samples, times, x))
+        self.step_times.append(self.plant.step_times[-1])
+        return x
+
+    def resample(self, samples: dict[str, np.ndarray], times: np.ndarray, x_end: np.ndarray) -> np.ndarray:
+        """States at `times` by linear interpolation of the states read on the robot's clock (its 1 ms ticks;
+        the sub-times fall on them for periods a multiple of fine ms); with fewer than two, the end state."""
+        t, stream = samples["t"], samples["x"]
+        if t.size < 2:
+            return np.repeat(x_end[None, :], len(times), axis=0)
+        return np.stack([np.interp(times, t, stream[:, i]) for i in range(stream.shape[1])], axis=1)
