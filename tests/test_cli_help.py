@@ -128,7 +128,8 @@ def test_config_dirs_of_the_command_line_count(tmp_path, capsys) -> None:
         check_choices("x", [*extra, "system=mine"])  # a user's own arm, outside the package
         with pytest.raises(SystemExit):
             check_choices("x", [*extra, "system=nope"])
-        assert "in any config dir; expected one of ['fr3', 'mine', 'panda', 'planar3', 'powercube']" in capsys.readouterr().err
+        expected = "in any config dir; expected one of ['fr3', 'mine', 'panda', 'planar3', 'powercube']"
+        assert expected in capsys.readouterr().err
     check_choices("x", ["hydra.searchpath=[pkg://elsewhere.conf]", "system=nope"])  # Hydra may find it there
 
 
