@@ -30,7 +30,6 @@ OPTIONAL = {  # what a Python caller may leave out (conf/controller/nmpc.yaml se
     "model": "surrogate",
     "exact_rk4_steps": None,
     "rti_trust": None,
-    "limit_guard": None,
 }
 
 
@@ -134,5 +133,4 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
         disturbance_gain=float(d.get("gain", 0.0)),
         disturbance_max=d.get("max_abs"),
         disturbance_notch=notch_default(surrogate) if notch is None else notch,
-        limit_guard=cfg["limit_guard"],
     )

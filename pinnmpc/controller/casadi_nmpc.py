@@ -10,17 +10,15 @@ sample (pinnmpc.controller.casadi_rti).
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Any
 
-import casadi as ca
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.controller.casadi_ocp import CasadiOCP, NlpSolver, Solution, merged
 from pinnmpc.controller.casadi_rti import RTI_STATUS, RtiSolver, rti_function, rti_solver
 from pinnmpc.controller.estimator import OffsetFree
-from pinnmpc.controller.limit_guard import LimitGuard
 from pinnmpc.controller.nmpc import StepStats
 from pinnmpc.plant.stick_slip import coulomb_joints
 
@@ -44,7 +42,6 @@ class CasadiNMPC:
         disturbance_notch: bool = False,
         smooth_solver: NlpSolver | None = None,
         keep_unconverged: bool = True,
-        limit_guard: Mapping | None = None,
     ) -> None:
         self.ocp, self.solver, self.label = ocp, solver, label
         self.horizon, self.nx, self.nu = ocp.horizon, ocp.nx, ocp.nu
@@ -55,8 +52,6 @@ class CasadiNMPC:
         self.keep_unconverged = bool(keep_unconverged)  # an unconverged solve's inputs against the previous plan
         self.disturbance_gain = float(disturbance_gain)
         self._estimator = OffsetFree(self.nx, self.disturbance_gain, disturbance_max, disturbance_notch)
-        self._guard_step: ca.Function | None = None  # F and dF/du for the limit guard, built on its first use
-        self.guard = LimitGuard.from_config(limit_guard, ocp.joint_limits, self._step_jacobian, ocp.tau)
         self.stats: list[StepStats] = []
         self.reset()
 
@@ -81,8 +76,6 @@ class CasadiNMPC:
         self._lam: tuple[np.ndarray, np.ndarray] | None = None  # its multipliers shifted (None: zeros)
         self._last: tuple | None = None  # the last measured state, the input applied and the plan's unknowns (or None)
         self._estimator.reset()
-        if self.guard is not None:
-            self.guard.reset()
         self.stats = []
         self.smoothed_solves = 0
 
@@ -128,8 +121,6 @@ class CasadiNMPC:
             U = np.clip(sol.w[self.ocp.iu], self.low, self.high)  # an interior point may overshoot by 1e-8
         else:  # self._U is the previous plan shifted: its first entry is the input planned for now
             U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self.low, self.high)
-        if self.guard is not None:  # the limit guard's last word on the input applied now
-            U[0] = self.guard.filter(x0, U[0], self.low, self.high)
         elapsed = time.perf_counter() - start
         self._shift(sol if ok or kept else None, U)
         self._u_prev = U[0].copy()
@@ -196,15 +187,6 @@ class CasadiNMPC:
         nw = ocp.shifted(sol.w, ocp.w_blocks)
         nw[ocp.iu] = self._U
         self._w, self._lam = nw, (ocp.shifted(sol.lam_x, ocp.w_blocks), ocp.shifted(sol.lam_g, ocp.g_blocks))
-
-    def _step_jacobian(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The model's one step F(x, u) and dF/du (the limit guard's model)."""
-        if self._guard_step is None:
-            xs, us = ca.MX.sym("x", self.nx), ca.MX.sym("u", self.nu)
-            xf = self.ocp.F(xs, us)
-            self._guard_step = ca.Function("guard_step", [xs, us], [xf, ca.jacobian(xf, us)])
-        y, b = self._guard_step(x, u)
-        return np.asarray(y, dtype=np.float64).reshape(-1), np.asarray(b, dtype=np.float64)
 
     @property
     def disturbance(self) -> np.ndarray | None:
@@ -288,5 +270,4 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
         disturbance_notch=bool(d.get("notch") or False),  # null (the network's setting, given to the bench's rows): off
         smooth_solver=smooth_solver,
         keep_unconverged=bool(cfg.get("keep_unconverged", True)),
-        limit_guard=cfg.get("limit_guard"),
     )

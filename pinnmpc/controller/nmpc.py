@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -12,7 +12,6 @@ import torch
 from torch import Tensor
 
 from pinnmpc.controller.estimator import OffsetFree
-from pinnmpc.controller.limit_guard import LimitGuard
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
 from pinnmpc.surrogate.checkpoint import Surrogate
@@ -70,7 +69,6 @@ class NMPC:
     disturbance_gain: float = 0.0  # offset-free MPC: 0 off; 1 d = the last one-step prediction error; between: filtered
     disturbance_max: Sequence[float] | None = None  # per-state bound on |d| (None: unbounded)
     disturbance_notch: bool = False  # average the last two prediction errors first (pinnmpc.controller.estimator)
-    limit_guard: Mapping | None = None  # the joint-limit guard's settings (pinnmpc.controller.limit_guard; None: off)
     stats: list[StepStats] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -89,9 +87,6 @@ class NMPC:
             raise ValueError(f"input lower bound {self.low.tolist()} exceeds upper bound {self.high.tolist()}")
         self._low, self._high = self.low.numpy(), self.high.numpy()
         self._estimator = OffsetFree(self.ocp.nx, self.disturbance_gain, self.disturbance_max, self.disturbance_notch)
-        self.guard = LimitGuard.from_config(
-            self.limit_guard, self.ocp.joint_limits, self._step_jacobian, self.ocp.model.tau
-        )
         self.reset()
 
     @property
@@ -154,8 +149,6 @@ class NMPC:
         self._predicted: np.ndarray | None = None  # the undisturbed surrogate's x after that input, if the plan had it
         self.ocp.disturbance = None
         self._estimator.reset()
-        if self.guard is not None:
-            self.guard.reset()
         self.stats = []
 
     def _cold_start(self) -> np.ndarray:
@@ -217,13 +210,12 @@ class NMPC:
             fallback = True
             # self._U is already the previous plan shifted: its first entry is the input planned for now
             U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self._low, self._high)
-        guarded = self._guarded(x0, U)
         elapsed = time.perf_counter() - start
         self._U = self._shifted(U) if self.warm_start else self._cold_start()
         self._warm = next_warm if self.warm_start and not fallback else NO_WARM
         self._u_prev = U[0].copy()
         self._last = (x0.copy(), self._u_prev)
-        self._predicted = self._planned_next(info) if not (fallback or guarded) else None
+        self._predicted = self._planned_next(info) if not fallback else None
         self.stats.append(
             StepStats(
                 time_s=elapsed,
@@ -234,22 +226,6 @@ class NMPC:
             )
         )
         return U[0].copy()
-
-    def _guarded(self, x0: np.ndarray, U: np.ndarray) -> bool:
-        """The limit guard's last word on the input applied now, U[0] (in place); whether it changed it."""
-        if self.guard is None:
-            return False
-        u = self.guard.filter(x0, U[0], self._low, self._high)
-        changed = bool(np.any(u != U[0]))
-        U[0] = u
-        return changed
-
-    def _step_jacobian(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The undisturbed model's one step and its input Jacobian, one state (the limit guard's model)."""
-        y, _, b = self.ocp.step_with_jacobian(x[None], u[None])
-        d = self.ocp.disturbance
-        y = np.asarray(y, dtype=np.float64)[0]
-        return (y if d is None else y - d), np.asarray(b, dtype=np.float64)[0]
 
     def prediction_error(self, x_prev: np.ndarray, u_prev: np.ndarray, x: np.ndarray) -> np.ndarray:
         """What the controller's model missed over the last period, x - F(x_prev, u_prev): the closed loop's model
