@@ -377,6 +377,8 @@ def plant_label(plant: dict[str, Any]) -> str:
     """How the tables name the simulated robot: the scipy method, or MuJoCo and the robot it simulates."""
     if plant.get("kind", "scipy") == "mujoco":
         return f"MuJoCo ({plant.get('robot') or 'nominal'} robot)"
+    if plant.get("kind") == "franka":
+        return f"Franka through libfranka ({plant.get('host') or 'franky-sim'})"
     return str(plant["method"])
 
 

@@ -172,6 +172,7 @@ def md_robot(section: dict[str, Any], system: dict[str, Any]) -> str:
     refs = section["references"]
     keys = list(dict.fromkeys(r["controller"] for r in rows.values()))
     head = ["controller", *(f"{ref} MAE [rad]" for ref in refs), "÷ nominal classical (worst)", "OCP median [ms]"]
+    head += ["OCP p99 [ms]", "past the period", "samples past a limit", "status"]
     table = []
     for key in keys:
         mine = [rows[f"{key}@{ref}"] for ref in refs]
@@ -179,7 +180,13 @@ def md_robot(section: dict[str, Any], system: dict[str, Any]) -> str:
         base = [worst_angle_mae(rows[f"classical_nominal@{ref}"], angles) for ref in refs]
         ratio = max(m / b for m, b in zip(maes, base))
         ocp = max(r["ocp_time_s"]["median"] for r in mine)
-        table.append([mine[0]["label"], *(fmt(m) for m in maes), fmt(ratio), fmt(1e3 * ocp)])
+        p99 = max(r["ocp_time_s"].get("p99", float("nan")) for r in mine)
+        past = sum(int(r.get("over_period", 0)) for r in mine)
+        limits = sum(int(r.get("joint_limit_samples", 0)) for r in mine)
+        bad = [r["status"] for r in mine if r["status"] != "ok"]
+        status = "ok" if not bad else f"{len(bad)} not ok: {bad[0][:60]}"
+        times = [fmt(1e3 * ocp), fmt(1e3 * p99)]
+        table.append([mine[0]["label"], *(fmt(m) for m in maes), fmt(ratio), *times, str(past), str(limits), status])
     estimator = "with" if section["offset_free"] else "without"
     one_step, names = section.get("one_step_rmse") or {}, system["state_names"]
     nets = [k for k in ("classical_identified", "pinn_shipped", "pinn_adapted") if k in one_step]
