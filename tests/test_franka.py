@@ -208,4 +208,4 @@ def test_the_bench_robot_section_runs_on_the_franka_plant(sim_host: str, tmp_pat
     for row in robot_rows:
         assert row["status"] == "ok" and row["franka"]["errors"] == [] and row["franka"]["at_rest"]
         assert row["joint_limit_samples"] == 0 and "p99" in row["ocp_time_s"]
-    assert "Franka through libfranka" in (run_dir / "bench.md").read_text()
+    assert f"On the robot `franka@{sim_host}`" in (run_dir / "bench.md").read_text()
