@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import lightning as L
 import numpy as np
 import pytest
 import torch
@@ -124,7 +125,7 @@ def _training_from_epoch_0(run_dir: Path) -> bool:
 SIGTERM_MOMENTS = {  # when the signal comes, as seen from outside: each moment of a training, the first epoch's too
     "start-up": lambda run_dir: run_dir.is_dir(),  # Hydra made the run dir: no torch, no network yet
     "setup": lambda run_dir: (run_dir / "tensorboard").is_dir(),  # Lightning's fit began; no epoch has
-    "first epoch": _training_from_epoch_0,  # inside the first L-BFGS call
+    "first epoch": _training_from_epoch_0,  # training began: before the first step, or inside the L-BFGS call
 }
 
 
@@ -163,6 +164,49 @@ def test_sigterm_during_training_checkpoints_and_says_how_to_resume(make_cfg, tm
     assert before == {f: f.stat().st_mtime_ns for f in run_dir.rglob("*") if f.is_file()}
     done = train(make_cfg("train", [*TINY, "trainer.max_epochs=2", "resume=true"]), run_dir)
     assert done["status"] == "ok" and done["epochs"] == 2
+
+
+class _SigtermAt(L.Callback):
+    """Sends SIGTERM to this process once, from one Lightning hook: a moment of the first epoch, exactly."""
+
+    def __init__(self, hook: str) -> None:
+        self.sent = False
+        setattr(self, hook, self._send)
+
+    def _send(self, *_: object) -> None:
+        if not self.sent:
+            self.sent = True
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
+FIRST_EPOCH_MOMENTS = {  # (hook, before the other callbacks' hooks): the moments from outside are windows
+    "training starts, the signals still Lightning's": ("on_train_start", True),
+    "training starts, the signals taken back": ("on_train_start", False),
+    "the epoch starts": ("on_train_epoch_start", False),
+    "the step starts": ("on_train_batch_start", False),
+    "validation": ("on_validation_start", False),
+}
+
+
+@pytest.mark.parametrize("moment", sorted(FIRST_EPOCH_MOMENTS))
+def test_sigterm_at_each_moment_of_the_first_epoch_leaves_its_checkpoint(make_cfg, tmp_path, monkeypatch, moment):
+    from pinnmpc.training import run
+
+    hook, first = FIRST_EPOCH_MOMENTS[moment]
+    sender = _SigtermAt(hook)
+    build = run.build_trainer
+    monkeypatch.setattr(
+        run, "build_trainer", lambda cfg, cbs, *a: build(cfg, [sender, *cbs] if first else [*cbs, sender], *a)
+    )
+    run_dir = tmp_path / "run"
+    cfg = make_cfg("train", [*TINY, *ENDLESS_EPOCH, "trainer.max_epochs=100000", "progress=false"])
+    with StopSignal() as stop:
+        summary = train(cfg, run_dir, stop=stop, overrides=["progress=false"])
+    assert sender.sent and stop.name == "SIGTERM"
+    assert summary["status"] == "interrupted" and summary["epochs"] == 1, summary
+    assert summary["resume_command"] and summary["resume_command"].endswith(f"hydra.run.dir={run_dir}")
+    assert torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True)["epoch"] == 0
+    assert (run_dir / "train.log").read_text().splitlines()[-1].endswith("training ended after epoch 0")
 
 
 def test_a_run_killed_after_its_budget_resumes_to_write_its_network(make_cfg, tmp_path):

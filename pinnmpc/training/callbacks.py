@@ -108,10 +108,12 @@ class SelfLoopFigure(L.Callback):
 class GracefulStop(L.Callback):
     """On SIGTERM/SIGINT (a StopSignal): end training after the current epoch, cutting its L-BFGS call short, so
     the epoch-end checkpoint is written and the run resumes from it (Lightning's own SIGTERM path exits 0 mid-epoch
-    without a checkpoint). A signal before the first epoch (during start-up or setup) runs that epoch cut short
-    from its first loss evaluation: a run stopped at any moment leaves a checkpoint to resume from. Under DDP a
-    signal may reach one process only (`kill` of rank 0): every process asks all the others at each loss evaluation
-    and each epoch end, so they cut the same L-BFGS call short and stop together."""
+    without a checkpoint). A signal before the first epoch's step (during start-up, setup, or between the start of
+    training and that step) runs that epoch cut short from its first loss evaluation: a run stopped at any moment
+    leaves a checkpoint to resume from. The stop is asked for only once the epoch has stepped (trainer.should_stop
+    set earlier would end the run before any step, with no checkpoint). Under DDP a signal may reach one process
+    only (`kill` of rank 0): every process asks all the others at each loss evaluation and each epoch end, so they
+    cut the same L-BFGS call short and stop together."""
 
     def __init__(self, stop: StopSignal) -> None:
         self.stop = stop
@@ -119,11 +121,16 @@ class GracefulStop(L.Callback):
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """Take the signals back from Lightning (it restores ours at teardown), and guard the L-BFGS closures."""
-        if trainer.world_size == 1:  # with several processes only the agreed stop of on_train_batch_end counts
-            self.stop.hooks.append(lambda: setattr(trainer, "should_stop", True))
         self.stop.install()
-        # a signal during setup does not stop the run here: its first epoch runs, cut short at once, and ends in
-        # the checkpoint a resume needs (stopping before any step would leave none)
+        connector = getattr(trainer, "_signal_connector", None)
+        if self.stop.requested and connector is not None and connector.received_sigterm:
+            # a SIGTERM between Lightning's taking the signals and this hook reached its handler and ours: ours ends
+            # the run after its first (cut short) epoch, as at any other moment; Lightning's flag would end it in a
+            # SIGTERMException instead, past on_train_end (and under DDP before that epoch's step: no checkpoint)
+            connector.received_sigterm = False
+        # a signal does not set trainer.should_stop here (nor from the signal handler): with it set before the
+        # epoch's first step Lightning ends the run without an epoch, so without the checkpoint a resume needs.
+        # The epoch runs, cut short at once, and on_train_batch_end / on_train_epoch_end stop after it
         for opt in trainer.optimizers:
             inner = getattr(opt, "optimizer", opt)
             if isinstance(inner, torch.optim.LBFGS | SSBFGS):
@@ -142,8 +149,14 @@ class GracefulStop(L.Callback):
         return signum > 0
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
-        """Stop after this epoch once asked to (a signal before the hook of on_train_start was in place too); under
-        DDP on every process once any of them was."""
+        """Stop after this epoch once asked to (its step is taken: its checkpoint follows); under DDP on every
+        process once any of them was."""
+        if self._agreed(trainer):
+            trainer.should_stop = True
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """A signal after the step (during validation, say) stops here, before the next epoch; the checkpoint
+        callbacks save this epoch after this hook."""
         if self._agreed(trainer):
             trainer.should_stop = True
 
