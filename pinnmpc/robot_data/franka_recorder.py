@@ -3,26 +3,23 @@ read at `fine` equal sub-times of the period (robot time; its 1 kHz ticks, inter
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from pinnmpc.plant.franka import FrankaPlant
+from pinnmpc.robot_data.collect import FineRecorder
 
 
 @dataclass
-class FrankaRecorder:
+class FrankaRecorder(FineRecorder):
     """The FineRecorder of a robot: start() moves the arm, step() runs one period and keeps its fine states."""
 
-    plant: FrankaPlant
-    fine: int
-    states: list[np.ndarray] = field(default_factory=list)
-    step_times: list[float] = field(default_factory=list)
-    stick_slip_steps: int = 0
+    plant: FrankaPlant  # type: ignore[assignment]
 
     @property
     def tau(self) -> float:
-        """The control period."""
+        """The control period (the robot's plant runs whole periods)."""
         return self.plant.tau
 
     def start(self, x0: np.ndarray) -> np.ndarray:

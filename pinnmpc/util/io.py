@@ -27,23 +27,17 @@ def atomic_write(path: str | Path, write: Callable[[Path], None], suffix: str = 
     suffix lets writers that sniff the format from the name (e.g. a GIF writer) work;
     the result gets ordinary permissions (mkstemp's are owner-only).
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return _through_temp(path, write, suffix, replace=True)
 
 
 def atomic_create(path: str | Path, write: Callable[[Path], None], suffix: str = ".tmp") -> Path:
     """As atomic_write, but a file already at path is never replaced: FileExistsError (a hard link is the
     rename that refuses an existing target), so data someone else wrote there survives."""
+    return _through_temp(path, write, suffix, replace=False)
+
+
+def _through_temp(path: str | Path, write: Callable[[Path], None], suffix: str, replace: bool) -> Path:
+    """write() into a temporary file beside path, then rename it over path (replace) or hard-link it there."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
@@ -51,9 +45,12 @@ def atomic_create(path: str | Path, write: Callable[[Path], None], suffix: str =
     try:
         write(Path(tmp))
         os.chmod(tmp, 0o666 & ~_umask())
-        os.link(tmp, path)
+        if replace:
+            os.replace(tmp, path)
+        else:
+            os.link(tmp, path)
     finally:
-        Path(tmp).unlink(missing_ok=True)
+        Path(tmp).unlink(missing_ok=True)  # after a rename nothing is left to remove
     return path
 
 

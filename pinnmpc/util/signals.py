@@ -5,7 +5,6 @@ from __future__ import annotations
 import signal
 import sys
 import threading
-from collections.abc import Callable
 from types import FrameType
 from typing import Any
 
@@ -18,7 +17,6 @@ class StopSignal:
 
     def __init__(self) -> None:
         self.signum: int | None = None
-        self.hooks: list[Callable[[], None]] = []  # called on the first signal, e.g. to set trainer.should_stop
         self._previous: dict[int, Any] = {}
 
     def __enter__(self) -> StopSignal:
@@ -39,15 +37,13 @@ class StopSignal:
             self._previous.setdefault(signum, previous)
 
     def _handle(self, signum: int, _frame: FrameType | None) -> None:
-        """First signal: note it and run the hooks; second: stop now."""
+        """First signal: note it; second: stop now."""
         if self.signum is not None:
             raise KeyboardInterrupt
         self.signum = signum
         print(
             f"\nreceived {self.name}: stopping at the next safe point (send it again to stop at once)", file=sys.stderr
         )
-        for hook in self.hooks:
-            hook()
 
     @property
     def requested(self) -> bool:
