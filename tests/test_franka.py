@@ -209,3 +209,24 @@ def test_the_bench_robot_section_runs_on_the_franka_plant(sim_host: str, tmp_pat
         assert row["status"] == "ok" and row["franka"]["errors"] == [] and row["franka"]["at_rest"]
         assert row["joint_limit_samples"] == 0 and "p99" in row["ocp_time_s"]
     assert f"On the robot `franka@{sim_host}`" in (run_dir / "bench.md").read_text()
+
+
+def test_the_server_dies_with_the_process_that_started_it_even_by_sigkill() -> None:
+    host = own_loopback(2)
+    code = (
+        "import sys, time\nfrom pinnmpc.plant.franka_sim import SimServer\n"
+        f"s = SimServer({host!r}, {FR3_GAINS!r}, {FR3_HOME!r}, None)\nprint(s.pid, flush=True)\ntime.sleep(600)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    try:
+        pid = int(parent.stdout.readline()) if parent.stdout else 0
+        assert pid and pid_alive(pid)
+        parent.kill()
+        parent.wait()
+        deadline = time.monotonic() + 120  # a bound for a loaded machine only: the condition decides
+        while pid_alive(pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not pid_alive(pid)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
