@@ -231,3 +231,16 @@ def test_held_out_rmse_of_networks_and_models(lab_log):
     assert out["transitions"]["count"] > 100 and set(out) == {"pinn_shipped", "nominal", "known", "transitions"}
     angles = list(system.state_names[:3])
     assert all(out["known"][n] < 0.5 * out["nominal"][n] for n in angles), out
+
+
+def test_fine_tuning_from_a_network_widens_its_scale_to_the_robots_miss(make_cfg, tmp_path, lab_log):
+    from pinnmpc.training.models import build_model
+
+    first = tmp_path / "first"
+    train(make_cfg("train", [*TINY, "trainer.max_epochs=1"]), first)
+    base = load_surrogate(first / "surrogate.pt").model
+    overrides = [*TINY, f"init_from={first / 'surrogate.pt'}", f"data.logs=[{lab_log}]"]
+    plain = build_model(make_cfg("train", overrides), load_system("planar3"))
+    widened = build_model(make_cfg("train", [*overrides, "model.rescale_to_logs=true"]), load_system("planar3"))
+    assert torch.equal(plain.out_scale, base.out_scale)
+    assert torch.all(widened.out_scale >= base.out_scale) and torch.any(widened.out_scale > base.out_scale)

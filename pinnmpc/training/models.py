@@ -28,9 +28,14 @@ def build_model(cfg: DictConfig, system: System, prior_arm: dict | None = None) 
             for k in keys
             if (v := cfg.model.get(k)) is not None
         }
-        return grown_model(
+        net = grown_model(
             system, cfg.init_from, system.tau, cfg.t_max, hidden, cfg.seed, basis, sums, prior, form, prior_arm
         )
+        if cfg.model.get("rescale_to_logs") and cfg.data.get("logs") and isinstance(net, PINN):
+            from pinnmpc.training.rescale import period_miss, widen_heads
+
+            widen_heads(net, period_miss(net, system, [str(p) for p in cfg.data.logs]))
+        return net
     return fresh_model(cfg, system, prior_arm)
 
 

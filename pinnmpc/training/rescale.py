@@ -1,0 +1,36 @@
+"""Fine-tuning on a robot that misses the model by far more than the network's output scale: the scale widened
+to the robot's one-period miss first, the network's function unchanged, so the optimiser can reach it."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from pinnmpc.robot_data.logs import read_logs, transitions
+from pinnmpc.surrogate.network import PINN
+from pinnmpc.systems.base import System
+
+
+def period_miss(net: PINN, system: System, logs: Sequence[str]) -> Tensor:
+    """The network's RMS miss per state over every one-period transition of the logs."""
+    t, x0, u, x1 = transitions(read_logs(list(logs), system), system.tau)
+    at_tau = (t[:, 0] - system.tau).abs() <= 1e-9 * system.tau
+    with torch.no_grad():
+        pred = net(t[at_tau].to(net.out_scale.dtype), x0[at_tau], u[at_tau])
+    return (pred - x1[at_tau]).square().mean(dim=0).sqrt()
+
+
+def widen_heads(net: PINN, miss: Tensor) -> Tensor:
+    """Each head's output scale raised to at least miss (its state's), the last layer's rows shrunk by the same
+    factor: the same function, a scale the robot's misses fit in. Returns the new head scale."""
+    old = net.head_scale.detach().clone()
+    new = torch.maximum(old, miss[net.nx - net.n_head :].to(old.dtype))
+    rows = (old / new).repeat(net.n_gates)  # the last layer's outputs run gate by gate, n_head each
+    last = net.net.layers[-1]
+    with torch.no_grad():
+        last.weight.mul_(rows.to(last.weight.dtype)[:, None])
+        last.bias.mul_(rows.to(last.bias.dtype))
+        net.out_scale[net.nx - net.n_head :] = new
+    return new
