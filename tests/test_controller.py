@@ -837,7 +837,7 @@ def test_a_bad_trust_bound_is_one_clear_error(trust) -> None:
 
 def test_a_network_fine_tuned_against_an_identified_model_runs_in_real_time() -> None:
     """panda-lab.pt learnt the robot against an identified model's residual and anchors (`physics` in its meta): its
-    flow stays near smooth, so rti=null gives the real-time iteration (docs/results.md, twenty-eighth session: with
+    flow stays near smooth, so rti=null gives the real-time iteration (docs/results.md: with
     the estimator it tracks up to 2-3x closer solved fully, at 3-5x the OCP time)."""
     surrogate = load_surrogate(SHIPPED.parent / "panda-lab.pt")
     assert surrogate.meta["robot_logs"] and surrogate.meta["physics"]["identified_from"] == "panda"

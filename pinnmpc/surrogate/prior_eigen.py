@@ -31,7 +31,7 @@ if TYPE_CHECKING:
 
 CLOSE = 1e-7  # eigenvalues closer than this (relative) share a divided difference: f' at the first
 OPT = "-O3"  # C optimisation level of both functions: the factored sub-steps run fastest at -O3, the settled
-#   form alike at -O2 and -O3, at about the same compile time (docs/results.md, "Twenty-ninth session")
+#   form alike at -O2 and -O3, at about the same compile time (docs/results.md)
 
 
 def divided_differences(lam: list, f: list, df: list) -> ca.SX:
