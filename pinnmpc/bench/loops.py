@@ -30,7 +30,7 @@ from pinnmpc.plant.build import simulated_arm
 from pinnmpc.references.files import Reference
 from pinnmpc.simulation.fault_setup import plan_faults
 from pinnmpc.simulation.loop import divergence_box, model_step, run_loop
-from pinnmpc.simulation.metrics import faults_metrics, limits_and_saturation, metrics, verdict
+from pinnmpc.simulation.metrics import faults_metrics, limits_and_saturation, metrics, robot_outcome, verdict
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.surrogate.flowmap import CompiledRK4, FlowMap, RK4Model
 from pinnmpc.systems.base import Box, System
@@ -130,12 +130,7 @@ def _loop_row(
     m["status"] = verdict(m, float(cfg.failure.max_fallback_fraction))  # too many fallbacks: failed
     ocp = m["ocp_time_s"]
     limits = limits_and_saturation(run, controller, system)
-    robot = {}
-    if hasattr(plant, "report"):  # a robot: libfranka's errors and what the safety layer did
-        plant.close()
-        robot = {"franka": plant.report()}
-        if robot["franka"]["errors"] and m["status"] == "ok":
-            m["status"] = f"failed: libfranka: {robot['franka']['errors'][0]}"
+    robot, m["status"] = robot_outcome(plant, m["status"])  # a robot: libfranka's errors, the safety layer's acts
     return {
         **robot,
         "joint_limit_samples": limits["joint_limit_samples"],  # measured: samples past a joint limit

@@ -16,7 +16,7 @@ from pinnmpc.bench.common import bench_reference, controller_cfg, make_plant
 from pinnmpc.bench.loops import loop_row
 from pinnmpc.bench.paired import paired_ocp
 from pinnmpc.controller.build import build_nmpc
-from pinnmpc.plant.settings import ScipyPlantSettings
+from pinnmpc.plant.settings import ScipyPlantSettings, robot_name
 from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import load_system
@@ -78,21 +78,17 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
             row = loop_row(cfg, system, controller, box, system.tau, ref)
             rows[f"{key}@{ref.name}"] = {**row, "label": label, "controller": key, "reference": ref.name}
             log.info("robot: %s on %s done in %.1f s", label, ref.name, row["wall_s"])
+    nominal = cfg.copy()
+    with open_dict(nominal):
+        nominal.plant = OmegaConf.structured(ScipyPlantSettings)  # the model as the plant, default settings
     paired = []
     nets = {key: c for key, _, c, _ in built if key in networks}
     if cfg.robot.paired_ocp and len(nets) > 1:  # the fine-tuned network's OCP against the shipped one's, interleaved
-        timed = cfg  # two robots cannot take turns on their own clocks: on plant=franka, the model as the plant
-        if cfg.plant.get("kind") == "franka":
-            timed = cfg.copy()
-            with open_dict(timed):
-                timed.plant = OmegaConf.structured(ScipyPlantSettings)
+        timed = nominal if cfg.plant.get("kind") == "franka" else cfg  # two robots cannot take turns on their clocks
         plant = lambda: make_plant(timed, system, system.tau)  # noqa: E731
         for ref in refs:
             paired.append(paired_ocp(nets, plant, ref, cfg.closed_loop.max_steps))
             log.info("robot: paired OCP times on %s done", ref.name)
-    nominal = cfg.copy()
-    with open_dict(nominal):
-        nominal.plant = OmegaConf.structured(ScipyPlantSettings)  # the model as the plant, default settings
     pinn = build_nmpc(OmegaConf.merge(controller_cfg(cfg), estimator(cfg)), shipped, system)
     for ref in refs:
         row = loop_row(nominal, system, pinn, shipped.domain, system.tau, ref)
@@ -107,7 +103,7 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
     return {
         "one_step_rmse": one_step,
         "logs": [str(p) for p in cfg.robot.logs or []],
-        "robot": robot_name(cfg),
+        "robot": str(robot_name(cfg.plant)),
         "references": [ref.name for ref in refs],
         "offset_free": bool(cfg.robot.offset_free),
         "adapted": None if cfg.robot.adapted is None else str(cfg.robot.adapted),
@@ -115,13 +111,6 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
         "rows": rows,
         "paired_ocp": paired,
     }
-
-
-def robot_name(cfg: DictConfig) -> str:
-    """The robot of the section's title: a MuJoCo robot's name, or the Franka arm's address (franky-sim: embedded)."""
-    if cfg.plant.get("kind") == "franka":
-        return f"franka@{cfg.plant.get('host') or 'franky-sim'}"
-    return str(cfg.plant.robot)
 
 
 def held_out_rmse(

@@ -4,7 +4,6 @@ control period, time from the robot's clock, behind a safety layer of ours (docs
 from __future__ import annotations
 
 import contextlib
-import logging
 import time
 from pathlib import Path
 from typing import Any
@@ -16,8 +15,6 @@ from pinnmpc.plant.franka_safety import SafetyLayer
 from pinnmpc.plant.franka_sim import SimServer, free_loopback
 from pinnmpc.plant.settings import FrankaPlantSettings
 from pinnmpc.systems.base import System
-
-log = logging.getLogger(__name__)
 
 
 class FrankaPlant:
@@ -39,10 +36,12 @@ class FrankaPlant:
         self.server: SimServer | None = None
         self.robot: Any = None
         self.closed = False
+        self.rest = False  # whether the arm ended at rest (close() says)
+        self.host = settings.host
         gains = settings.servo_gain or list(system.servo_gain)
         self.safety = SafetyLayer(system, tau, settings)
-        self.period_start: float | None = None  # robot time of the state the next command answers, s
-        self.measured_at: float | None = None  # robot time that state was read at (within a tick after it)
+        self.period_start = 0.0  # robot time of the state the next command answers, s
+        self.measured_at = 0.0  # robot time that state was read at (within a tick after it)
         self.period_began = 0.0  # robot time the last period run began at, s
         self.late = 0  # commands that came after their period had ended
         self.sent = 0  # commands sent since the arm was last brought to rest
@@ -104,12 +103,10 @@ class FrankaPlant:
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Send u for the period that began at the last measurement, wait one period of robot time, measure."""
         wall = time.perf_counter()
-        if self.period_start is None:
-            self.period_start, _ = self.measure()
         t_send, x_now = self.measure()
         self._keep(t_send, x_now)
         if not self.sent:  # the arm at rest waits for its first command: its period begins when it goes out
-            self.period_start = t_send
+            self.period_start = self.measured_at = t_send
         self.period_began = self.period_start
         elapsed = t_send - self.period_start
         if elapsed > self.tau:
@@ -129,7 +126,7 @@ class FrankaPlant:
         self.sent += 1
         target = self.period_start + self.tau
         t, x = self._wait_until(target)
-        self.robot_periods.append(t - (self.measured_at if self.measured_at is not None else self.period_start))
+        self.robot_periods.append(t - self.measured_at)
         self.period_start, self.measured_at = target, t  # periods on the robot's clock, one tau apart
         self.step_times.append(time.perf_counter() - wall)
         return x
@@ -204,7 +201,6 @@ class FrankaPlant:
         if self.closed:
             return
         self.closed = True
-        self.rest = False
         try:
             if self.robot is not None:
                 self.stop_arm()
@@ -218,7 +214,7 @@ class FrankaPlant:
         """What the run's metrics.json says of the robot: its address, errors, the safety layer's actions, timing."""
         periods = np.asarray(self.robot_periods)
         return {
-            "host": self.host if hasattr(self, "host") else self.settings.host,
+            "host": self.host,
             "simulator": self.settings.simulator,
             "server_pid": None if self.server is None else self.server.pid,
             "errors": list(self.errors),
@@ -228,7 +224,7 @@ class FrankaPlant:
                 "median": float(np.median(periods)) if periods.size else float("nan"),
                 "max": float(periods.max()) if periods.size else float("nan"),
             },
-            "at_rest": bool(getattr(self, "rest", False)),
+            "at_rest": self.rest,
         }
 
     def fine_samples(self) -> dict[str, np.ndarray]:

@@ -187,6 +187,13 @@ PLANTS: dict[str, type[MismatchSettings]] = {
 }
 
 
+def robot_name(plant: Any) -> str | None:
+    """Which robot a plant config drives: a MuJoCo robot's name, franky-sim, or a Franka arm by its address."""
+    if plant.get("kind") == "franka":
+        return "franky-sim" if plant.get("simulator") != "none" else f"franka@{plant.get('host')}"
+    return plant.get("robot")
+
+
 def plant_settings(cfg: Any) -> ScipyPlantSettings | MujocoPlantSettings | FrankaPlantSettings:
     """The checked settings of a plant config node (or dict) by its kind: a bad value is one line naming it."""
     values = dict(cfg.items()) if hasattr(cfg, "items") else dict(cfg)

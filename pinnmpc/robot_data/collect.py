@@ -26,6 +26,7 @@ from tqdm.auto import tqdm
 
 from pinnmpc.plant.base import Plant, PlantError
 from pinnmpc.plant.build import make_plant
+from pinnmpc.plant.settings import robot_name
 from pinnmpc.robot_data.logs import RobotLog, log_files, write_log
 from pinnmpc.simulation.loop import run_loop
 from pinnmpc.simulation.setup import build_controller, system_reference
@@ -77,13 +78,6 @@ class Episode:
     x_fine: np.ndarray
     u: np.ndarray
     status: str
-
-
-def robot_name(plant: Any) -> str | None:
-    """Which robot a log is of: a MuJoCo robot's name, franky-sim, or a Franka arm by its address."""
-    if plant.get("kind") == "franka":
-        return "franky-sim" if plant.get("simulator") != "none" else f"franka@{plant.get('host')}"
-    return plant.get("robot")
 
 
 def fine_plant(system: System, plant_cfg: DictConfig, fine: int, robots: Any) -> FineRecorder:

@@ -264,6 +264,18 @@ def headline(m: dict[str, Any], run_dir: Path) -> str:
     )
 
 
+def robot_outcome(plant: Any, status: str) -> tuple[dict[str, Any], str]:
+    """A robot plant closed (the arm stopped, at rest or not) and its report, and the run's status failed by its
+    first libfranka error; ({}, status) for a simulated plant."""
+    if not hasattr(plant, "report"):
+        return {}, status
+    plant.close()
+    report = plant.report()
+    if report["errors"] and status == "ok":
+        status = f"failed: libfranka: {report['errors'][0]}"
+    return {"franka": report}, status
+
+
 def franka_trouble(report: dict[str, Any] | None) -> list[str]:
     """What a robot run's headline says of the robot: libfranka's errors, the safety layer's actions, the end."""
     if not report:

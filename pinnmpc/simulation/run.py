@@ -18,7 +18,7 @@ from pinnmpc.references.data import Reference
 from pinnmpc.references.files import out_of_box
 from pinnmpc.simulation.fault_setup import plan_faults
 from pinnmpc.simulation.loop import LoopResult, divergence_box, model_step, run_loop
-from pinnmpc.simulation.metrics import faults_metrics, limits_and_saturation, metrics, verdict
+from pinnmpc.simulation.metrics import faults_metrics, limits_and_saturation, metrics, robot_outcome, verdict
 from pinnmpc.simulation.model_fit import model_fit
 from pinnmpc.simulation.setup import (
     arm_differences,
@@ -78,7 +78,8 @@ def run_closed_loop(
     arm = simulated_arm(system, cfg.system)  # the robot's arm: for an identified model, the nominal one
     plant = make_plant(arm, cfg.plant, tau, cfg.system.get("robots"), run_dir)
     try:  # a robot plant stops its arm and its server however the run ends (the end, an error, a signal)
-        return _run_on_plant(cfg, run_dir, stop, announce, system, controller, domain, tau, ref, start, arm, plant)
+        return _run_on_plant(cfg, run_dir, stop, announce, system, controller, domain, tau, ref, start, arm, plant,
+                             differs)  # fmt: skip
     finally:
         if hasattr(plant, "close"):
             plant.close()
@@ -97,9 +98,9 @@ def _run_on_plant(
     start: Any,
     arm: System,
     plant: Any,
+    differs: list[str],
 ) -> dict[str, Any]:
     """The loop on a built plant, its metrics and files (run_closed_loop closes the plant afterwards)."""
-    differs = arm_differences(getattr(getattr(controller, "surrogate", None), "meta", None), cfg)
     if hasattr(plant, "start"):  # a robot: moved to the reference's start, the loop begins where it measures
         start = plant.start(np.asarray(ref.x[0] if start is None else start))
     monitor = getattr(controller, "prediction_error", None)
@@ -146,11 +147,8 @@ def _run_on_plant(
     # how far a user's start x0 lies off the reference's first state (0: it starts on it)
     result["start_off_reference"] = 0.0 if start is None else float(np.abs(np.asarray(start) - ref.x[0]).max())
     result["network_arm_differs"] = differs  # system.dynamics keys
-    if hasattr(plant, "report"):  # a robot: its errors, what the safety layer did, whether it ended at rest
-        plant.close()
-        result["franka"] = plant.report()
-        if result["franka"]["errors"] and result["status"] == "ok":
-            result["status"] = f"failed: libfranka: {result['franka']['errors'][0]}"
+    robot, result["status"] = robot_outcome(plant, result["status"])  # a robot: errors, safety, at rest
+    result.update(robot)
     write_outputs(cfg, system, ref, run, controller, run_dir, result, announce)
     return result
 
