@@ -76,7 +76,7 @@ def test_panda_limits_are_the_urdfs_and_the_state_boxs(panda: Any, panda_cfg: An
             cfg = compose("closed_loop", overrides=["system=panda", f"controller={controller}"])
         node = OmegaConf.to_container(cfg.controller.joint_limits, resolve=True)
         low, high = list(panda.joint_limits.low), list(panda.joint_limits.high)
-        assert node == {"low": low, "high": high, "weight": 1e5, "margin": 0.01}
+        assert node == {"low": low, "high": high, "weight": 1e5, "margin": 0.01, "lookahead": 0.05}
     # the PowerCube and planar3 joints turn all the way round: no limits, so their OCPs are unchanged
     for name in ("powercube", "planar3"):
         assert load_system(name).joint_limits is None

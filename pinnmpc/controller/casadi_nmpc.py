@@ -42,6 +42,7 @@ class CasadiNMPC:
         disturbance_notch: bool = False,
         smooth_solver: NlpSolver | None = None,
         keep_unconverged: bool = True,
+        rti_limit_steps: int = 2,
     ) -> None:
         self.ocp, self.solver, self.label = ocp, solver, label
         self.horizon, self.nx, self.nu = ocp.horizon, ocp.nx, ocp.nu
@@ -50,6 +51,9 @@ class CasadiNMPC:
         self.cold_solver = cold_solver or solver  # RTI: a full solve while there is no solution to iterate from
         self.smooth_solver = smooth_solver  # the same OCP with sign(v) friction smoothed: tried when a solve fails
         self.keep_unconverged = bool(keep_unconverged)  # an unconverged solve's inputs against the previous plan
+        if isinstance(rti_limit_steps, bool) or not isinstance(rti_limit_steps, int) or rti_limit_steps < 0:
+            raise ValueError(f"controller.rti_limit_steps={rti_limit_steps!r}; expected a whole number >= 0")
+        self.rti_limit_steps = rti_limit_steps  # RTI: more steps per sample where a plan is at the joint limits
         self.disturbance_gain = float(disturbance_gain)
         self._estimator = OffsetFree(self.nx, self.disturbance_gain, disturbance_max, disturbance_notch)
         self.stats: list[StepStats] = []
@@ -97,6 +101,8 @@ class CasadiNMPC:
         if ref.shape != (self.horizon, self.nx):
             want = (self.horizon, self.nx)
             raise ValueError(f"x_ref must cover the horizon: expected {want[0]} x {want[1]}, got {ref.shape}")
+        if self.ocp.joint_limits is not None:
+            ref = self.ocp.joint_limits.governed(ref)
         start = time.perf_counter()
         sol: Solution | None = None
         try:
@@ -105,6 +111,8 @@ class CasadiNMPC:
             self._load(solver, x0, ref)
             sol = solver()
             ok = self._usable(sol, rti=solver is self.solver and self.rti)
+            if ok and solver is self.solver and self.rti and self._at_limits(sol):
+                sol, ok = self._limit_steps(sol)
             if not ok and self.smooth_solver is not None:  # e.g. sign(v) friction at rest: no smooth NLP solution
                 iterations = sol.iterations
                 solver = self.smooth_solver
@@ -136,6 +144,28 @@ class CasadiNMPC:
             )
         )
         return U[0].copy()
+
+    def _limit_steps(self, sol: Solution) -> tuple[Solution, bool]:
+        """rti_limit_steps more real-time steps, each from the last: the soft joint limits' penalty switches on and
+        off at the limits, which one step from the last linearisation does not follow (plans crossed them)."""
+        ok = True
+        for _ in range(self.rti_limit_steps):
+            iterations = sol.iterations
+            self.solver.w0[:] = sol.w
+            sol = self.solver()
+            sol.iterations += iterations
+            ok = self._usable(sol, rti=True)
+            if not ok:
+                break
+        return sol, ok
+
+    def _at_limits(self, sol: Solution) -> bool:
+        """Whether the last plan or this solve's states reach where a joint-limit penalty acts."""
+        limits, states = self.ocp.joint_limits, self.ocp.ix[1:]
+        if limits is None or not limits.joints.size:
+            return False
+        plans = [sol.w] if self._w is None else [sol.w, self._w]
+        return any(bool(limits.reached(np.asarray(w)[states][None])[0]) for w in plans)
 
     @staticmethod
     def _usable(sol: Solution, rti: bool) -> bool:
@@ -269,5 +299,6 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
         disturbance_max=d.get("max_abs"),
         disturbance_notch=bool(d.get("notch") or False),  # null (the network's setting, given to the bench's rows): off
         smooth_solver=smooth_solver,
+        **{k: cfg[k] for k in ("rti_limit_steps",) if k in cfg},  # else CasadiNMPC's default
         keep_unconverged=bool(cfg.get("keep_unconverged", True)),
     )

@@ -312,21 +312,37 @@ class CasadiOCP:
         return cost + self._limit_cost(xs) if self._limit_sides else cost  # no limits: the very same expression
 
     def _limit_cost(self, xs: list) -> Any:
-        """The soft joint limits of JointLimits on x_1..x_H: weight * (excess past limit - margin)^2 per side."""
+        """The soft joint limits of JointLimits on x_1..x_H: weight * (excess past limit - margin)^2 per side, the
+        velocity towards that side times the lookahead counted in."""
         cost = 0
         for k in range(1, self.horizon + 1):
             for j, sign, edge in self._limit_sides:
-                cost += self.joint_limits.weight * ca.fmax(0, sign * (xs[k][j] - edge)) ** 2
+                cost += self.joint_limits.weight * ca.fmax(0, self._limit_excess(xs[k], j, sign, edge)) ** 2
         return cost
 
+    def _limit_excess(self, x: Any, j: int, sign: float, edge: float) -> Any:
+        """How far joint j's checked position (JointLimits.ahead) lies past where one side's penalty starts."""
+        excess = sign * (x[j] - edge)
+        lookahead = self.joint_limits.lookahead
+        return excess + lookahead * ca.fmax(0, sign * x[self.nx // 2 + j]) if lookahead else excess
+
     def _limit_hessian(self, xs: list) -> Any:
-        """Gauss-Newton Hessian of the limit penalty (SX, nw x nw): 2 weight on the diagonal of each position past
-        where its penalty starts, zero elsewhere (the penalty's residuals are piecewise linear)."""
+        """Gauss-Newton Hessian of the limit penalty (SX, nw x nw): 2 weight g g^T for each side whose checked
+        position is past where its penalty starts, g the gradient of that position (the position's entry, and the
+        lookahead on the velocity's while the joint moves towards that side), zero elsewhere (the penalty's
+        residuals are piecewise linear)."""
         hess = ca.SX(self.nw, self.nw)
+        lookahead, nq = self.joint_limits.lookahead, self.nx // 2
         for k in range(1, self.horizon + 1):
             for j, sign, edge in self._limit_sides:
                 i = int(self.ix[k, j])
-                hess[i, i] += 2.0 * self.joint_limits.weight * (sign * (xs[k][j] - edge) > 0)
+                active = 2.0 * self.joint_limits.weight * (self._limit_excess(xs[k], j, sign, edge) > 0)
+                hess[i, i] += active
+                if lookahead:
+                    iv, moving = int(self.ix[k, nq + j]), active * (sign * xs[k][nq + j] > 0)
+                    hess[i, iv] += lookahead * moving
+                    hess[iv, i] += lookahead * moving
+                    hess[iv, iv] += lookahead**2 * moving
         return hess
 
     def _tracking_cost(self, xs: list, us: list, ref: Any, prev: list) -> Any:

@@ -184,7 +184,8 @@ class NMPC:
         if ref.shape != (self.horizon, self.ocp.nx):
             want = (self.horizon, self.ocp.nx)
             raise ValueError(f"x_ref must cover the horizon: expected {want[0]} x {want[1]}, got {ref.shape}")
-        return x0, ref
+        limits = self.ocp.joint_limits
+        return x0, ref if limits is None else limits.governed(ref)
 
     def _solve_one(self, x0: np.ndarray, x_ref: np.ndarray) -> tuple[np.ndarray, SolveInfo, Any]:
         """One problem in the solver's own array library: batch-1 solves are dominated by per-call overhead."""
