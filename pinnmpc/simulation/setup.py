@@ -10,6 +10,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.nmpc import Controller
+from pinnmpc.controller.registry import build_registered, register_controller
 from pinnmpc.references.files import Reference, load_reference, resolve_reference_path
 from pinnmpc.simulation.loop import diverged, divergence_box, far_outside
 from pinnmpc.surrogate.checkpoint import load_surrogate
@@ -20,22 +21,27 @@ log = logging.getLogger(__name__)
 
 
 def build_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box | None, float]:
-    """The controller named by controller.kind, the state box its model is valid in (None: everywhere) and tau.
+    """The controller of the registered kind controller.kind (pinnmpc.controller.registry; default pinn), the state
+    box its model is valid in (None: everywhere) and tau."""
+    return build_registered(str(cfg.controller.get("kind", "pinn")), cfg, system)
 
-    kind pinn (default): NMPC on the surrogate (checkpoint, or the one shipped for this system);
-    kind casadi: the classical NMPC on the true model (compiled, pinnmpc.controller.casadi_nmpc)."""
-    kind = cfg.controller.get("kind", "pinn")
-    if kind == "casadi":
-        from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc
 
-        return build_casadi_nmpc(cfg.controller, system), None, system.tau
-    if kind != "pinn":
-        raise ValueError(f"controller.kind={kind!r}; expected 'pinn' or 'casadi'")
+@register_controller("pinn")
+def build_pinn_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box | None, float]:
+    """NMPC on the surrogate (checkpoint, or the one shipped for this system): nmpc.yaml, exact.yaml."""
     surrogate = load_surrogate(
         cfg.checkpoint, system=system.name if cfg.checkpoint is None else None, state_names=system.state_names
     )
     check_input_bounds(cfg, surrogate.input_box)
     return build_nmpc(cfg.controller, surrogate, system), surrogate.domain, surrogate.tau
+
+
+@register_controller("casadi")
+def build_classical_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box | None, float]:
+    """The classical NMPC on the true model (compiled, pinnmpc.controller.casadi_nmpc): casadi.yaml."""
+    from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc  # casadi's compiled solvers load only when asked
+
+    return build_casadi_nmpc(cfg.controller, system), None, system.tau
 
 
 def warn_long_horizon(cfg: DictConfig) -> None:
