@@ -12,7 +12,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
-from pinnmpc.util.structured import register_configs
+from pinnmpc.cli.structured import register_configs
 
 register_configs()  # the structured configs, before any test composes (the commands do the same)
 

@@ -492,7 +492,7 @@ def test_planar3_bench_is_generic(planar3: tuple[dict[str, Any], Path]) -> None:
     ],
 )
 def test_bad_sizes_are_refused_before_any_work(tmp_path: Path, override: str, message: str) -> None:
-    from pinnmpc.util.settings import SettingError
+    from pinnmpc.util.checks import SettingError
 
     with pytest.raises(SettingError) as e:
         run_bench(_cfg([*TINY, *override.split()]), tmp_path)

@@ -9,7 +9,7 @@ import pytest
 
 from pinnmpc import load_surrogate, load_system
 from pinnmpc.training.capacity import one_step_data, run_capacity
-from pinnmpc.util.settings import SettingError
+from pinnmpc.util.checks import SettingError
 
 TINY = ["points=256", "val_points=64", "max_steps=4", "model.hidden=[16,16]", "model.auto_scale.samples=64"]
 

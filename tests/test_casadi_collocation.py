@@ -17,10 +17,10 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 from scipy.integrate import solve_ivp
 
-from pinnmpc.controller.casadi_collocation import RadauOCP, inverse_dynamics, radau_tableau
-from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc
-from pinnmpc.controller.casadi_ocp import CasadiOCP
-from pinnmpc.controller.casadi_rti import rti_function, rti_solver
+from pinnmpc.controller.classical.collocation import RadauOCP, inverse_dynamics, radau_tableau
+from pinnmpc.controller.classical.nmpc import build_casadi_nmpc
+from pinnmpc.controller.classical.ocp import CasadiOCP
+from pinnmpc.controller.classical.rti import rti_function, rti_solver
 from pinnmpc.plant.scipy_plant import ScipyPlant
 from pinnmpc.systems import load_system
 

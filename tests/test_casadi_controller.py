@@ -13,8 +13,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.controller.casadi_nmpc import CasadiNMPC, build_casadi_nmpc
-from pinnmpc.controller.casadi_ocp import CasadiOCP, Solution, stable_rk4_steps
+from pinnmpc.controller.classical.nmpc import CasadiNMPC, build_casadi_nmpc
+from pinnmpc.controller.classical.ocp import CasadiOCP, Solution, stable_rk4_steps
 from pinnmpc.plant import ScipyPlant
 from pinnmpc.systems import load_system
 

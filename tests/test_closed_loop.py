@@ -15,7 +15,7 @@ from pinnmpc.simulation.metrics import headline, limits_and_saturation
 from pinnmpc.simulation.run import run_closed_loop
 from pinnmpc.simulation.setup import build_controller, warn_limit_margin
 from pinnmpc.systems import load_system
-from pinnmpc.util.settings import SettingError
+from pinnmpc.util.checks import SettingError
 from tests.conftest import ROOT
 
 KEYS = {

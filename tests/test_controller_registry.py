@@ -14,10 +14,10 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf, open_dict
 
+from pinnmpc.cli.structured import register_configs
 from pinnmpc.controller.nmpc import StepStats
 from pinnmpc.controller.registry import controller_kinds, register_controller, unregister_controller
 from pinnmpc.simulation.run import run_closed_loop
-from pinnmpc.util.structured import register_configs
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 

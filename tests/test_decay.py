@@ -13,7 +13,7 @@ import torch
 from pinnmpc import load_system
 from pinnmpc.surrogate import decay
 from pinnmpc.surrogate.prior import FrozenArmPrior
-from pinnmpc.training.data import random_pairs
+from pinnmpc.systems.sampling import random_pairs
 
 
 def _mass_matrices(name: str, count: int) -> tuple[FrozenArmPrior, np.ndarray]:

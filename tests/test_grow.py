@@ -10,10 +10,11 @@ from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems import PowerCube, build_system, load_system
 from pinnmpc.training.curves import read_curve
 from pinnmpc.training.grow import widened
+from pinnmpc.training.job_settings import validate_train
 from pinnmpc.training.models import build_model
 from pinnmpc.training.pipeline import base_training_time
 from pinnmpc.training.run import train
-from pinnmpc.util.settings import SettingError, validate_train
+from pinnmpc.util.checks import SettingError
 from tests.conftest import TINY_TRAIN
 
 

@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from pinnmpc.controller.build import build_nmpc
-from pinnmpc.controller.casadi_ocp import CasadiOCP
+from pinnmpc.controller.classical.ocp import CasadiOCP
 from pinnmpc.controller.ocp import HorizonOCP, JointLimits
 from pinnmpc.references import ReferenceError, load_reference
 from pinnmpc.simulation.setup import system_reference

@@ -12,13 +12,14 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
+from pinnmpc.cli.structured import register_configs
 from pinnmpc.controller.ocp import JointLimits
 from pinnmpc.plant.build import make_plant, simulated_arm
 from pinnmpc.references.data import Reference
 from pinnmpc.simulation.loop import run_loop
+from pinnmpc.simulation.settings import validate_closed_loop
 from pinnmpc.simulation.setup import build_controller
-from pinnmpc.util.settings import job_system, validate_closed_loop
-from pinnmpc.util.structured import register_configs
+from pinnmpc.systems.settings import job_system
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 TOLERANCE = 1e-6  # rad a sample may lie past a limit (the bound)

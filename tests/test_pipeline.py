@@ -9,7 +9,7 @@ import pytest
 from pinnmpc.surrogate import load_surrogate
 from pinnmpc.training.pipeline import duration, seconds
 from pinnmpc.training.run import train_command
-from pinnmpc.util.settings import SettingError
+from pinnmpc.util.checks import SettingError
 from tests.conftest import TINY_TRAIN
 
 

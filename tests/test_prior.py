@@ -19,7 +19,7 @@ from pinnmpc.training.capacity import one_step_data, run_capacity
 from pinnmpc.training.data import CollocationDataModule, reference_flow
 from pinnmpc.training.module import PINNModule
 from pinnmpc.training.run import train
-from pinnmpc.util.settings import SettingError
+from pinnmpc.util.checks import SettingError
 from tests.conftest import TINY_TRAIN, central_jacobian
 
 TAU = 0.1

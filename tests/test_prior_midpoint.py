@@ -10,7 +10,7 @@ import torch
 from pinnmpc import load_surrogate, load_system
 from pinnmpc.surrogate.prior import MIDPOINT_JACOBIAN, MIDPOINT_STEPS, FrozenArmPrior
 from pinnmpc.surrogate.substeps import midpoint_substeps, relaxation
-from pinnmpc.training.data import random_pairs
+from pinnmpc.systems.sampling import random_pairs
 from tests.conftest import check_compiled_prior, check_substep_flow, prior_misses
 
 KIND = "midpoint_arm"

@@ -34,9 +34,10 @@ from pinnmpc.simulation.robustness import run_robustness
 from pinnmpc.simulation.run import run_closed_loop
 from pinnmpc.surrogate import SHIPPED, load_surrogate
 from pinnmpc.systems import load_system
+from pinnmpc.training.job_settings import validate_train
 from pinnmpc.training.resume import portable_ckpt
 from pinnmpc.training.run import train
-from pinnmpc.util.settings import SettingError, validate_train
+from pinnmpc.util.checks import SettingError
 from tests.conftest import ROOT, TINY_TRAIN
 
 TINY = [*TINY_TRAIN, "self_loop_figure.every_n_epochs=0"]

@@ -10,7 +10,7 @@ import pytest
 
 from pinnmpc import load_surrogate, load_system
 from pinnmpc.training.residuals import residual_table, run_residuals
-from pinnmpc.util.settings import SettingError
+from pinnmpc.util.checks import SettingError
 
 
 def test_a_trained_network_breaks_the_physics_far_less_than_its_initialisation() -> None:

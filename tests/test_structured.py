@@ -16,11 +16,12 @@ from pinnmpc.cli import check_choices
 from pinnmpc.systems import PowerCube
 from pinnmpc.training import settings as training_settings
 from pinnmpc.training.data import CollocationDataModule
+from pinnmpc.training.job_settings import validate_train
 from pinnmpc.training.models import build_model
 from pinnmpc.training.module import DTYPES, PINNModule
 from pinnmpc.training.settings import DataSettings, ModuleSettings
 from pinnmpc.training.ssbfgs import HESSIAN_DTYPES, VARIANTS
-from pinnmpc.util.settings import SettingError, validate_train
+from pinnmpc.util.checks import SettingError
 from tests.conftest import CONF, ROOT, TINY_TRAIN
 
 MODULE_FIELDS = [f.name for f in dataclasses.fields(ModuleSettings)]

@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 from pinnmpc import load_surrogate, load_system
 from pinnmpc.plant.integrators import rk4_step
 from pinnmpc.systems import Box, PowerCube, RigidArm, available, build_system
-from pinnmpc.util.settings import validate_train
+from pinnmpc.training.job_settings import validate_train
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"

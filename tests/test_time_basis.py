@@ -10,7 +10,7 @@ import pytest
 from pinnmpc.systems.registry import build_system
 from pinnmpc.time_basis import _summary
 from pinnmpc.training.time_basis import basis_report, run_time_basis
-from pinnmpc.util.settings import SettingError
+from pinnmpc.util.checks import SettingError
 
 
 def test_the_servo_fast_mode_is_what_the_panda_gates_miss(make_cfg) -> None:

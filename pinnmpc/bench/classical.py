@@ -60,7 +60,7 @@ def mismatch_rows(
 ) -> dict[str, dict[str, Any]]:
     """Both controllers on a plant whose friction is scaled: neither model is exact there, so the classical NMPC
     gets the PINN controller's offset-free estimator too (its best setting under mismatch)."""
-    from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc
+    from pinnmpc.controller.classical.nmpc import build_casadi_nmpc
 
     if not 0 < scale < float("inf"):
         raise ValueError(f"classical.friction_scales holds {scale}; expected positive numbers")
@@ -133,7 +133,7 @@ def bench_classical(
     reference and plant; a PINN row that section 2 already ran is reused (same process, same protocol)."""
     if not available(cfg):
         raise ValueError(f"classical.enabled=true needs the classical controller's config {CASADI_CONFIG}")
-    from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc
+    from pinnmpc.controller.classical.nmpc import build_casadi_nmpc
 
     if abs(system.tau - surrogate.tau) > 1e-12:
         raise ValueError(f"the system's tau {system.tau} differs from the surrogate's {surrogate.tau}")

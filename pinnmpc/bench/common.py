@@ -14,7 +14,7 @@ from pinnmpc.plant.build import simulated_arm
 from pinnmpc.references.files import PROJECT_ROOT, Reference, resolve_reference_path
 from pinnmpc.simulation.setup import system_reference
 from pinnmpc.systems.base import System
-from pinnmpc.training.data import random_pairs
+from pinnmpc.systems.sampling import random_pairs
 
 STATUS_CHARS = 40  # a failed loop's status is cut to this many characters in its table cell
 NO_DISTURBANCE = {"gain": 0.0}  # controller.disturbance override: the paper's controller, no offset-free MPC

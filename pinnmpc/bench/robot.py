@@ -35,7 +35,7 @@ def robot_controllers(
 ) -> list[tuple[str, str, Any, Any]]:
     """(key, label, controller, training box) of every row: the classical NMPC on the nominal and (robot.identified)
     the identified model, the shipped and (robot.adapted) the fine-tuned network; all with the same OCP."""
-    from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc
+    from pinnmpc.controller.classical.nmpc import build_casadi_nmpc
 
     r, shared = cfg.robot, estimator(cfg)  # the shipped and (robot.adapted) fine-tuned networks: `networks`
     classical = OmegaConf.merge(classical_cfg(cfg, classical_solvers(cfg)[0]), shared)

@@ -18,6 +18,7 @@ from pinnmpc.bench.optimality import bench_optimality
 from pinnmpc.bench.report import render_markdown
 from pinnmpc.bench.robot import bench_robot
 from pinnmpc.bench.scaling import bench_scaling
+from pinnmpc.bench.settings import validate_bench
 from pinnmpc.bench.step import bench_step
 from pinnmpc.bench.targets import check_targets
 from pinnmpc.bench.timing import machine_info
@@ -26,7 +27,6 @@ from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import build_system
 from pinnmpc.util.io import atomic_write, save_json
-from pinnmpc.util.settings import validate_bench
 from pinnmpc.util.threads import use_threads
 
 log = logging.getLogger(__name__)

@@ -18,7 +18,7 @@ from pinnmpc.controller.build import build_nmpc
 from pinnmpc.plant.integrators import rk4_step
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.systems.base import System
-from pinnmpc.training.data import uniform_box
+from pinnmpc.systems.sampling import uniform_box
 
 
 def ocp_scaling_point(cfg: DictConfig, surrogate: Surrogate, horizon: int, batch: int) -> dict[str, float]:

@@ -8,8 +8,9 @@ import re
 import sys
 from pathlib import Path
 
+from pinnmpc.util.paths import CONF
+
 EXIT_BAD_INPUT = 2  # exit code for bad input
-CONF = Path(__file__).resolve().parents[2] / "conf"  # the Hydra config tree the entry points compose from
 CHOICE = re.compile(r"^\+{0,2}([a-z_]+)=([A-Za-z0-9_.-]+)$")  # a plain `group=option` override (no sweeps)
 
 
@@ -204,7 +205,7 @@ def check_choices(prog: str, argv: list[str] | None = None) -> None:
     override whose group/option.yaml exists in no config dir (conf/, --config-dir, hydra.searchpath) ends the
     process with one line naming it and the options there (Hydra's own message is a multi-line search-path dump);
     then the structured configs are registered for Hydra to compose with."""
-    from pinnmpc.util.structured import register_configs
+    from pinnmpc.cli.structured import register_configs
 
     _check_command_line(prog, sys.argv[1:] if argv is None else argv)
     register_configs()

@@ -53,7 +53,7 @@ def prediction_model(cfg: dict[str, Any], surrogate: Surrogate, system: System |
         raise ValueError("controller.model=exact_values needs the system's true model (build_nmpc(..., system=...))")
     steps = cfg["exact_rk4_steps"]
     if steps is None:
-        from pinnmpc.controller.casadi_ocp import stable_rk4_steps
+        from pinnmpc.controller.classical.ocp import stable_rk4_steps
 
         steps = stable_rk4_steps(system, surrogate.tau)
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:

@@ -28,10 +28,11 @@ from pinnmpc.plant.base import Plant, PlantError
 from pinnmpc.plant.build import make_plant
 from pinnmpc.plant.settings import robot_name
 from pinnmpc.robot_data.logs import RobotLog, log_files, write_log
+from pinnmpc.robot_data.settings import validate_collect
 from pinnmpc.simulation.loop import run_loop
 from pinnmpc.simulation.setup import build_controller, system_reference
 from pinnmpc.systems.base import System
-from pinnmpc.util.settings import job_system, validate_collect
+from pinnmpc.systems.settings import job_system
 from pinnmpc.util.signals import StopSignal
 
 log = logging.getLogger(__name__)

@@ -13,18 +13,17 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-import pinnmpc
-from pinnmpc.cli.args import CONF
 from pinnmpc.robot_data.checks import cut_short_note
 from pinnmpc.robot_data.identify import Fit, identify
 from pinnmpc.robot_data.logs import read_logs
+from pinnmpc.robot_data.settings import validate_identify
 from pinnmpc.systems.registry import load_system
+from pinnmpc.systems.settings import job_system
 from pinnmpc.systems.urdf import Payload, RigidArm, portable_urdf
 from pinnmpc.util.io import atomic_create, atomic_write, save_json
-from pinnmpc.util.settings import job_system, validate_identify
+from pinnmpc.util.paths import CONF, PACKAGE  # never written: conf/ and the installed package
 
 NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-PACKAGE = Path(pinnmpc.__file__).resolve().parent  # the installed package: its files are never written
 
 
 def system_name(name: str | None, out: str | None, nominal: str) -> str:

@@ -12,10 +12,11 @@ import torch
 from omegaconf import DictConfig
 
 from pinnmpc.plant.scipy_plant import ScipyPlant
+from pinnmpc.simulation.settings import validate_self_loop
 from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
+from pinnmpc.systems.settings import job_system
 from pinnmpc.util.io import save_json, save_npz
-from pinnmpc.util.settings import job_system, validate_self_loop
 
 
 def sine_inputs(steps: int, amplitude: Sequence[float]) -> np.ndarray:

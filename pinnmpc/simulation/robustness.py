@@ -10,9 +10,9 @@ from typing import Any
 from omegaconf import DictConfig
 
 from pinnmpc.simulation.run import run_closed_loop
+from pinnmpc.simulation.settings import validate_robustness
 from pinnmpc.systems.registry import build_system
 from pinnmpc.util.io import atomic_write, save_json
-from pinnmpc.util.settings import validate_robustness
 from pinnmpc.util.tables import md_table
 
 

@@ -20,6 +20,7 @@ from pinnmpc.simulation.fault_setup import plan_faults
 from pinnmpc.simulation.loop import LoopResult, divergence_box, model_step, run_loop
 from pinnmpc.simulation.metrics import faults_metrics, limits_and_saturation, metrics, robot_outcome, verdict
 from pinnmpc.simulation.model_fit import model_fit
+from pinnmpc.simulation.settings import validate_closed_loop
 from pinnmpc.simulation.setup import (
     arm_differences,
     bounds_outside,
@@ -32,8 +33,8 @@ from pinnmpc.simulation.setup import (
     warn_long_horizon,
 )
 from pinnmpc.systems.base import System
+from pinnmpc.systems.settings import job_system
 from pinnmpc.util.io import save_json, save_npz
-from pinnmpc.util.settings import job_system, validate_closed_loop
 from pinnmpc.util.signals import StopSignal
 
 log = logging.getLogger(__name__)

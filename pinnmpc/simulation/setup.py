@@ -15,7 +15,7 @@ from pinnmpc.references.files import Reference, load_reference, resolve_referenc
 from pinnmpc.simulation.loop import diverged, divergence_box, far_outside
 from pinnmpc.surrogate.checkpoint import load_surrogate
 from pinnmpc.systems.base import Box, System
-from pinnmpc.util.settings import SettingError
+from pinnmpc.util.checks import SettingError
 
 log = logging.getLogger(__name__)
 
@@ -38,8 +38,8 @@ def build_pinn_controller(cfg: DictConfig, system: System) -> tuple[Controller, 
 
 @register_controller("casadi")
 def build_classical_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box | None, float]:
-    """The classical NMPC on the true model (compiled, pinnmpc.controller.casadi_nmpc): casadi.yaml."""
-    from pinnmpc.controller.casadi_nmpc import build_casadi_nmpc  # casadi's compiled solvers load only when asked
+    """The classical NMPC on the true model (compiled, pinnmpc.controller.classical.nmpc): casadi.yaml."""
+    from pinnmpc.controller.classical.nmpc import build_casadi_nmpc  # casadi's compiled solvers load only when asked
 
     return build_casadi_nmpc(cfg.controller, system), None, system.tau
 

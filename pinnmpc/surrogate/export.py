@@ -24,8 +24,9 @@ from torch import Tensor, nn
 
 from pinnmpc.surrogate.casadi_network import casadi_flow
 from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate, shipped
+from pinnmpc.surrogate.export_settings import validate_export
 from pinnmpc.systems.base import System
-from pinnmpc.util.settings import job_system, validate_export
+from pinnmpc.systems.settings import job_system
 
 FORMATS = ("casadi", "c", "onnx")
 FLOAT64_FORMATS = ("casadi", "c")  # evaluated in float64; onnx runs in float32

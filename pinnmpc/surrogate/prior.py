@@ -8,11 +8,11 @@ the arm is the linear system M(q0) dv/dt = c0 - kv v, dq/dt = v (kv diagonal), w
     E(t) = exp(-A t),   A = M^-1 kv,   v_ss = kv^-1 c0.
 
 A network that learns only what this misses (configuration change, Coriolis, Coulomb friction) fits the flow
-several times closer on the same budget (docs/training.md). Kind `frozen_arm_friction` adds the arm's dry friction
-at the moving velocity: two sub-steps, each the same exact solve with the friction held at a predicted mean velocity
-(friction_substeps); an arm without dry friction gets the plain flow. Kind `frozen_arm_moving` holds the Coriolis and
-centrifugal torques C(q0, w) w at the moving velocity in the same sub-steps too. Kind `midpoint_arm` holds the arm
-per sub-step at its predicted mid configuration instead of q0 (M, gravity, drive and C taken there;
+several times closer on the same budget (docs/training-findings.md). Kind `frozen_arm_friction` adds the arm's dry
+friction at the moving velocity: two sub-steps, each the same exact solve with the friction held at a predicted mean
+velocity (friction_substeps); an arm without dry friction gets the plain flow. Kind `frozen_arm_moving` holds the
+Coriolis and centrifugal torques C(q0, w) w at the moving velocity in the same sub-steps too. Kind `midpoint_arm`
+holds the arm per sub-step at its predicted mid configuration instead of q0 (M, gravity, drive and C taken there;
 midpoint_substeps): freezing M at q0 is what a frozen prior misses most on a long arm. No parameters: torch for
 training (memoised, since full-batch training evaluates it on the same points every step) and CasADi compiled to C,
 with its exact Jacobian (by AD, or by eigendecomposition on larger arms: pinnmpc.surrogate.prior_eigen; midpoint_arm
@@ -49,7 +49,8 @@ KINDS = ("frozen_arm", "frozen_arm_friction", "frozen_arm_moving", "midpoint_arm
 FRICTION_STEPS = 2  # exponential Heun sub-steps of frozen_arm_friction over a period: the predicted end velocity's
 #   friction, averaged with the start's, per sub-step (docs/training.md)
 MIDPOINT_STEPS = 6  # sub-steps of midpoint_arm over a period, each with its own configuration: its miss falls as
-#   h^2; with 6 the Panda's prior alone is at 0.54x its one-step targets at worst, with 4 1.08x (docs/training.md)
+#   h^2; with 6 the Panda's prior alone is at 0.54x its one-step targets at worst, with 4 1.08x
+#   (docs/training-findings.md)
 MIDPOINT_JACOBIAN = "frozen_arm"  # the kind whose exact Jacobian (by eigendecomposition) stands in for
 #   midpoint_arm's on arms of EIGEN_FROM_JOINTS or more joints: its own, by AD, would cost several times the value;
 #   frozen_arm_moving's is 2x closer to it and 2x dearer, and tracks no closer (docs/design.md)
@@ -280,7 +281,7 @@ class FrozenArmPrior(nn.Module):
 
     def _box_rates(self, samples: int = 4096) -> Tensor:
         """A = M^-1 kv at configurations sampled over the box (a fixed draw)."""
-        from pinnmpc.training.data import random_pairs
+        from pinnmpc.systems.sampling import random_pairs
 
         q = random_pairs(self.arm, samples, 0)[0].double()[:, : self.nq]
         with torch.no_grad():
@@ -367,7 +368,7 @@ class FrozenArmPrior(nn.Module):
     def _check_compiled(self, fast: Any, tau: float, samples: int = 8, jacobian: bool = True) -> None:
         """Refuse a compiled prior that disagrees with the torch one (value, and Jacobian unless it stands in for
         this one's) at random points."""
-        from pinnmpc.training.data import random_pairs
+        from pinnmpc.systems.sampling import random_pairs
 
         x0, u = (a.double() for a in random_pairs(self.arm, samples, 1))
         t = torch.full((samples, 1), tau, dtype=torch.float64)

@@ -16,7 +16,7 @@ product: on a 7-joint arm the exponential needs many squarings (its time constan
 With the Coriolis torques at the moving velocity (frozen_arm_moving) they are written through the same dM/dq0_k,
 C(q0, w) w = (sum_k w_k dM_k) w - 1/2 (w^T dM_i w)_i (Christoffel symbols, one formula for all sub-steps), and
 their change along q0_j through d2M/dq0_j dq0_k, computed once per sample: AD through the recursive Newton-Euler
-graph at every sub-step's velocity cost several times more (docs/training.md).
+graph at every sub-step's velocity cost several times more (docs/training-findings.md).
 """
 
 from __future__ import annotations

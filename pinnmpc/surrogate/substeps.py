@@ -44,7 +44,7 @@ def held_flow(x0: tuple[Any, Any], vss: Any, torque: Any, kv: Any, length: Any, 
 def predicted_mid(x0: tuple[Any, Any], held: tuple[Any, Callable], h: Any) -> Any:
     """The configuration half way through a sub-step of h from x0, predicted by the arm held as `held` = (v_ss,
     relax over h) says, without its moving torques: where midpoint_substeps takes M, gravity and the Coriolis
-    torques for it (the moving torques would move it by nothing the targets see: docs/training.md)."""
+    torques for it (the moving torques would move it by nothing the targets see: docs/training-findings.md)."""
     vss, relax = held
     return x0[0] + 0.5 * (vss * h + relax(x0[1] - vss)[0])
 
@@ -60,8 +60,8 @@ def midpoint_step(
 ) -> tuple[tuple[Any, Any], Any]:
     """One sub-step of h of the arm held as held = (v_ss, relax over h), its moving torques (torque: w -> them)
     held at the mean of the start velocity and an end velocity predicted with the torques `lagged` (those the
-    sub-step before held, already at hand: as close as the start's own, docs/training.md); (q, v) and the torques
-    it held. span: the (length, relax) it advances by, its torques still predicted over h (_solve_midpoint)."""
+    sub-step before held, already at hand: as close as the start's own, docs/training-findings.md); (q, v) and the
+    torques it held. span: the (length, relax) it advances by, its torques still predicted over h (_solve_midpoint)."""
     vss, relax = held
     mean = torque(0.5 * (x0[1] + held_flow(x0, vss, lagged, kv, h, relax)[1]))
     return held_flow(x0, vss, mean, kv, *(span or (h, relax))), mean
@@ -79,8 +79,9 @@ def midpoint_substeps(
     """(q, v) after `steps` sub-steps of h (midpoint_step), each held at its mid configuration, predicted with the
     arm held as the sub-step before it was (at q0 for the first): an exponential midpoint rule in the
     configuration, one M and one C(q, w) w per sub-step; freezing M at q0 for a whole period is what costs a frozen
-    prior most on a long arm (docs/training.md). terms(q) -> (v_ss, relax over h) of the arm held at q; torque(q) ->
-    (w -> the torques held at the moving velocity w), the first prediction's taken at x0 itself; any array namespace.
+    prior most on a long arm (docs/training-findings.md). terms(q) -> (v_ss, relax over h) of the arm held at q;
+    torque(q) -> (w -> the torques held at the moving velocity w), the first prediction's taken at x0 itself; any
+    array namespace.
     trail: gets each sub-step's start, the configuration its predictor holds the arm at and the torques it
     predicts with, then the end's."""
     at, lagged = x0[0], torque(x0[0])(x0[1])

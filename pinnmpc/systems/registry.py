@@ -48,7 +48,7 @@ def load_system(name: str | Path = "powercube") -> System:
     """A controlled arm by name (conf/system) or by the path of its .yaml: rhs(x, u) batched and differentiable in
     torch, state/input names, tau. The config's per-joint lists are checked against the arm here too, so a
     wrong-length list shows when the arm loads, not in a closed loop after a training."""
-    from pinnmpc.util.settings import validate_system  # settings checks import the surrogate, which imports systems
+    from pinnmpc.systems.settings import validate_system
 
     cfg = system_config(name)
     system = build_system(cfg)

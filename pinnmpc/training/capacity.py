@@ -5,7 +5,7 @@ The PINN learns x(tau) from the ODE residual (plus anchors) over hours. This che
 at t = tau, by full-batch L-BFGS for a few minutes: plain regression of the one map the controller uses, the
 easiest problem that network can be given. If its validation error stops falling above a state's one-step
 target, more training of the PINN is unlikely to reach it: change the network (width, inputs) first. On planar3 a
-short fit gets about where hours of PINN training ended (docs/training.md).
+short fit gets about where hours of PINN training ended (docs/training-findings.md).
 """
 
 from __future__ import annotations
@@ -23,9 +23,10 @@ from torch import Tensor
 
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems.base import System
+from pinnmpc.systems.settings import job_system
 from pinnmpc.training.data import random_pairs, reference_flow
+from pinnmpc.training.job_settings import validate_capacity
 from pinnmpc.util.io import save_json
-from pinnmpc.util.settings import job_system, validate_capacity
 
 
 def one_step_data(system: System, tau: float, n: int, h: float, seed: int) -> tuple[Tensor, Tensor, Tensor]:

@@ -7,7 +7,6 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import lightning as L
-import numpy as np
 import torch
 from scipy.stats import qmc
 from torch import Tensor
@@ -15,6 +14,7 @@ from torch.utils.data import DataLoader
 
 from pinnmpc.plant.integrators import n_steps, rk4_fixed, rk4_step
 from pinnmpc.systems.base import System
+from pinnmpc.systems.sampling import random_pairs
 from pinnmpc.training.settings import DataSettings
 
 Scorer = Callable[[Tensor, Tensor, Tensor], Tensor]  # (t, x0, u) -> residual per point, as PINNModule provides
@@ -26,18 +26,6 @@ def lhs_box(n: int, low: Sequence[float], high: Sequence[float], seed: int) -> T
     """n Latin-hypercube points in the box, float64, reproducible by seed."""
     sampler = qmc.LatinHypercube(d=len(low), seed=seed)
     return torch.from_numpy(qmc.scale(sampler.random(n), list(low), list(high)))
-
-
-def uniform_box(n: int, low: Sequence[float], high: Sequence[float], seed: int) -> Tensor:
-    """n independent uniform points: held-out sets must not share the LHS structure."""
-    rng = np.random.default_rng(seed)
-    return torch.from_numpy(rng.uniform(low, high, size=(n, len(low))))
-
-
-def random_pairs(system: System, n: int, seed: int) -> tuple[Tensor, Tensor]:
-    """n held-out (x0, u), each uniform over the training box (seeds seed and seed + 1)."""
-    x0 = uniform_box(n, system.state_box.low, system.state_box.high, seed)
-    return x0, uniform_box(n, system.input_box.low, system.input_box.high, seed + 1)
 
 
 def collocation_box(system: System, t_high: float) -> tuple[tuple[float, ...], tuple[float, ...]]:

@@ -15,8 +15,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from pinnmpc.util.checks import SettingError
 from pinnmpc.util.io import save_json
-from pinnmpc.util.settings import SettingError
 
 Trainer = Callable[[DictConfig, Path], dict[str, Any]]  # train(cfg, run_dir) with the CLI's other arguments bound
 

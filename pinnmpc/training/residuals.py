@@ -20,9 +20,10 @@ from torch import Tensor
 from pinnmpc.surrogate.checkpoint import load_surrogate
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems.base import System
+from pinnmpc.systems.settings import job_system
 from pinnmpc.training.data import collocation_box, lhs_box
+from pinnmpc.training.job_settings import validate_residuals
 from pinnmpc.util.io import save_json
-from pinnmpc.util.settings import job_system, validate_residuals
 
 
 def scaled_residual(system: System, model: PINN, n: int, seed: int) -> tuple[Tensor, Tensor]:

@@ -25,6 +25,7 @@ from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import build_system
 from pinnmpc.training.callbacks import AtomicCheckpoint, GracefulStop, SelfLoopFigure, SurrogateFacts
 from pinnmpc.training.data import CollocationDataModule
+from pinnmpc.training.job_settings import validate_train
 from pinnmpc.training.models import build_model
 from pinnmpc.training.pipeline import base_training_time, train_in_stages
 from pinnmpc.training.progress import BudgetBar, EpochLog, TrainingClock, quiet_lightning, timer_of
@@ -39,7 +40,6 @@ from pinnmpc.training.resume import (
 )
 from pinnmpc.util.commands import command_line, override
 from pinnmpc.util.io import save_json
-from pinnmpc.util.settings import validate_train
 from pinnmpc.util.signals import StopSignal
 from pinnmpc.util.threads import use_threads
 

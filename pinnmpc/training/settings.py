@@ -1,7 +1,8 @@
 """The training settings (`module`, `data`): structured configs whose fields, types and defaults are the settings of
 PINNModule and CollocationDataModule and whose field docstrings document them; both classes take their keyword
 defaults from here. Each field is checked on its own here; what needs the system (a list of nx entries) or another
-setting (t_high against tau and t_max) is checked where that is known (pinnmpc/util/settings.py, the classes)."""
+setting (t_high against tau and t_max) is checked where that is known (pinnmpc/training/job_settings.py, the
+classes)."""
 
 from __future__ import annotations
 
@@ -74,7 +75,8 @@ class ModuleSettings:
     """Weight of the data loss at t = 0 (no effect with ic=hard)."""
     weight_anchor: float = 1000.0
     """Weight of the anchor loss (data.n_anchor > 0): squared error of x(t) - x0 in output units; at 1 it is ~1% of
-    the physics loss, 100 and 1000 measured (docs/training.md); 0: no anchors drawn at all (as data.n_anchor=0)."""
+    the physics loss, 100 and 1000 measured (docs/training-findings.md); 0: no anchors drawn at all (as
+    data.n_anchor=0)."""
     weight_robot: float = 1000.0
     """Weight of the robot-data loss (data.logs): squared error of x(t) - x0 on logged transitions in output units,
     as the anchor loss; the physics loss (weight_physics) keeps the nominal model where the logs do not reach."""
@@ -95,7 +97,7 @@ class ModuleSettings:
     family parameter chosen per step too) | bfgs (plain)."""
     hessian_dtype: str = "float32"
     """With optimizer=ssbfgs: precision of the inverse Hessian: float32 (half the memory and passes, the faster per
-    minute: docs/training.md) | float64."""
+    minute: docs/training-findings.md) | float64."""
     hessian_buffer: int = 16
     """With optimizer=ssbfgs: updates kept aside and folded into the n x n matrix together (1: every update at once;
     the iterates agree to rounding, larger passes over it less)."""
@@ -183,8 +185,8 @@ class DataSettings:
     part of the flow the controller uses, x(tau) does not depend on later residuals)."""
     n_anchor: int = 4000
     """Anchor points (t, x0, u) whose accurate x(t) comes from fine RK4 of the same ODE, fitted by the anchor loss
-    (module.weight_anchor) next to the residual; 0: off, a pure PINN (docs/training.md: PowerCube angle errors 2-3x
-    lower at the same minutes)."""
+    (module.weight_anchor) next to the residual; 0: off, a pure PINN (docs/training-findings.md: PowerCube angle
+    errors 2-3x lower at the same minutes)."""
     anchor_h: float = 1.0e-4
     """RK4 step of the anchors' reference solution, s (redrawn with the collocation points)."""
     logs: list[str] = field(default_factory=list)

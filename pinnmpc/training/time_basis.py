@@ -24,9 +24,10 @@ from torch import Tensor
 from pinnmpc.plant.integrators import n_steps, rk4_fixed
 from pinnmpc.surrogate.network import time_gates
 from pinnmpc.systems.base import System
-from pinnmpc.training.data import random_pairs
+from pinnmpc.systems.sampling import random_pairs
+from pinnmpc.systems.settings import job_system
+from pinnmpc.training.job_settings import validate_time_basis
 from pinnmpc.util.io import save_json
-from pinnmpc.util.settings import job_system, validate_time_basis
 
 
 def flow_increments(

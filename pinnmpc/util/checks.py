@@ -8,6 +8,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
+from omegaconf import DictConfig, OmegaConf
 
 Dims = Mapping[str, int]  # {"nx": ..., "nu": ...} of the system the run is for
 Check = Callable[[Any, Dims], str | None]  # None when the value is allowed, else what is allowed
@@ -193,3 +194,31 @@ def check_settings(section: str, settings: Any, checks: Mapping[str, Check]) -> 
         allowed = check(value, {})
         if allowed is not None:
             raise ValueError(f"{section}.{key}={value!r}: expected {allowed}")
+
+
+SEED = integer(0, 2**32 - 1)  # what numpy and Lightning accept
+
+
+def plain(value: Any) -> Any:
+    """Config nodes as plain lists/dicts, for the checks and the messages."""
+    if OmegaConf.is_config(value):
+        return OmegaConf.to_container(value, resolve=True)
+    return value
+
+
+def validate(cfg: DictConfig, table: Mapping[str, Check], dims: Dims) -> None:
+    """Check every key of table that cfg has; the first bad one raises SettingError naming key, value, allowed."""
+    for key, check in table.items():
+        value = plain(OmegaConf.select(cfg, key, default=_ABSENT))
+        if value is _ABSENT:
+            continue
+        allowed = check(value, dims)
+        if allowed is not None:
+            raise SettingError(f"{key}={value!r}: expected {allowed}")
+
+
+def pair(cfg: DictConfig, low_key: str, high_key: str) -> None:
+    """low <= high entry by entry, when both are given."""
+    low, high = (plain(OmegaConf.select(cfg, k, default=None)) for k in (low_key, high_key))
+    if low is not None and high is not None and any(lo > hi for lo, hi in zip(low, high)):
+        raise SettingError(f"{low_key}={low} exceeds {high_key}={high}: expected low <= high in every entry")

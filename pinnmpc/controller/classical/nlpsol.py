@@ -9,7 +9,7 @@ import casadi as ca
 import numpy as np
 
 if TYPE_CHECKING:
-    from pinnmpc.controller.casadi_ocp import CasadiOCP
+    from pinnmpc.controller.classical.ocp import CasadiOCP
 
 SUCCESS = {  # return statuses that count as converged, per plugin
     "ipopt": {"Solve_Succeeded", "Solved_To_Acceptable_Level"},

@@ -2,9 +2,9 @@
 
 Same cost, soft joint limits, bounds, horizon and zero-order hold as NMPC (pinnmpc.controller.nmpc), the same
 make_step/reset/stats interface, the same fallback (a failed solve applies the previous plan shifted) and the same
-offset-free estimator. The model is transcribed by RK4 shooting (pinnmpc.controller.casadi_ocp) or Radau IIA
-collocation (pinnmpc.controller.casadi_collocation); a real-time iteration takes one condensed Gauss-Newton step per
-sample (pinnmpc.controller.casadi_rti).
+offset-free estimator. The model is transcribed by RK4 shooting (pinnmpc.controller.classical.ocp) or Radau IIA
+collocation (pinnmpc.controller.classical.collocation); a real-time iteration takes one condensed Gauss-Newton step per
+sample (pinnmpc.controller.classical.rti).
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.controller.casadi_ocp import CasadiOCP, NlpSolver, Solution, merged
-from pinnmpc.controller.casadi_rti import RTI_STATUS, RtiSolver, rti_function, rti_solver
+from pinnmpc.controller.classical.ocp import CasadiOCP, NlpSolver, Solution, merged
+from pinnmpc.controller.classical.rti import RTI_STATUS, RtiSolver, rti_function, rti_solver
 from pinnmpc.controller.estimator import OffsetFree
 from pinnmpc.controller.nmpc import StepStats
 from pinnmpc.plant.stick_slip import coulomb_joints
@@ -260,7 +260,7 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
         problem = (system, cfg["horizon"], cfg["Q"], cfg["R"], cfg.get("R_rate"), low, high)
         limits = cfg.get("joint_limits")
         if transcription == "radau":
-            from pinnmpc.controller.casadi_collocation import RadauOCP
+            from pinnmpc.controller.classical.collocation import RadauOCP
 
             stages, intervals = cfg.get("collocation_stages", 3), cfg.get("collocation_intervals", 1)
             return RadauOCP(*problem, stages, intervals, joint_limits=limits, coulomb_width=coulomb_width)

@@ -17,8 +17,8 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from pinnmpc.controller.casadi_nlpsol import Solution
-from pinnmpc.controller.casadi_ocp import CasadiOCP
+from pinnmpc.controller.classical.nlpsol import Solution
+from pinnmpc.controller.classical.ocp import CasadiOCP
 
 RTI_STATUS = "RTI_step"  # a step whose QP was solved (a real-time iteration is unconverged by design)
 QP_TOLERANCE = 1e-6  # a QP step that violates its linearised constraints or bounds by more failed

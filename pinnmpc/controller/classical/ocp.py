@@ -2,7 +2,7 @@
 
 Stage k < H holds x_k, up_k (the input applied before it; only with an input-rate weight, so that the cost's Hessian
 stays block diagonal), u_k and z_k (the transcription's own unknowns: none here; the collocation's stage
-accelerations in pinnmpc.controller.casadi_collocation); stage H holds x_H. The constraints come in the order a
+accelerations in pinnmpc.controller.classical.collocation); stage H holds x_H. The constraints come in the order a
 structured QP solver (HPIPM) reads them, stage by stage: the dynamics x_{k+1} - F_k - d (and up_{k+1} - u_k), then
 stage k's own: x_0 - x_meas (and up_0 - u_prev) at k = 0, and the transcription's residuals. The cost is the PINN
 controller's (pinnmpc.controller.ocp.HorizonOCP): sum_{k=1..H} |x_k - xref_k|_Q^2 + sum_{k=0..H-1} |u_k|_R^2 +
@@ -25,8 +25,8 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from pinnmpc.controller.casadi_nlpsol import QUIET, SUCCESS, NlpSolver, Solution
-from pinnmpc.controller.casadi_rk4 import rk4_flow, stable_rk4_steps
+from pinnmpc.controller.classical.nlpsol import QUIET, SUCCESS, NlpSolver, Solution
+from pinnmpc.controller.classical.rk4 import rk4_flow, stable_rk4_steps
 from pinnmpc.controller.ocp import JointLimits, psd_sqrt
 from pinnmpc.systems.compiled import compile_functions
 

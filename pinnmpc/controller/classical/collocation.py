@@ -18,7 +18,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from pinnmpc.controller.casadi_ocp import Blocks, CasadiOCP, Stages, whole_number
+from pinnmpc.controller.classical.ocp import Blocks, CasadiOCP, Stages, whole_number
 from pinnmpc.controller.ocp import JointLimits
 
 NEWTON_ITERATIONS = 12  # Newton steps of the one-period map F from zero accelerations (smooth periods converge

@@ -1,0 +1,160 @@
+"""The settings of the training jobs (train, residuals, time_basis, capacity), checked before any data is drawn."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from pinnmpc.surrogate.prior import KINDS as PRIOR_KINDS
+from pinnmpc.systems.settings import system_dims, validate_system
+from pinnmpc.training.settings import section_settings
+from pinnmpc.util.checks import (
+    SEED,
+    Check,
+    SettingError,
+    boolean,
+    duration,
+    epochs,
+    integer,
+    listof,
+    one_of,
+    optional,
+    positive,
+    real,
+    text,
+    validate,
+    vector,
+)
+
+RESIDUALS: dict[str, Check] = {
+    "checkpoint": optional(text()),
+    "points": integer(1),
+    "bins": integer(1),
+    "seed": SEED,
+    "threads": integer(1),
+    "plots": boolean(),
+}
+
+
+TIME_BASIS: dict[str, Check] = {
+    "t_max": positive(),
+    "time_basis": listof(positive(), empty=True),
+    "candidates": listof(positive(), empty=True),
+    "greedy": integer(0),
+    "degree": integer(0),
+    "points": integer(1),
+    "dt": positive(),
+    "h": positive(),
+    "seed": SEED,
+    "threads": integer(1),
+    "plots": boolean(),
+    "near_target": positive(),
+}
+
+
+CAPACITY: dict[str, Check] = {
+    "t_max": positive(),
+    "points": integer(1),
+    "val_points": integer(1),
+    "h": positive(),
+    "minutes": positive(),
+    "max_steps": optional(integer(1)),
+    "lbfgs.max_iter": integer(1),
+    "lbfgs.history": integer(1),
+    "give_up_after": integer(1),
+    "seed": SEED,
+    "threads": integer(1),
+    "progress": boolean(),
+    "plots": boolean(),
+    "dtype": one_of("float32", "float64"),
+    "model.hidden": listof(integer(1)),
+    "model.prior": optional(one_of(*PRIOR_KINDS)),
+}
+
+
+TRAIN: dict[str, Check] = {
+    "t_max": positive(),
+    "seed": SEED,
+    "threads": integer(0),  # 0: every available core (a GPU host evaluating a URDF arm's rhs)
+    "ckpt_path": optional(text()),
+    "resume": boolean(),
+    "progress": boolean(),
+    "self_loop_figure.every_n_epochs": integer(0),
+    "self_loop_figure.steps": integer(2),
+    "self_loop_figure.amplitude": vector("nu"),
+    "init_from": optional(text()),
+    "physics": optional(text()),
+    "physics_prior_slope": optional(real(0.0)),
+    "model.hidden": listof(integer(1)),  # before stage.hidden, which defaults to it
+    "stage.base": optional(text()),
+    "stage.hidden": listof(integer(1)),
+    "stage.error_scale": positive(),
+    "stage.first_layer_gain": positive(),
+    "stage.last_layer_gain": real(0.0),  # 0: the stage starts exactly at the base network
+    "stage.samples": integer(1),
+    "stage.h": positive(),
+    "model.prior": optional(one_of(*PRIOR_KINDS)),
+    "module.anchor_state_weight": optional(vector("nx", positive())),  # its length; the rest: validate_module_data
+    "trainer.max_epochs": epochs(),
+    "trainer.max_time": optional(duration()),
+    "trainer.check_val_every_n_epoch": optional(integer(1)),
+}
+
+
+def validate_module_data(cfg: DictConfig) -> None:
+    """The training's module and data settings by their own checks (pinnmpc/training/settings.py), in every job
+    that trains."""
+    for section in ("module", "data"):
+        if section in cfg:
+            try:
+                section_settings(section, OmegaConf.to_container(cfg[section], resolve=True))
+            except ValueError as e:
+                raise SettingError(str(e)) from None
+
+
+def validate_residuals(cfg: DictConfig, system: Any) -> None:
+    """residuals settings: every t bin must hold a point, or its RMS would read 0."""
+    validate(cfg, RESIDUALS, system_dims(system))
+    if cfg.bins > cfg.points:
+        raise SettingError(
+            f"bins={cfg.bins} exceeds points={cfg.points}: expected bins <= points (each bin needs a point)"
+        )
+
+
+def _t_max_covers_tau(cfg: DictConfig, system: Any, why: str) -> None:
+    """t_max below the control period would leave the one time the controller asks for outside the fitted range."""
+    if cfg.t_max < system.tau:
+        raise SettingError(f"t_max={cfg.t_max} is below the system's tau={system.tau}: expected t_max >= tau ({why})")
+
+
+def validate_time_basis(cfg: DictConfig, system: Any) -> None:
+    """time_basis settings."""
+    validate(cfg, TIME_BASIS, system_dims(system))
+    _t_max_covers_tau(cfg, system, "the misfit is at tau")
+
+
+def validate_capacity(cfg: DictConfig, system: Any) -> None:
+    """capacity settings."""
+    validate(cfg, CAPACITY, system_dims(system))
+    _t_max_covers_tau(cfg, system, "the fit is at tau")
+
+
+def validate_train(cfg: DictConfig, system: Any) -> None:
+    """train settings and the system's per-joint lists, before any data is drawn (a wrong list would show only in
+    the closed loop that comes after the training)."""
+    validate_system(cfg, system)
+    validate(cfg, TRAIN, system_dims(system))
+    validate_module_data(cfg)
+    if cfg.get("init_from") and (cfg.stage.base or cfg.stage.get("split") is not None):
+        raise SettingError(
+            f"init_from={cfg.init_from} starts one network from a trained one; expected stage.base=null and "
+            f"stage.split=null with it, got {cfg.stage.base} and {cfg.stage.get('split')}"
+        )
+    staged = cfg.stage.base or cfg.stage.get("split") is not None
+    if staged and cfg.model.get("prior") is not None:  # before the base trains its share, not after
+        raise SettingError(
+            f"stage.split/stage.base with model.prior={cfg.model.prior}: a correction stage does not support a "
+            "prior; expected system.network.prior=null with it"
+        )
+    _t_max_covers_tau(cfg, system, "the network predicts x(tau)")
