@@ -13,7 +13,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from pinnmpc.cli.structured import register_configs
-from pinnmpc.controller.ocp import JointLimits
+from pinnmpc.controller.limits import JointLimits
 from pinnmpc.plant.build import make_plant, simulated_arm
 from pinnmpc.references.data import Reference
 from pinnmpc.simulation.loop import run_loop

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from types import ModuleType
 
 import numpy as np
@@ -20,9 +19,10 @@ from torch import Tensor
 
 from pinnmpc.controller import shooting
 from pinnmpc.controller.arrays import Array, cat, xp_of
+from pinnmpc.controller.limits import LIMIT_KEYS, JointLimits, as_float
 from pinnmpc.surrogate.flowmap import FlowMap, check_flow_map, numpy_path
 
-__all__ = ["LIMIT_KEYS", "Array", "HorizonOCP", "JointLimits", "cat", "psd_sqrt", "xp_of"]
+__all__ = ["LIMIT_KEYS", "Array", "HorizonOCP", "JointLimits", "cat", "psd_sqrt", "xp_of"]  # JointLimits: limits.py
 
 
 def psd_sqrt(matrix: Sequence[Sequence[float]] | Sequence[float], n: int, name: str) -> Tensor:
@@ -43,116 +43,6 @@ def psd_sqrt(matrix: Sequence[Sequence[float]] | Sequence[float], n: int, name: 
     if eig.min() < -1e-12 * max(1.0, float(eig.abs().max())):
         raise ValueError(f"{name} must be positive semidefinite; its smallest eigenvalue is {float(eig.min()):.3g}")
     return vec @ torch.diag(eig.clamp_min(0).sqrt()) @ vec.T
-
-
-LIMIT_KEYS = ("low", "high", "weight", "margin")
-OPTIONAL_LIMIT_KEYS = ("lookahead",)
-
-
-@dataclass(frozen=True)
-class JointLimits:
-    """Soft joint position limits on every predicted state (both controllers take the same ones).
-
-    Per predicted state x_i and limited joint j (positions come first in the state) the residual is
-    sqrt(weight) * (q_j - clip(q_j, low_j + margin, high_j - margin)): zero, with a zero Jacobian, while the joint
-    keeps `margin` from both limits, so the problem is unchanged until a plan comes that close; beyond, the cost
-    grows with the square of the excess. With a `lookahead` T the position checked is where the joint's velocity
-    carries it in T when it moves towards that limit, q_j + T max(v_j, 0) against the upper one and q_j + T min(v_j, 0)
-    against the lower: a plan then brakes before the limit instead of arriving at it at speed (on a robot slower to
-    brake than the model, such arrivals crossed the limits). An infinite bound is no limit on that side; a joint with
-    neither is not limited.
-    """
-
-    low: tuple[float, ...]
-    high: tuple[float, ...]
-    weight: float
-    margin: float = 0.0
-    lookahead: float = 0.0
-    """s: how far ahead the velocity towards a limit counts (0: the position alone)."""
-
-    def __post_init__(self) -> None:
-        low, high = tuple(float(v) for v in self.low), tuple(float(v) for v in self.high)
-        weight, margin, lookahead = float(self.weight), float(self.margin), float(self.lookahead)
-        if len(low) != len(high):
-            raise ValueError(f"joint_limits: low has {len(low)} entries, high {len(high)}; expected one per joint")
-        if not (math.isfinite(weight) and weight > 0):
-            raise ValueError(f"joint_limits.weight={self.weight!r}: expected a finite number > 0")
-        if not (math.isfinite(margin) and margin >= 0):
-            raise ValueError(f"joint_limits.margin={self.margin!r}: expected a finite number >= 0")
-        if not (math.isfinite(lookahead) and lookahead >= 0):
-            raise ValueError(f"joint_limits.lookahead={self.lookahead!r}: expected a finite number of seconds >= 0")
-        for j, (lo, hi) in enumerate(zip(low, high)):
-            if math.isnan(lo) or math.isnan(hi) or not lo + margin < hi - margin:
-                raise ValueError(
-                    f"joint_limits: joint {j} has low {lo:g}, high {hi:g} and margin {margin:g}; "
-                    "expected low + margin < high - margin"
-                )
-        values = {"low": low, "high": high, "weight": weight, "margin": margin, "lookahead": lookahead}
-        for name, value in values.items():
-            object.__setattr__(self, name, value)
-
-    @classmethod
-    def from_config(cls, cfg: Mapping | JointLimits | None, nq: int) -> JointLimits | None:
-        """The limits of a config node {low, high, weight, margin[, lookahead]} (None: none) for an arm with nq
-        joints."""
-        if cfg is None:
-            return None
-        if not isinstance(cfg, JointLimits):
-            missing = [k for k in LIMIT_KEYS if k not in cfg]
-            if missing:
-                raise ValueError(f"joint_limits={dict(cfg)} lacks {missing}; expected {{{', '.join(LIMIT_KEYS)}}}")
-            unknown = sorted(set(cfg) - {*LIMIT_KEYS, *OPTIONAL_LIMIT_KEYS})
-            if unknown:
-                known = ", ".join((*LIMIT_KEYS, *OPTIONAL_LIMIT_KEYS))
-                raise ValueError(f"joint_limits has unknown keys {unknown}; expected {known}")
-            cfg = cls(*(cfg[k] for k in LIMIT_KEYS), **{k: cfg[k] for k in OPTIONAL_LIMIT_KEYS if k in cfg})
-        if len(cfg.low) != nq:
-            raise ValueError(f"joint_limits has {len(cfg.low)} entries in low and high; this arm has {nq} joints")
-        return cfg
-
-    @property
-    def joints(self) -> np.ndarray:
-        """Indices of the joints with a finite limit on at least one side."""
-        return np.flatnonzero(np.isfinite(self.low) | np.isfinite(self.high))
-
-    @property
-    def inner(self) -> tuple[np.ndarray, np.ndarray]:
-        """Where the penalty starts, (low + margin, high - margin), for the limited joints."""
-        j = self.joints
-        return np.asarray(self.low)[j] + self.margin, np.asarray(self.high)[j] - self.margin
-
-    def governed(self, x_ref: np.ndarray) -> np.ndarray:
-        """Reference states (..., nx; positions first) with every limited position past (limit - margin) moved onto
-        it and its velocity there zeroed: where the arm may not follow, the tracking cost then pulls towards where the
-        penalty starts instead of against it (a reference beyond it left plans chattering at the limits, crossing
-        them from some starts); a reference inside is returned as it is."""
-        j = self.joints
-        low, high = self.inner
-        q = x_ref[..., j]
-        outside = (q < low) | (q > high)
-        if not outside.any():
-            return x_ref
-        governed = np.array(x_ref, dtype=np.float64)
-        governed[..., j] = np.clip(q, low, high)
-        nq = len(self.low)
-        governed[..., nq + j] = np.where(outside, 0.0, x_ref[..., nq + j])
-        return governed
-
-    def reached(self, states: np.ndarray) -> np.ndarray:
-        """Per problem, whether any state (B, ..., nx; positions first) lies where the penalty acts (none without a
-        limited joint)."""
-        low, high = self.inner
-        ahead_low, ahead_high = self.ahead(np.asarray(states))
-        return ((ahead_low < low) | (ahead_high > high)).reshape(ahead_low.shape[0], -1).any(-1)
-
-    def ahead(self, states: Array) -> tuple[Array, Array]:
-        """The positions the penalty checks against the lower and the upper limits (..., limited joints): each limited
-        joint's position plus lookahead times its velocity where it moves towards that limit."""
-        q = states[..., self.joints]
-        if not self.lookahead:
-            return q, q
-        v = states[..., len(self.low) + self.joints]
-        return q + self.lookahead * v.clip(max=0.0), q + self.lookahead * v.clip(min=0.0)
 
 
 class HorizonOCP:
@@ -322,12 +212,12 @@ class HorizonOCP:
         joints, lo, hi, scale = self._limits[xp_of(X)]
         ahead_low, ahead_high = self.joint_limits.ahead(X)
         below, above = ahead_low < lo, ahead_high > hi
-        rows = _as_float(below | above, scale)[..., None] * sens[..., joints, :]
+        rows = as_float(below | above, scale)[..., None] * sens[..., joints, :]
         if self.joint_limits.lookahead:  # the velocity counts where the joint moves towards the limit it is past
             velocities = self.nx // 2 + joints
             v = X[..., velocities]
             moving = (below & (v < 0)) | (above & (v > 0))
-            gain = _as_float(moving, scale * self.joint_limits.lookahead)
+            gain = as_float(moving, scale * self.joint_limits.lookahead)
             rows = rows + gain[..., None] * sens[..., velocities, :]
         return rows.reshape(*rows.shape[:-3], -1, rows.shape[-1])
 
@@ -448,8 +338,3 @@ class HorizonOCP:
                 parts.append((w_d @ (eye_u - shifted)).reshape(n_var, n_var))
             self._jac_u[xp] = cat(parts, 0)
         return self._jac_u[xp]
-
-
-def _as_float(mask: Array, scale: float) -> Array:
-    """scale where a boolean mask holds, 0 elsewhere, as floats of either namespace."""
-    return scale * (mask.to(torch.float64) if isinstance(mask, Tensor) else mask.astype(np.float64))

@@ -14,7 +14,7 @@ import math
 import time
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import Field, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -25,19 +25,30 @@ from pinnmpc.plant.settings import MujocoPlantSettings
 from pinnmpc.systems import RigidArm
 from pinnmpc.systems.urdf import locked_urdf
 
-ROBOT_KEYS = ("payload", "armature", "frictionloss")  # what a robot description may name
 PAYLOAD_KEYS = ("mass", "pos")
 PAYLOAD_BODY = "pinnmpc_payload"  # the point mass's body in the compiled model
 
 
 @dataclass(frozen=True)
 class RobotEffects:
-    """A validated robot description: what the physical arm has that the nominal model does not."""
+    """A validated robot description: what the physical arm has that the nominal model does not. A per-joint effect
+    is one field whose metadata names its unit and the MuJoCo joint attribute it sets: robot_effects checks it and
+    compile_arm applies it from there."""
 
     payload_mass: float = 0.0  # kg, a point mass fixed to the tip
     payload_pos: tuple[float, float, float] | None = None  # m, in the tip frame (None: the tip itself)
-    armature: tuple[float, ...] = ()  # kg m^2 per joint, added to the mass matrix diagonal (rotor inertia)
-    frictionloss: tuple[float, ...] = ()  # N m per joint, MuJoCo's dry friction (a soft constraint)
+    armature: tuple[float, ...] = field(default=(), metadata={"unit": "kg m^2", "joint_attribute": "armature"})
+    """per joint, added to the mass matrix diagonal (rotor inertia)"""
+    frictionloss: tuple[float, ...] = field(default=(), metadata={"unit": "N m", "joint_attribute": "frictionloss"})
+    """per joint, MuJoCo's dry friction (a soft constraint)"""
+
+
+def per_joint_effects() -> tuple[Field, ...]:
+    """RobotEffects' per-joint fields (those with a joint attribute)."""
+    return tuple(f for f in fields(RobotEffects) if "joint_attribute" in f.metadata)
+
+
+ROBOT_KEYS = ("payload", *(f.name for f in per_joint_effects()))  # what a robot description may name
 
 
 def _import_mujoco() -> Any:
@@ -91,10 +102,10 @@ def robot_effects(robot: Mapping[str, Any] | None, joints: Sequence[str]) -> Rob
     if unknown:
         raise ValueError(f"robot keys {unknown}; expected some of {list(ROBOT_KEYS)}")
     n = len(joints)
-    effects: dict[str, Any] = {"armature": (0.0,) * n, "frictionloss": (0.0,) * n}
-    for key, unit in (("armature", "kg m^2"), ("frictionloss", "N m")):
-        if robot.get(key) is not None:
-            effects[key] = _per_joint(key, robot[key], joints, unit)
+    effects: dict[str, Any] = {}
+    for f in per_joint_effects():
+        value = robot.get(f.name)
+        effects[f.name] = (0.0,) * n if value is None else _per_joint(f.name, value, joints, f.metadata["unit"])
     payload = robot.get("payload")
     if payload is not None:
         if not isinstance(payload, dict) or "mass" not in payload or any(k not in PAYLOAD_KEYS for k in payload):
@@ -170,11 +181,10 @@ def compile_arm(system: RigidArm, effects: RobotEffects = RobotEffects()) -> Any
         j.frictionloss, j.armature = 0.0, 0.0
         j.limited = mujoco.mjtLimited.mjLIMITED_FALSE
         j.actfrclimited = mujoco.mjtLimited.mjLIMITED_FALSE
-    for i, name in enumerate(system.joints):
-        if effects.armature:
-            by_name[name].armature = effects.armature[i]
-        if effects.frictionloss:
-            by_name[name].frictionloss = effects.frictionloss[i]
+    for f in per_joint_effects():
+        values = getattr(effects, f.name)
+        for i, name in enumerate(system.joints if values else ()):
+            setattr(by_name[name], f.metadata["joint_attribute"], values[i])
     if effects.payload_mass > 0:
         tip = _tip_body(system, text, last_link)
         parent = spec.body(tip)

@@ -19,7 +19,7 @@ import casadi as ca
 import numpy as np
 
 from pinnmpc.controller.classical.ocp import Blocks, CasadiOCP, Stages, whole_number
-from pinnmpc.controller.ocp import JointLimits
+from pinnmpc.controller.limits import JointLimits
 
 NEWTON_ITERATIONS = 12  # Newton steps of the one-period map F from zero accelerations (smooth periods converge
 #   to rounding in 4-10; where sign(v) friction switches inside the period it may not converge at all)

@@ -25,9 +25,11 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from pinnmpc.controller.classical.limits import limit_cost, limit_hessian
 from pinnmpc.controller.classical.nlpsol import QUIET, SUCCESS, NlpSolver, Solution
 from pinnmpc.controller.classical.rk4 import rk4_flow, stable_rk4_steps
-from pinnmpc.controller.ocp import JointLimits, psd_sqrt
+from pinnmpc.controller.limits import JointLimits
+from pinnmpc.controller.ocp import psd_sqrt
 from pinnmpc.systems.compiled import compile_functions
 
 __all__ = ["CasadiOCP", "NlpSolver", "Solution", "Stages", "merged", "rk4_flow", "stable_rk4_steps", "weight"]
@@ -111,11 +113,11 @@ class CasadiOCP:
         self.n_up = 0 if self.R_rate is None else self.nu  # the previous input as a stage variable: see the top
         self.nz = 0  # the transcription's unknowns per stage
         self.joint_limits = JointLimits.from_config(joint_limits, self.nx // 2)
-        self._limit_sides: list[tuple[int, float, float]] = []  # (joint, sign, where its penalty starts) per side
+        self.limit_sides: list[tuple[int, float, float]] = []  # (joint, sign, where its penalty starts) per side
         if self.joint_limits is not None:
             for j, lo, hi in zip(self.joint_limits.joints, *self.joint_limits.inner):
-                self._limit_sides += [(int(j), -1.0, lo)] if math.isfinite(lo) else []
-                self._limit_sides += [(int(j), 1.0, hi)] if math.isfinite(hi) else []
+                self.limit_sides += [(int(j), -1.0, lo)] if math.isfinite(lo) else []
+                self.limit_sides += [(int(j), 1.0, hi)] if math.isfinite(hi) else []
         self._prepare(system, rhs, coulomb_width, rk4_steps)
         self._rollout_cost: ca.Function | None = None  # built on first use (see rollout_cost)
         self._layout()
@@ -293,7 +295,7 @@ class CasadiOCP:
         lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", self.ng)
         ss = self._split(ws, ps)
         hess = ca.sparsify(ca.evalf(ca.hessian(self._tracking_cost(ss.xs, ss.us, ss.ref, ss.ups), ws)[0]))
-        hess = ca.triu(hess + self._limit_hessian(ss.xs)) if self._limit_sides else ca.triu(hess)
+        hess = ca.triu(hess + limit_hessian(self, ss.xs)) if self.limit_sides else ca.triu(hess)
         self.gauss_newton = ca.Function(
             "nlp_hess_l", [ws, ps, lam_f, lam_g], [lam_f * hess], ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"]
         )
@@ -309,41 +311,7 @@ class CasadiOCP:
         """The PINN controller's horizon cost on symbols (MX or SX), joint-limit penalty included; prev[k]: the input
         before u_k (for the rate weight)."""
         cost = self._tracking_cost(xs, us, ref, prev)
-        return cost + self._limit_cost(xs) if self._limit_sides else cost  # no limits: the very same expression
-
-    def _limit_cost(self, xs: list) -> Any:
-        """The soft joint limits of JointLimits on x_1..x_H: weight * (excess past limit - margin)^2 per side, the
-        velocity towards that side times the lookahead counted in."""
-        cost = 0
-        for k in range(1, self.horizon + 1):
-            for j, sign, edge in self._limit_sides:
-                cost += self.joint_limits.weight * ca.fmax(0, self._limit_excess(xs[k], j, sign, edge)) ** 2
-        return cost
-
-    def _limit_excess(self, x: Any, j: int, sign: float, edge: float) -> Any:
-        """How far joint j's checked position (JointLimits.ahead) lies past where one side's penalty starts."""
-        excess = sign * (x[j] - edge)
-        lookahead = self.joint_limits.lookahead
-        return excess + lookahead * ca.fmax(0, sign * x[self.nx // 2 + j]) if lookahead else excess
-
-    def _limit_hessian(self, xs: list) -> Any:
-        """Gauss-Newton Hessian of the limit penalty (SX, nw x nw): 2 weight g g^T for each side whose checked
-        position is past where its penalty starts, g the gradient of that position (the position's entry, and the
-        lookahead on the velocity's while the joint moves towards that side), zero elsewhere (the penalty's
-        residuals are piecewise linear)."""
-        hess = ca.SX(self.nw, self.nw)
-        lookahead, nq = self.joint_limits.lookahead, self.nx // 2
-        for k in range(1, self.horizon + 1):
-            for j, sign, edge in self._limit_sides:
-                i = int(self.ix[k, j])
-                active = 2.0 * self.joint_limits.weight * (self._limit_excess(xs[k], j, sign, edge) > 0)
-                hess[i, i] += active
-                if lookahead:
-                    iv, moving = int(self.ix[k, nq + j]), active * (sign * xs[k][nq + j] > 0)
-                    hess[i, iv] += lookahead * moving
-                    hess[iv, i] += lookahead * moving
-                    hess[iv, iv] += lookahead**2 * moving
-        return hess
+        return cost + limit_cost(self, xs) if self.limit_sides else cost  # no limits: the very same expression
 
     def _tracking_cost(self, xs: list, us: list, ref: Any, prev: list) -> Any:
         """The quadratic part of the cost: tracking, input and input-rate weights."""
@@ -404,7 +372,7 @@ class CasadiOCP:
         if plugin == "fatrop":
             opts.setdefault("structure_detection", "auto")  # stage-wise variables and constraints
             opts.setdefault("equality", [True] * self.ng)
-        if gauss_newton and plugin == "ipopt" and not self._limit_sides:  # the limits' Hessian is piecewise constant
+        if gauss_newton and plugin == "ipopt" and not self.limit_sides:  # the limits' Hessian is piecewise constant
             opts["ipopt"].setdefault("hessian_constant", "yes")
         if codegen:
             return self._compiled(plugin, opts, gauss_newton, codegen_opt, list(extra))
