@@ -8,78 +8,63 @@ from omegaconf import DictConfig
 
 from pinnmpc.simulation.settings import validate_plant
 from pinnmpc.systems.settings import system_dims
-from pinnmpc.util.checks import (
-    SEED,
-    Check,
-    SettingError,
-    boolean,
-    integer,
-    listof,
-    one_of,
-    optional,
-    pair,
-    positive,
-    real,
-    text,
-    validate,
-    vector,
-    weight,
-)
+from pinnmpc.util import checks as c
+from pinnmpc.util.checks import SEED, Check, SettingError
 
 COLLECT: dict[str, Check] = {  # conf/collect.yaml
-    "robot_time": positive(),
-    "fine": integer(1),
-    "noise_sigma": real(0.0),
-    "seed": integer(0, 2**31 // 1000 - 1),  # episode seeds are seed * 1000 + episode
-    "checkpoint": optional(text()),
-    "allow_inputs_outside_box": boolean(),
-    "threads": integer(1),
-    "progress": boolean(),
-    "out": text(),
-    "episodes.kinds": listof(one_of("random", "driven", "excitation")),
-    "excitation.duration": positive(),
-    "excitation.fraction": real(0.0, 1.0),
-    "excitation.bandwidth": positive(),
-    "excitation.damping": real(0.0),
-    "excitation.amplitude": real(0.0, 1.0),
-    "excitation.hold": integer(1),
-    "excitation.target_every": positive(),
-    "excitation.speed": real(0.0, 1.0),
-    "controller.horizon": integer(1),
-    "controller.Q": weight("nx"),
-    "controller.R": weight("nu"),
-    "controller.u_low": optional(vector("nu")),
-    "controller.u_high": optional(vector("nu")),
+    "robot_time": c.positive(),
+    "fine": c.integer(1),
+    "noise_sigma": c.real(0.0),
+    "seed": c.integer(0, 2**31 // 1000 - 1),  # episode seeds are seed * 1000 + episode
+    "checkpoint": c.optional(c.text()),
+    "allow_inputs_outside_box": c.boolean(),
+    "threads": c.integer(1),
+    "progress": c.boolean(),
+    "out": c.text(),
+    "episodes.kinds": c.listof(c.one_of("random", "driven", "excitation")),
+    "excitation.duration": c.positive(),
+    "excitation.fraction": c.real(0.0, 1.0),
+    "excitation.bandwidth": c.positive(),
+    "excitation.damping": c.real(0.0),
+    "excitation.amplitude": c.real(0.0, 1.0),
+    "excitation.hold": c.integer(1),
+    "excitation.target_every": c.positive(),
+    "excitation.speed": c.real(0.0, 1.0),
+    "controller.horizon": c.integer(1),
+    "controller.Q": c.weight("nx"),
+    "controller.R": c.weight("nu"),
+    "controller.u_low": c.optional(c.vector("nu")),
+    "controller.u_high": c.optional(c.vector("nu")),
 }
 
 
 IDENTIFY: dict[str, Check] = {  # conf/identify.yaml
-    "logs": listof(text()),
-    "out": optional(text()),
-    "overwrite": boolean(),
-    "name": optional(text()),
-    "fit.viscous": boolean(),
-    "fit.coulomb": boolean(),
-    "fit.servo_gain": boolean(),
-    "fit.payload": boolean(),
-    "fit.payload_pos": boolean(),
-    "fit.armature": boolean(),
-    "payload.pos": optional(vector(3)),
-    "payload.range": positive(),
-    "payload.link": optional(text()),
-    "max_samples": optional(integer(1)),
-    "min_speed": real(0.0),
-    "validation_periods": integer(0),
-    "rk4_steps": integer(1),
+    "logs": c.listof(c.text()),
+    "out": c.optional(c.text()),
+    "overwrite": c.boolean(),
+    "name": c.optional(c.text()),
+    "fit.viscous": c.boolean(),
+    "fit.coulomb": c.boolean(),
+    "fit.servo_gain": c.boolean(),
+    "fit.payload": c.boolean(),
+    "fit.payload_pos": c.boolean(),
+    "fit.armature": c.boolean(),
+    "payload.pos": c.optional(c.vector(3)),
+    "payload.range": c.positive(),
+    "payload.link": c.optional(c.text()),
+    "max_samples": c.optional(c.integer(1)),
+    "min_speed": c.real(0.0),
+    "validation_periods": c.integer(0),
+    "rk4_steps": c.integer(1),
     "seed": SEED,
-    "threads": integer(1),
+    "threads": c.integer(1),
 }
 
 
 def validate_collect(cfg: DictConfig, system: Any) -> None:
     """collect settings, before the robot or the controller is built."""
-    validate(cfg, COLLECT, system_dims(system))
-    pair(cfg, "controller.u_low", "controller.u_high")
+    c.validate(cfg, COLLECT, system_dims(system))
+    c.pair(cfg, "controller.u_low", "controller.u_high")
     validate_plant(cfg)
     if cfg.plant.get("kind") == "mujoco" and int(cfg.plant.substeps) % int(cfg.fine):
         raise SettingError(
@@ -90,6 +75,6 @@ def validate_collect(cfg: DictConfig, system: Any) -> None:
 
 def validate_identify(cfg: DictConfig, system: Any) -> None:
     """identify settings, before any log is read."""
-    validate(cfg, IDENTIFY, system_dims(system))
+    c.validate(cfg, IDENTIFY, system_dims(system))
     if not cfg.logs:
         raise SettingError("logs=[]: expected at least one robot log (.npz or .csv from pinnmpc.collect)")

@@ -9,71 +9,57 @@ from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.plant.settings import plant_settings
 from pinnmpc.systems.settings import system_dims
-from pinnmpc.util.checks import (
-    SEED,
-    Check,
-    SettingError,
-    boolean,
-    integer,
-    listof,
-    optional,
-    pair,
-    positive,
-    real,
-    text,
-    validate,
-    vector,
-    weight,
-)
+from pinnmpc.util import checks as c
+from pinnmpc.util.checks import SEED, Check, SettingError
 
 CLOSED_LOOP: dict[str, Check] = {
-    "checkpoint": optional(text()),
-    "tau": optional(positive()),
-    "threads": integer(1),
+    "checkpoint": c.optional(c.text()),
+    "tau": c.optional(c.positive()),
+    "threads": c.integer(1),
     "seed": SEED,
-    "noise_sigma": real(0.0),
-    "max_steps": optional(integer(1)),
-    "x0": optional(vector("nx")),
-    "progress": boolean(),
-    "plots": boolean(),
-    "animate": boolean(),
-    "long_horizon": integer(1),
-    "allow_inputs_outside_box": boolean(),
-    "failure.max_fallback_fraction": real(0.0, 1.0),
-    "reference.path": optional(text()),
-    "reference.name": text(),
+    "noise_sigma": c.real(0.0),
+    "max_steps": c.optional(c.integer(1)),
+    "x0": c.optional(c.vector("nx")),
+    "progress": c.boolean(),
+    "plots": c.boolean(),
+    "animate": c.boolean(),
+    "long_horizon": c.integer(1),
+    "allow_inputs_outside_box": c.boolean(),
+    "failure.max_fallback_fraction": c.real(0.0, 1.0),
+    "reference.path": c.optional(c.text()),
+    "reference.name": c.text(),
     # the keys every controller kind shares; the rest is each controller's own to check
-    "controller.horizon": integer(1),
-    "controller.Q": weight("nx"),
-    "controller.R": weight("nu"),
-    "controller.u_low": optional(vector("nu")),
-    "controller.u_high": optional(vector("nu")),
+    "controller.horizon": c.integer(1),
+    "controller.Q": c.weight("nx"),
+    "controller.R": c.weight("nu"),
+    "controller.u_low": c.optional(c.vector("nu")),
+    "controller.u_high": c.optional(c.vector("nu")),
 }
 
 
 ROBUSTNESS: dict[str, Check] = {
     **CLOSED_LOOP,
-    "robustness.noise_sigma": listof(real(0.0)),
-    "robustness.friction_scale": listof(real(0.0)),
-    "robustness.mass_scale": listof(positive()),
-    "robustness.bound": positive(),
+    "robustness.noise_sigma": c.listof(c.real(0.0)),
+    "robustness.friction_scale": c.listof(c.real(0.0)),
+    "robustness.mass_scale": c.listof(c.positive()),
+    "robustness.bound": c.positive(),
 }
 
 
 SELF_LOOP: dict[str, Check] = {
-    "checkpoint": optional(text()),
-    "steps": integer(2),
-    "amplitude": vector("nu"),
-    "x0": vector("nx"),
-    "threads": integer(1),
-    "plots": boolean(),
+    "checkpoint": c.optional(c.text()),
+    "steps": c.integer(2),
+    "amplitude": c.vector("nu"),
+    "x0": c.vector("nx"),
+    "threads": c.integer(1),
+    "plots": c.boolean(),
 }
 
 
 def validate_closed_loop(cfg: DictConfig, system: Any, table: Mapping[str, Check] = CLOSED_LOOP) -> None:
     """closed_loop (and robustness) settings, before the surrogate is loaded."""
-    validate(cfg, table, system_dims(system))
-    pair(cfg, "controller.u_low", "controller.u_high")
+    c.validate(cfg, table, system_dims(system))
+    c.pair(cfg, "controller.u_low", "controller.u_high")
     validate_plant(cfg)
 
 
@@ -93,4 +79,4 @@ def validate_robustness(cfg: DictConfig, system: Any) -> None:
 
 def validate_self_loop(cfg: DictConfig, system: Any) -> None:
     """self_loop settings."""
-    validate(cfg, SELF_LOOP, system_dims(system))
+    c.validate(cfg, SELF_LOOP, system_dims(system))

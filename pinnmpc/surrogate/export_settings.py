@@ -7,34 +7,26 @@ from typing import Any
 from omegaconf import DictConfig
 
 from pinnmpc.systems.settings import system_dims
-from pinnmpc.util.checks import (
-    SEED,
-    Check,
-    integer,
-    one_of,
-    optional,
-    positive,
-    text,
-    validate,
-)
+from pinnmpc.util import checks as c
+from pinnmpc.util.checks import SEED, Check
 
 EXPORT: dict[str, Check] = {  # conf/export.yaml
-    "checkpoint": optional(text()),
-    "format": one_of("casadi", "c", "onnx"),
-    "out": optional(text()),
-    "points": integer(1),
-    "jacobian_points": integer(1),
+    "checkpoint": c.optional(c.text()),
+    "format": c.one_of("casadi", "c", "onnx"),
+    "out": c.optional(c.text()),
+    "points": c.integer(1),
+    "jacobian_points": c.integer(1),
     "seed": SEED,
-    "tolerance.float64": positive(),
-    "tolerance.float32": positive(),
-    "tolerance.jacobian": positive(),
-    "compiler": text(),
-    "opt": text(),
-    "opset": integer(7),
-    "threads": integer(1),
+    "tolerance.float64": c.positive(),
+    "tolerance.float32": c.positive(),
+    "tolerance.jacobian": c.positive(),
+    "compiler": c.text(),
+    "opt": c.text(),
+    "opset": c.integer(7),
+    "threads": c.integer(1),
 }
 
 
 def validate_export(cfg: DictConfig, system: Any) -> None:
     """export settings, before the network is loaded."""
-    validate(cfg, EXPORT, system_dims(system))
+    c.validate(cfg, EXPORT, system_dims(system))

@@ -8,36 +8,26 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from pinnmpc.util.checks import (
-    Check,
-    joint_index,
-    listof,
-    optional,
-    per_state_targets,
-    positive,
-    real,
-    validate,
-    vector,
-    weight,
-)
+from pinnmpc.util import checks as c
+from pinnmpc.util.checks import Check
 
 SYSTEM: dict[str, Check] = {  # the per-joint lists of conf/system/<name>.yaml that only some jobs read
-    "system.network.periodic": listof(joint_index(), empty=True),
-    "system.network.angle_sums": listof(listof(joint_index()), empty=True),
-    "system.targets.one_step_rmse": per_state_targets(),
-    "system.targets.closed_loop_mae": per_state_targets(),
-    "system.self_loop.x0": vector("nx"),
-    "system.self_loop.amplitude": vector("nu"),
-    "system.control.Q": weight("nx"),  # the NMPC's weights: checked before a training the controller comes after
-    "system.control.R": weight("nu"),
-    "system.control.disturbance_max": optional(vector("nx", real(0.0))),
-    "system.control.rti_trust": optional(positive()),
+    "system.network.periodic": c.listof(c.joint_index(), empty=True),
+    "system.network.angle_sums": c.listof(c.listof(c.joint_index()), empty=True),
+    "system.targets.one_step_rmse": c.per_state_targets(),
+    "system.targets.closed_loop_mae": c.per_state_targets(),
+    "system.self_loop.x0": c.vector("nx"),
+    "system.self_loop.amplitude": c.vector("nu"),
+    "system.control.Q": c.weight("nx"),  # the NMPC's weights: checked before a training the controller comes after
+    "system.control.R": c.weight("nu"),
+    "system.control.disturbance_max": c.optional(c.vector("nx", c.real(0.0))),
+    "system.control.rti_trust": c.optional(c.positive()),
 }
 
 
 def validate_system(cfg: DictConfig, system: Any) -> None:
     """The system config's per-joint lists against the arm its URDF builds, for every job (a new arm's config)."""
-    validate(cfg, SYSTEM, system_dims(system))
+    c.validate(cfg, SYSTEM, system_dims(system))
 
 
 def system_dims(system: Any) -> dict[str, int]:

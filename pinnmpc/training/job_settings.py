@@ -9,96 +9,83 @@ from omegaconf import DictConfig, OmegaConf
 from pinnmpc.surrogate.prior import KINDS as PRIOR_KINDS
 from pinnmpc.systems.settings import system_dims, validate_system
 from pinnmpc.training.settings import section_settings
-from pinnmpc.util.checks import (
-    SEED,
-    Check,
-    SettingError,
-    boolean,
-    duration,
-    epochs,
-    integer,
-    listof,
-    one_of,
-    optional,
-    positive,
-    real,
-    text,
-    validate,
-    vector,
-)
+from pinnmpc.util import checks as c
+from pinnmpc.util.checks import SEED, Check, SettingError
 
 RESIDUALS: dict[str, Check] = {
-    "checkpoint": optional(text()),
-    "points": integer(1),
-    "bins": integer(1),
+    "checkpoint": c.optional(c.text()),
+    "points": c.integer(1),
+    "bins": c.integer(1),
     "seed": SEED,
-    "threads": integer(1),
-    "plots": boolean(),
+    "threads": c.integer(1),
+    "plots": c.boolean(),
 }
 
 
 TIME_BASIS: dict[str, Check] = {
-    "t_max": positive(),
-    "time_basis": listof(positive(), empty=True),
-    "candidates": listof(positive(), empty=True),
-    "greedy": integer(0),
-    "degree": integer(0),
-    "points": integer(1),
-    "dt": positive(),
-    "h": positive(),
+    "t_max": c.positive(),
+    "time_basis": c.listof(c.positive(), empty=True),
+    "candidates": c.listof(c.positive(), empty=True),
+    "greedy": c.integer(0),
+    "degree": c.integer(0),
+    "points": c.integer(1),
+    "dt": c.positive(),
+    "h": c.positive(),
     "seed": SEED,
-    "threads": integer(1),
-    "plots": boolean(),
-    "near_target": positive(),
+    "threads": c.integer(1),
+    "plots": c.boolean(),
+    "near_target": c.positive(),
 }
 
 
 CAPACITY: dict[str, Check] = {
-    "t_max": positive(),
-    "points": integer(1),
-    "val_points": integer(1),
-    "h": positive(),
-    "minutes": positive(),
-    "max_steps": optional(integer(1)),
-    "lbfgs.max_iter": integer(1),
-    "lbfgs.history": integer(1),
-    "give_up_after": integer(1),
+    "t_max": c.positive(),
+    "points": c.integer(1),
+    "val_points": c.integer(1),
+    "h": c.positive(),
+    "minutes": c.positive(),
+    "max_steps": c.optional(c.integer(1)),
+    "lbfgs.max_iter": c.integer(1),
+    "lbfgs.history": c.integer(1),
+    "give_up_after": c.integer(1),
     "seed": SEED,
-    "threads": integer(1),
-    "progress": boolean(),
-    "plots": boolean(),
-    "dtype": one_of("float32", "float64"),
-    "model.hidden": listof(integer(1)),
-    "model.prior": optional(one_of(*PRIOR_KINDS)),
+    "threads": c.integer(1),
+    "progress": c.boolean(),
+    "plots": c.boolean(),
+    "dtype": c.one_of("float32", "float64"),
+    "model.hidden": c.listof(c.integer(1)),
+    "model.prior": c.optional(c.one_of(*PRIOR_KINDS)),
 }
 
 
 TRAIN: dict[str, Check] = {
-    "t_max": positive(),
+    "t_max": c.positive(),
     "seed": SEED,
-    "threads": integer(0),  # 0: every available core (a GPU host evaluating a URDF arm's rhs)
-    "ckpt_path": optional(text()),
-    "resume": boolean(),
-    "progress": boolean(),
-    "self_loop_figure.every_n_epochs": integer(0),
-    "self_loop_figure.steps": integer(2),
-    "self_loop_figure.amplitude": vector("nu"),
-    "init_from": optional(text()),
-    "physics": optional(text()),
-    "physics_prior_slope": optional(real(0.0)),
-    "model.hidden": listof(integer(1)),  # before stage.hidden, which defaults to it
-    "stage.base": optional(text()),
-    "stage.hidden": listof(integer(1)),
-    "stage.error_scale": positive(),
-    "stage.first_layer_gain": positive(),
-    "stage.last_layer_gain": real(0.0),  # 0: the stage starts exactly at the base network
-    "stage.samples": integer(1),
-    "stage.h": positive(),
-    "model.prior": optional(one_of(*PRIOR_KINDS)),
-    "module.anchor_state_weight": optional(vector("nx", positive())),  # its length; the rest: validate_module_data
-    "trainer.max_epochs": epochs(),
-    "trainer.max_time": optional(duration()),
-    "trainer.check_val_every_n_epoch": optional(integer(1)),
+    "threads": c.integer(0),  # 0: every available core (a GPU host evaluating a URDF arm's rhs)
+    "ckpt_path": c.optional(c.text()),
+    "resume": c.boolean(),
+    "progress": c.boolean(),
+    "self_loop_figure.every_n_epochs": c.integer(0),
+    "self_loop_figure.steps": c.integer(2),
+    "self_loop_figure.amplitude": c.vector("nu"),
+    "init_from": c.optional(c.text()),
+    "physics": c.optional(c.text()),
+    "physics_prior_slope": c.optional(c.real(0.0)),
+    "model.hidden": c.listof(c.integer(1)),  # before stage.hidden, which defaults to it
+    "stage.base": c.optional(c.text()),
+    "stage.hidden": c.listof(c.integer(1)),
+    "stage.error_scale": c.positive(),
+    "stage.first_layer_gain": c.positive(),
+    "stage.last_layer_gain": c.real(0.0),  # 0: the stage starts exactly at the base network
+    "stage.samples": c.integer(1),
+    "stage.h": c.positive(),
+    "model.prior": c.optional(c.one_of(*PRIOR_KINDS)),
+    "module.anchor_state_weight": c.optional(
+        c.vector("nx", c.positive())
+    ),  # its length; the rest: validate_module_data
+    "trainer.max_epochs": c.epochs(),
+    "trainer.max_time": c.optional(c.duration()),
+    "trainer.check_val_every_n_epoch": c.optional(c.integer(1)),
 }
 
 
@@ -115,7 +102,7 @@ def validate_module_data(cfg: DictConfig) -> None:
 
 def validate_residuals(cfg: DictConfig, system: Any) -> None:
     """residuals settings: every t bin must hold a point, or its RMS would read 0."""
-    validate(cfg, RESIDUALS, system_dims(system))
+    c.validate(cfg, RESIDUALS, system_dims(system))
     if cfg.bins > cfg.points:
         raise SettingError(
             f"bins={cfg.bins} exceeds points={cfg.points}: expected bins <= points (each bin needs a point)"
@@ -130,13 +117,13 @@ def _t_max_covers_tau(cfg: DictConfig, system: Any, why: str) -> None:
 
 def validate_time_basis(cfg: DictConfig, system: Any) -> None:
     """time_basis settings."""
-    validate(cfg, TIME_BASIS, system_dims(system))
+    c.validate(cfg, TIME_BASIS, system_dims(system))
     _t_max_covers_tau(cfg, system, "the misfit is at tau")
 
 
 def validate_capacity(cfg: DictConfig, system: Any) -> None:
     """capacity settings."""
-    validate(cfg, CAPACITY, system_dims(system))
+    c.validate(cfg, CAPACITY, system_dims(system))
     _t_max_covers_tau(cfg, system, "the fit is at tau")
 
 
@@ -144,7 +131,7 @@ def validate_train(cfg: DictConfig, system: Any) -> None:
     """train settings and the system's per-joint lists, before any data is drawn (a wrong list would show only in
     the closed loop that comes after the training)."""
     validate_system(cfg, system)
-    validate(cfg, TRAIN, system_dims(system))
+    c.validate(cfg, TRAIN, system_dims(system))
     validate_module_data(cfg)
     if cfg.get("init_from") and (cfg.stage.base or cfg.stage.get("split") is not None):
         raise SettingError(
