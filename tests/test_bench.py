@@ -48,7 +48,7 @@ TINY = [
     "scaling.step_repeats=2",
     "scaling.step_warmup=1",
 ]
-SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical")
+SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "kinds")
 SECTIONS_OFF = [f"{s}.enabled=false" for s in SECTIONS]
 
 

@@ -218,6 +218,6 @@ def test_hpipm_and_qrqp_take_the_same_step(base_cfg: Callable[..., dict], system
 )
 def test_bad_settings_name_the_key(base_cfg: Callable[..., dict], systems: dict, key: str, value: Any) -> None:
     cfg = base_cfg("planar3", **{"transcription": "radau", "codegen": False, key: value})
-    with pytest.raises(ValueError, match=rf"^controller\.{key}={value!r}; expected") as err:
+    with pytest.raises(ValueError, match=rf"^controller\.{key}={value!r}: expected") as err:
         build_casadi_nmpc(cfg, systems["planar3"])
     assert "\n" not in str(err.value)

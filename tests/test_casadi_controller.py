@@ -199,10 +199,12 @@ def test_bad_settings_are_rejected(base_cfg: Callable[..., dict], systems: dict)
         build_casadi_nmpc(base_cfg("powercube", codegen_opt="-O9"), s)
     with pytest.raises(ValueError, match="x_ref must cover the horizon"):
         build_casadi_nmpc(base_cfg("powercube"), s).make_step(np.zeros(4), np.zeros((3, 4)))
-    with pytest.raises(ValueError, match="exceeds upper bound"):
+    with pytest.raises(ValueError, match="controller.u_low=.* exceeds controller.u_high"):
         build_casadi_nmpc(base_cfg("powercube", u_low=[0.1, 0.1], u_high=[0.0, 0.0]), s)
+    with pytest.raises(ValueError, match=r"controller.qpsoll: not a setting here; expected one of \[.*'qpsol'"):
+        build_casadi_nmpc(base_cfg("powercube", qpsoll="hpipm"), s)  # a misspelt key is refused, not ignored
     for key, value in (("horizon", 2.7), ("rk4_steps", 2.5), ("rk4_steps", "abc"), ("horizon", True)):
-        with pytest.raises(ValueError, match=f"controller.{key}={value!r}; expected a whole number"):
+        with pytest.raises(ValueError, match=f"controller.{key}={value!r}: expected a whole number"):
             build_casadi_nmpc(base_cfg("powercube", **{key: value}), s)  # never silently truncated
 
 

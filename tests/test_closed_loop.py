@@ -58,7 +58,7 @@ def test_paper_reference_short_run(make_cfg, tmp_path, paper_reference_dir):
 
 def test_fast_solvers_drive_the_same_closed_loop(make_cfg, tmp_path):
     common = ["max_steps=20", "progress=false", "plots=false", "reference.name=reversals"]
-    common += ["controller.solvers.lifted_gauss_newton.rti=false"]  # every sample solved to convergence
+    common += ["controller.rti=false"]  # every sample solved to convergence
     runs = {}
     for solver in ("lifted_gauss_newton", "gauss_newton"):
         m = run_closed_loop(make_cfg("closed_loop", [*common, f"controller.solver={solver}"]), tmp_path / solver)
@@ -74,9 +74,9 @@ def test_real_time_iteration_tracks_like_the_full_solve(make_cfg, tmp_path):
     # rti: after a first full solve, one lifted step per sample from the last plan's states, never a fallback;
     # on the built-in reference it tracks within 2x of the converged solves (measured: 1.1x and 1.5x)
     common = ["progress=false", "plots=false"]
-    converged = "controller.solvers.lifted_gauss_newton.rti=false"
+    converged = "controller.rti=false"
     full = run_closed_loop(make_cfg("closed_loop", [*common, converged]), tmp_path / "full")
-    rti = run_closed_loop(make_cfg("closed_loop", [*common, "controller.solvers.lifted_gauss_newton.rti=true"]),
+    rti = run_closed_loop(make_cfg("closed_loop", [*common, "controller.rti=true"]),
                           tmp_path / "rti")  # fmt: skip
     assert rti["status"] == "ok" and rti["fallbacks"] == 0 and rti["not_converged"] == rti["steps"] - 1
     assert rti["iterations"]["max"] > 1 and rti["iterations"]["mean"] < 1.1  # the first solve alone is full
@@ -176,7 +176,7 @@ def test_exact_values_track_like_the_classical_controller(make_cfg, tmp_path):
     classical = run_closed_loop(
         make_cfg("closed_loop", [*common, "controller=casadi", "controller.rti=false"]), tmp_path / "classical"
     )
-    one = [*common, "controller=exact", "controller.solvers.lifted_gauss_newton.rti=true"]  # one step per sample
+    one = [*common, "controller=exact", "controller.rti=true"]  # one step per sample
     rti = run_closed_loop(make_cfg("closed_loop", one), tmp_path / "rti")
     two = [*one, "controller.solvers.lifted_gauss_newton.rti_steps=2"]
     rti2 = run_closed_loop(make_cfg("closed_loop", two), tmp_path / "rti2")
@@ -208,10 +208,10 @@ def test_the_networks_prior_alone_predicts_where_asked_and_the_network_adds_to_i
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        (["controller.model=exact"], "controller.model='exact'; expected one of .'surrogate', 'exact_values', 'prior'"),
+        (["controller.model=exact"], "controller.model='exact': expected one of surrogate, exact_values, prior"),
         (["controller.model=prior"], "controller.model=prior needs a network with a physics prior .model.prior.; this"),
         (["controller.model=exact_values", "controller.solver=rmsprop"], "needs a Gauss-Newton solver"),
-        (["controller.model=exact_values", "controller.exact_rk4_steps=0"], "controller.exact_rk4_steps=0; expected"),
+        (["controller.model=exact_values", "controller.exact_rk4_steps=0"], "controller.exact_rk4_steps=0: expected"),
         (["controller.solvers.lifted_gauss_newton.rti_steps=0"], "rti_steps=0; expected a whole number >= 1"),
     ],
 )
@@ -225,7 +225,7 @@ def test_bad_prediction_model_settings_are_one_clear_error(make_cfg, tmp_path, o
 def test_controller_exact_is_a_real_time_iteration_where_the_arm_allows(make_cfg, system, real_time):
     cfg = make_cfg("closed_loop", [f"system={system}", "controller=exact"])
     assert cfg.controller.model == "exact_values" and cfg.controller.solver == "lifted_gauss_newton"
-    assert cfg.controller.solvers.lifted_gauss_newton.rti is real_time  # system.control.real_time (default true)
+    assert cfg.controller.rti is real_time  # system.control.real_time (default true)
 
 
 def test_metrics_say_when_the_arm_saturates_or_passes_a_joint_limit(make_cfg, tmp_path):

@@ -33,6 +33,7 @@ from pinnmpc.controller import (
 from pinnmpc.controller.build import build_nmpc, prediction_model
 from pinnmpc.controller.estimator import OffsetFree
 from pinnmpc.controller.ocp import psd_sqrt
+from pinnmpc.controller.settings import NetworkSettings
 from pinnmpc.controller.shooting import chain_solve, linearise
 from pinnmpc.surrogate import SHIPPED, Surrogate, load_surrogate
 from pinnmpc.surrogate.network import PINN
@@ -438,7 +439,7 @@ def test_lifted_solver_gives_inexact_jacobians_more_lifted_steps(s: Surrogate) -
     # converges only because lifted_max_iter_inexact (20) applies to such a model
     from pinnmpc import load_system
 
-    cfg = {"model": "exact_values", "solver": "lifted_gauss_newton", "exact_rk4_steps": None}
+    cfg = NetworkSettings(Q=[1.0, 1.0, 0.0, 0.0], R=[1e-6, 1e-6], model="exact_values")
     model = prediction_model(cfg, s, load_system("powercube"))
     H, ocp = 5, HorizonOCP(model, 5, [1.0, 1.0, 0.0, 0.0], [1e-6, 1e-6])
     x0, U_true = np.array([0.3, -0.2, 0.1, 0.0]), np.random.default_rng(31).uniform(-0.4, 0.4, (H, NU))
@@ -817,7 +818,7 @@ def test_the_real_time_iteration_is_the_default_for_networks_of_the_model(
     trust bound (controller.rti_trust), which then solves the samples whose step goes beyond it fully, else the
     converged solve."""
     surrogate = load_surrogate(SHIPPED.parent / f"{network}.pt")
-    cfg = _config(**{"solvers.lifted_gauss_newton.rti": rti, "rti_trust": arm_trust})
+    cfg = _config(**{"rti": rti, "rti_trust": arm_trust})
     cfg.Q, cfg.R, cfg.disturbance.max_abs = [1.0] * 6, [1e-4] * 3, None  # planar3's sizes
     nmpc = build_nmpc(cfg, surrogate)
     assert nmpc.solver.rti is real_time and nmpc.describe()["real_time"] is real_time
@@ -831,7 +832,7 @@ def test_a_bad_trust_bound_is_one_clear_error(trust) -> None:
         make_solver("lifted_gauss_newton", rti_trust=trust)
     cfg = _config(rti_trust=trust)  # the arm's bound: refused even for a network it would not apply to
     cfg.Q, cfg.R, cfg.disturbance.max_abs = [1.0] * 6, [1e-4] * 3, None  # planar3's sizes
-    with pytest.raises(ValueError, match=r"controller.rti_trust=.* \(system.control.rti_trust\); expected a fraction"):
+    with pytest.raises(ValueError, match=r"controller.rti_trust=.*: expected a fraction of the input box's width"):
         build_nmpc(cfg, load_surrogate(SHIPPED.parent / "planar3.pt"))
 
 
@@ -942,18 +943,18 @@ def test_build_nmpc_with_overrides(s: Surrogate) -> None:
 @pytest.mark.parametrize(
     ("overrides", "fragment"),
     [
-        ({"Q": [1.0, 1.0, 0.0]}, "Q must be 4"),
-        ({"R": [1.0, 1.0, 1.0]}, "R must be 2"),
-        ({"u_low": [0.3, -0.5], "u_high": [0.2, 0.5]}, "exceeds upper bound"),
+        ({"Q": [1.0, 1.0, 0.0]}, r"controller.Q=\[1.0, 1.0, 0.0\]: expected 4 finite numbers >= 0"),
+        ({"R": [1.0, 1.0, 1.0]}, r"controller.R=\[1.0, 1.0, 1.0\]: expected 2 finite numbers >= 0"),
+        ({"u_low": [0.3, -0.5], "u_high": [0.2, 0.5]}, "controller.u_low=.* exceeds controller.u_high"),
         ({"u_low": [-0.5], "u_high": [0.5]}, "2 entries"),
-        ({"solver": "adam"}, "unknown solver 'adam'"),
-        ({"horizon": 0}, "horizon=0; expected a whole number >= 1"),
-        ({"horizon": 2.5}, "horizon=2.5; expected a whole number >= 1"),
-        ({"horizon": True}, "horizon=True; expected a whole number >= 1"),
-        ({"Q": None}, "Q=None; expected 4 diagonal entries"),
-        ({"u_low": [float("nan")] * 2}, "u_low=\\[nan, nan\\].*expected finite numbers"),
-        ({"u_high": [float("inf")] * 2}, "u_high=\\[inf, inf\\]; expected finite numbers"),
-        ({"horizn": 5}, "unknown keys \\['horizn'\\]"),
+        ({"solver": "adam"}, "controller.solver='adam': expected one of gauss_newton, lifted_gauss_newton"),
+        ({"horizon": 0}, "horizon=0: expected a whole number >= 1"),
+        ({"horizon": 2.5}, "horizon=2.5: expected a whole number >= 1"),
+        ({"horizon": True}, "horizon=True: expected a whole number >= 1"),
+        ({"Q": None}, "Q=None: expected 4 finite numbers >= 0"),
+        ({"u_low": [float("nan")] * 2}, "u_low=\\[nan, nan\\].*each a finite number"),
+        ({"u_high": [float("inf")] * 2}, "u_high=\\[inf, inf\\].*each a finite number"),
+        ({"horizn": 5}, "controller.horizn: not a setting here"),
         ({"solvers.lifted_gauss_newton.max_iters": 3}, "max_iters"),
         ({"model": "exact_values"}, "needs the system's true model \\(build_nmpc\\(..., system=...\\)\\)"),
     ],
@@ -966,7 +967,7 @@ def test_build_nmpc_rejects_bad_config(s: Surrogate, overrides: dict, fragment: 
 def test_build_nmpc_names_a_missing_key(s: Surrogate) -> None:
     cfg = _config()
     del cfg["Q"]
-    with pytest.raises(ValueError, match="the controller config lacks \\['Q'\\]"):
+    with pytest.raises(ValueError, match="controller.Q is missing: expected it set"):
         build_nmpc(cfg, s)
 
 

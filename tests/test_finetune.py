@@ -119,7 +119,7 @@ def test_a_warm_solve_of_the_fine_tuned_network_stays_within_its_iteration_cap(m
     real-time iteration solves such samples fully too, beyond its trust bound): its learnt stick-slip makes
     Gauss-Newton crawl, so a cold solve runs to lifted_max_iter + max_iter; a warm-started one stops its fallback at
     warm_max_iter."""
-    converged = "controller.solvers.lifted_gauss_newton.rti=false"
+    converged = "controller.rti=false"
     cfg = make_cfg("closed_loop", ["system=planar3", "controller.disturbance.gain=0", converged])
     surrogate = load_surrogate("pinnmpc/checkpoints/planar3-lab.pt")
     nmpc = build_nmpc(cfg.controller, surrogate, load_system("planar3"))

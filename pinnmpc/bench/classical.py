@@ -10,7 +10,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.bench.loops import loop_row, mode, run_controller
-from pinnmpc.controller.build import GAUSS_NEWTON
+from pinnmpc.controller.settings import GAUSS_NEWTON
 from pinnmpc.references.files import Reference
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.systems.base import System
@@ -92,7 +92,7 @@ def pinn_variants(
     out = []
     if rti and lifted:
         other = ("_converged", ", converged") if fast else ("_rti", ", real-time iteration")
-        out.append((*other, {"solvers": {solver: {"rti": not fast}}}))
+        out.append((*other, {"rti": not fast}))
     if cfg.classical.get("exact_values", False):
         for real_time in (False, True) if rti and lifted else (False,):
             suffix, tail = (
@@ -101,7 +101,7 @@ def pinn_variants(
                 else ("_exact_values", f", {EXACT}")
             )
             steps = {"rti_steps": int(cfg.system.control.get("rti_steps", 1))} if real_time else {}
-            out.append((suffix, tail, {"model": "exact_values", "solvers": {solver: {"rti": real_time, **steps}}}))
+            out.append((suffix, tail, {"model": "exact_values", "rti": real_time, "solvers": {solver: steps}}))
     if prior and solver in GAUSS_NEWTON and cfg.classical.get("prior_alone", False):
         out.append(("_prior", f", {PRIOR}", {"model": "prior"}))
     return out

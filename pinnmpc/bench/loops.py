@@ -23,8 +23,8 @@ from pinnmpc.bench.common import (
 )
 from pinnmpc.bench.timing import as_numpy
 from pinnmpc.controller.arrays import Array
+from pinnmpc.controller.base import Controller
 from pinnmpc.controller.build import build_nmpc
-from pinnmpc.controller.nmpc import Controller
 from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
 from pinnmpc.plant.build import simulated_arm
 from pinnmpc.references.files import Reference
@@ -138,7 +138,7 @@ def _loop_row(
         "over_period": int(m["over_period"]),  # solves longer than the control period (wall time)
         "solver": str(m["solver"]),
         "disturbance_gain": float(m["disturbance_gain"]),
-        "prediction": str(m["prediction"]),
+        "prediction": str(m.get("prediction") or "none"),  # what predicts, where the controller says
         "real_time": bool(m.get("real_time")),  # one step per sample (a real-time iteration), not converged
         "status": m["status"],
         "steps": int(m["steps"]),

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from pinnmpc.controller.nmpc import Controller
+from pinnmpc.controller.base import Controller
 from pinnmpc.plant.base import Plant, PlantError
 from pinnmpc.references import Reference
 

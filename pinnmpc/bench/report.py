@@ -7,6 +7,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from pinnmpc.bench.common import status_suffix
+from pinnmpc.bench.kinds import md_kinds
 from pinnmpc.bench.loops import mode
 from pinnmpc.bench.robot import md_robot
 from pinnmpc.util.tables import fmt, md_table
@@ -406,6 +407,8 @@ def render_markdown(result: dict[str, Any]) -> str:
         parts.append(md_classical(result["classical"], system, plant))
     if "robot" in result:
         parts.append(md_robot(result["robot"], system))
+    if "kinds" in result:
+        parts.append(md_kinds(result["kinds"], names))
     elapsed = ", ".join(f"{k} {v:.1f} s" for k, v in result["elapsed_s"].items())
     parts += [f"Wall time per section: {elapsed}.", ""]
     return "\n".join(parts)

@@ -40,7 +40,7 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
 }
 
 
-BENCH_SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "robot")
+BENCH_SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "robot", "kinds")
 
 
 def validate_bench(cfg: DictConfig, system: Any) -> None:

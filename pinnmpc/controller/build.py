@@ -4,65 +4,38 @@ from __future__ import annotations
 
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
-
+from pinnmpc.controller.base import checked_settings
 from pinnmpc.controller.nmpc import NMPC
 from pinnmpc.controller.ocp import HorizonOCP
+from pinnmpc.controller.settings import NetworkSettings
 from pinnmpc.controller.solvers import make_solver
-from pinnmpc.controller.solvers.lifted import valid_trust
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.surrogate.flowmap import CompiledRK4, ExactValues, FlowMap, PriorOnly
 from pinnmpc.systems.base import System
-
-MODELS = ("surrogate", "exact_values", "prior")  # controller.model: what the OCP predicts with
-GAUSS_NEWTON = ("lifted_gauss_newton", "gauss_newton")  # the solvers that take a numpy model's Jacobians
-
-REQUIRED = ("horizon", "Q", "R")  # what every NMPC config names
-OPTIONAL = {  # what a Python caller may leave out (conf/controller/nmpc.yaml sets all of it for the CLIs)
-    "R_rate": None,
-    "u_low": None,
-    "u_high": None,
-    "warm_start": True,
-    "solver": "lifted_gauss_newton",
-    "solvers": {},
-    "disturbance": {},
-    "joint_limits": None,
-    "model": "surrogate",
-    "exact_rk4_steps": None,
-    "rti_trust": None,
-}
+from pinnmpc.systems.settings import system_dims
 
 
-def prediction_model(cfg: dict[str, Any], surrogate: Surrogate, system: System | None) -> FlowMap:
+def prediction_model(cfg: NetworkSettings, surrogate: Surrogate, system: System | None) -> FlowMap:
     """What the OCP predicts with (controller.model): the surrogate alone (the PINN replaces integration), the
     true model's values, integrated by compiled RK4, with the surrogate's Jacobians (plans obey the true dynamics),
     or the surrogate's physics prior alone (what the network adds, measured)."""
-    kind = cfg["model"]
-    if kind not in MODELS:
-        raise ValueError(f"controller.model={kind!r}; expected one of {list(MODELS)}")
+    kind = cfg.model
     if kind == "surrogate":
         return surrogate
-    if cfg["solver"] not in GAUSS_NEWTON:
-        raise ValueError(
-            f"controller.model={kind} needs a Gauss-Newton solver {list(GAUSS_NEWTON)} (its values are numpy, "
-            f"not differentiable by torch), got controller.solver={cfg['solver']!r}"
-        )
     if kind == "prior":
         return PriorOnly(surrogate)
     if system is None:
         raise ValueError("controller.model=exact_values needs the system's true model (build_nmpc(..., system=...))")
-    steps = cfg["exact_rk4_steps"]
+    steps = cfg.exact_rk4_steps
     if steps is None:
         from pinnmpc.controller.classical.ocp import stable_rk4_steps
 
         steps = stable_rk4_steps(system, surrogate.tau)
-    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"controller.exact_rk4_steps={steps!r}; expected a whole number >= 1 or null (automatic)")
     return ExactValues(surrogate, CompiledRK4(system, surrogate.tau, surrogate.tau / steps))
 
 
 def real_time_default(surrogate: Surrogate, trust: float | None = None) -> bool:
-    """controller.solvers.lifted_gauss_newton.rti=null: the real-time iteration (one lifted step per sample) for a
+    """controller.rti=null: the real-time iteration (one lifted step per sample) for a
     network trained on the model alone, whose flow is smooth: it tracks within 1.1x of the converged solve at a
     fraction of its time (docs/results.md), and for one fine-tuned on robot logs against an identified model's
     residual and anchors (`physics` in its meta), which keep its flow near that smooth. A network fine-tuned on the
@@ -94,43 +67,28 @@ def notch_default(surrogate: Surrogate) -> bool:
 
 
 def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> NMPC:
-    """NMPC from conf/controller: horizon, weights, soft joint limits, bounds (null: the surrogate's input box),
-    solver, prediction model (exact_values needs the system)."""
-    if isinstance(cfg, DictConfig):
-        cfg = OmegaConf.to_container(cfg, resolve=True)  # plain values: config objects are slow in hot loops
-    missing = [key for key in REQUIRED if key not in cfg]
-    unknown = sorted(set(cfg) - set(REQUIRED) - set(OPTIONAL) - {"kind"})
-    if missing or unknown:
-        what = f"lacks {missing}" if missing else f"has unknown keys {unknown}"
-        raise ValueError(f"the controller config {what}; expected {list(REQUIRED)} and any of {list(OPTIONAL)}")
-    cfg = {**OPTIONAL, **cfg}
-    trust = cfg["rti_trust"]
-    if trust is not None and not valid_trust(trust):
-        raise ValueError(
-            f"controller.rti_trust={trust!r} (system.control.rti_trust); expected a fraction of the input box's "
-            "width > 0 or null"
-        )
-    options = dict((cfg["solvers"] or {}).get(cfg["solver"]) or {})
-    if cfg["solver"] == "lifted_gauss_newton":
+    """NMPC from its settings (NetworkSettings, or a config node or dict of them: conf/controller/nmpc.yaml), each
+    checked; what a Python caller leaves out takes NetworkSettings' default, as the commands do. Input bounds null:
+    the surrogate's input box; model=exact_values needs the system."""
+    cfg = checked_settings(NetworkSettings, cfg, system_dims(surrogate))
+    assert isinstance(cfg, NetworkSettings)
+    options = dict((cfg.solvers or {}).get(cfg.solver) or {})
+    if cfg.solver == "lifted_gauss_newton":
         if options.get("rti_trust") is None:
-            options["rti_trust"] = trust_default(surrogate, cfg["rti_trust"])
-        if options.get("rti") is None:
-            options["rti"] = real_time_default(surrogate, options["rti_trust"])
-    solver = make_solver(cfg["solver"], **options)
-    ocp = HorizonOCP(
-        prediction_model(cfg, surrogate, system), cfg["horizon"], cfg["Q"], cfg["R"], cfg["R_rate"], cfg["joint_limits"]
-    )
-    low = surrogate.input_box.low if cfg["u_low"] is None else cfg["u_low"]
-    high = surrogate.input_box.high if cfg["u_high"] is None else cfg["u_high"]
-    d = cfg["disturbance"] or {}
-    notch = d.get("notch")
+            options["rti_trust"] = trust_default(surrogate, cfg.rti_trust)
+        options["rti"] = real_time_default(surrogate, options["rti_trust"]) if cfg.rti is None else cfg.rti
+    solver = make_solver(cfg.solver, **options)
+    ocp = HorizonOCP(prediction_model(cfg, surrogate, system), cfg.horizon, cfg.Q, cfg.R, cfg.R_rate, cfg.joint_limits)
+    low = surrogate.input_box.low if cfg.u_low is None else cfg.u_low
+    high = surrogate.input_box.high if cfg.u_high is None else cfg.u_high
+    d = cfg.disturbance
     return NMPC(
         ocp,
         solver,
         low,
         high,
-        warm_start=cfg["warm_start"],
-        disturbance_gain=float(d.get("gain", 0.0)),
-        disturbance_max=d.get("max_abs"),
-        disturbance_notch=notch_default(surrogate) if notch is None else notch,
+        warm_start=cfg.warm_start,
+        disturbance_gain=float(d.gain),
+        disturbance_max=d.max_abs,
+        disturbance_notch=notch_default(surrogate) if d.notch is None else d.notch,
     )

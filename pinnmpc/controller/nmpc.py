@@ -5,56 +5,19 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from pinnmpc.controller.base import Controller, StepStats
 from pinnmpc.controller.estimator import OffsetFree
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
 from pinnmpc.surrogate.checkpoint import Surrogate
 
-
-@dataclass
-class StepStats:
-    """What one OCP solve did, for metrics.json and debugging."""
-
-    time_s: float
-    iterations: int
-    cost: float
-    converged: bool
-    fallback: bool
-
-
-class Controller(Protocol):
-    """What the closed loop needs of a controller (do-mpc style): make_step(x, x_ref) -> u and its statistics."""
-
-    horizon: int
-    stats: list[StepStats]
-
-    @property
-    def low(self) -> Any:
-        """Input lower bounds (nu,)."""
-        ...
-
-    @property
-    def high(self) -> Any:
-        """Input upper bounds (nu,)."""
-        ...
-
-    def reset(self) -> None:
-        """Forget warm starts and statistics: the start of a new run."""
-        ...
-
-    def make_step(self, x: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
-        """Input to apply now for the measured state x (nx,) and the next H reference states (H, nx)."""
-        ...
-
-    def describe(self) -> dict[str, Any]:
-        """solver name and disturbance_gain, for metrics.json."""
-        ...
+__all__ = ["NMPC", "Controller", "StepStats"]  # the shared interface lives in controller/base.py
 
 
 @dataclass

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from pinnmpc.controller.nmpc import Controller
+from pinnmpc.controller.base import Controller
 from pinnmpc.plant.base import Plant, PlantError
 from pinnmpc.references.data import Reference
 from pinnmpc.simulation.faults import MeasurementGuard, NoisySensor, Predict, Sensor

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from pinnmpc.controller.nmpc import Controller
+from pinnmpc.controller.base import Controller
 from pinnmpc.plant.base import Plant
 from pinnmpc.references.data import Reference
 from pinnmpc.simulation.fault_setup import Recovery

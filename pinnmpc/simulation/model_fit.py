@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from pinnmpc.controller.nmpc import Controller
+from pinnmpc.controller.base import Controller
 from pinnmpc.plant.integrators import rk4_step
 from pinnmpc.systems.base import System
 

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig
 
-from pinnmpc.controller.nmpc import Controller
+from pinnmpc.controller.base import Controller
 from pinnmpc.plant.build import make_plant, simulated_arm
 from pinnmpc.references.data import Reference
 from pinnmpc.references.files import out_of_box

@@ -28,13 +28,7 @@ CLOSED_LOOP: dict[str, Check] = {
     "failure.max_fallback_fraction": c.real(0.0, 1.0),
     "reference.path": c.optional(c.text()),
     "reference.name": c.text(),
-    # the keys every controller kind shares; the rest is each controller's own to check
-    "controller.horizon": c.integer(1),
-    "controller.Q": c.weight("nx"),
-    "controller.R": c.weight("nu"),
-    "controller.u_low": c.optional(c.vector("nu")),
-    "controller.u_high": c.optional(c.vector("nu")),
-}
+}  # the controller's settings are its kind's dataclass (controller/base.py), checked by validate_controller
 
 
 ROBUSTNESS: dict[str, Check] = {
@@ -59,8 +53,16 @@ SELF_LOOP: dict[str, Check] = {
 def validate_closed_loop(cfg: DictConfig, system: Any, table: Mapping[str, Check] = CLOSED_LOOP) -> None:
     """closed_loop (and robustness) settings, before the surrogate is loaded."""
     c.validate(cfg, table, system_dims(system))
-    c.pair(cfg, "controller.u_low", "controller.u_high")
+    validate_controller(cfg, system)
     validate_plant(cfg)
+
+
+def validate_controller(cfg: DictConfig, system: Any) -> None:
+    """The controller's settings by its registered kind's dataclass, before anything is built or loaded."""
+    import pinnmpc.simulation.setup  # noqa: F401  (registers the built-in kinds)
+    from pinnmpc.controller.registry import controller_settings
+
+    controller_settings(cfg.controller, system)
 
 
 def validate_plant(cfg: DictConfig) -> None:

@@ -8,9 +8,11 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from pinnmpc.controller.base import Controller
 from pinnmpc.controller.build import build_nmpc
-from pinnmpc.controller.nmpc import Controller
+from pinnmpc.controller.classical.settings import ClassicalSettings
 from pinnmpc.controller.registry import build_registered, register_controller
+from pinnmpc.controller.settings import NetworkSettings
 from pinnmpc.references.files import Reference, load_reference, resolve_reference_path
 from pinnmpc.simulation.loop import diverged, divergence_box, far_outside
 from pinnmpc.surrogate.checkpoint import load_surrogate
@@ -23,25 +25,29 @@ log = logging.getLogger(__name__)
 def build_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box | None, float]:
     """The controller of the registered kind controller.kind (pinnmpc.controller.registry; default pinn), the state
     box its model is valid in (None: everywhere) and tau."""
-    return build_registered(str(cfg.controller.get("kind", "pinn")), cfg, system)
+    return build_registered(cfg, system)
 
 
-@register_controller("pinn")
-def build_pinn_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box | None, float]:
+@register_controller("pinn", NetworkSettings)
+def build_pinn_controller(
+    settings: NetworkSettings, cfg: DictConfig, system: System
+) -> tuple[Controller, Box | None, float]:
     """NMPC on the surrogate (checkpoint, or the one shipped for this system): nmpc.yaml, exact.yaml."""
     surrogate = load_surrogate(
         cfg.checkpoint, system=system.name if cfg.checkpoint is None else None, state_names=system.state_names
     )
     check_input_bounds(cfg, surrogate.input_box)
-    return build_nmpc(cfg.controller, surrogate, system), surrogate.domain, surrogate.tau
+    return build_nmpc(settings, surrogate, system), surrogate.domain, surrogate.tau
 
 
-@register_controller("casadi")
-def build_classical_controller(cfg: DictConfig, system: System) -> tuple[Controller, Box | None, float]:
+@register_controller("casadi", ClassicalSettings)
+def build_classical_controller(
+    settings: ClassicalSettings, cfg: DictConfig, system: System
+) -> tuple[Controller, Box | None, float]:
     """The classical NMPC on the true model (compiled, pinnmpc.controller.classical.nmpc): casadi.yaml."""
     from pinnmpc.controller.classical.nmpc import build_casadi_nmpc  # casadi's compiled solvers load only when asked
 
-    return build_casadi_nmpc(cfg.controller, system), None, system.tau
+    return build_casadi_nmpc(settings, system), None, system.tau
 
 
 def warn_long_horizon(cfg: DictConfig) -> None:

@@ -118,8 +118,9 @@ class PINN(nn.Module):
     is its exact time derivative. dq/dt = v then holds by construction (in the first-order form its
     residual is the largest source of position error at tau), and both q(0) = q0 and v(0) = v0 are exact.
 
-    The keyword defaults are the paper's network (tanh, hard initial condition); the project's default network
-    is conf/model/pinn.yaml with the system's time basis, which `python -m pinnmpc.train` builds.
+    The keyword defaults are conf/model/pinn.yaml's where they need no system (silu, 4 x 64); the initial condition
+    defaults to hard because the gated one needs the system's time basis, which `python -m pinnmpc.train` adds
+    (tests/test_controller_settings.py holds the two alike). The paper's network is activation="tanh".
     """
 
     def __init__(
@@ -130,7 +131,7 @@ class PINN(nn.Module):
         input_high: Sequence[float],
         t_max: float,
         hidden: Sequence[int] = (64, 64, 64, 64),
-        activation: str = "tanh",
+        activation: str = "silu",
         ic: str = "hard",
         output_scale: Sequence[float] | None = None,
         time_basis: Sequence[float] = (),

@@ -75,6 +75,11 @@ class System(Protocol):
         """dx/dt as a CasADi Function (x, u) -> dx: the same physics for the classical NMPC."""
         ...
 
+    def casadi_inverse_dynamics(self, coulomb_width: float | None = None) -> Any:
+        """r(q, v, a, u) = M(q) a + h(q, v) - tau(q, v, u) as a CasADi Function: collocation without M^-1 (a sign(v)
+        friction smoothed as tanh(v / coulomb_width) where the arm has one)."""
+        ...
+
     def with_mismatch(self, friction_scale: float = 1.0, mass_scale: float = 1.0) -> System:
         """The same arm with scaled friction and inertia: a plant the controller does not know."""
         ...

@@ -171,6 +171,19 @@ class PowerCube:
         sign_b = None if coulomb_width is None else ca.tanh(x[3] / coulomb_width)
         return ca.Function("powercube_rhs", [x, u], [rhs(x, u, self.params, coulomb_sign=sign_b)], {"cse": True})
 
+    def casadi_inverse_dynamics(self, coulomb_width: float | None = None) -> ca.Function:
+        """r(q, v, a, u) = M(q) a - f(q, v, u) of the closed form (SX), smoothed as casadi_rhs with coulomb_width:
+        the collocation's residual without M^-1, as every arm gives it."""
+        q, v, a, u = (ca.SX.sym(name, n) for name, n in (("q", 2), ("v", 2), ("a", 2), ("u", 2)))
+        x = ca.vertcat(q, v)
+        sign = None if coulomb_width is None else ca.tanh(v[self.coulomb_joints[0]] / coulomb_width)
+        m11, m12, m22 = mass_matrix(x, self.params)
+        f1, f2 = generalized_forces(x, u, self.params, coulomb_sign=sign)
+        r = ca.vertcat(m11 * a[0] + m12 * a[1] - f1, m12 * a[0] + m22 * a[1] - f2)
+        return ca.Function(
+            f"{self.name}_inverse_dynamics", [q, v, a, u], [r], ["q", "v", "a", "u"], ["r"], {"cse": True}
+        )
+
     def kinematics(self, q: np.ndarray) -> np.ndarray:
         """Base, elbow and tip (N, 3, 3) in the vertical plane, alpha from hanging down, beta relative to link 1."""
         q = np.atleast_2d(np.asarray(q, dtype=np.float64))

@@ -388,6 +388,16 @@ class RigidArm:
         acc = ca.solve(m, self.actuation_torque(v, u) - self._bias(h, g))
         return ca.Function(f"{self.name}_rhs", [x, u], [ca.vertcat(v, acc)], {"cse": True})
 
+    def casadi_inverse_dynamics(self, coulomb_width: float | None = None) -> ca.Function:
+        """r(q, v, a, u) = M(q) a + h(q, v) - tau(v, u) (SX), as casadi_rhs without M^-1 (no sign(v) term to smooth:
+        coulomb_width is the PowerCube's)."""
+        q, v, a, u = (ca.SX.sym(name, self.nq) for name in ("q", "v", "a", "u"))
+        m, h, g = self.casadi_terms(q, v)
+        r = m @ a + self._bias(h, g) - self.actuation_torque(v, u)
+        return ca.Function(
+            f"{self.name}_inverse_dynamics", [q, v, a, u], [r], ["q", "v", "a", "u"], ["r"], {"cse": True}
+        )
+
     def casadi_terms(self, q: Any, v: Any, gravity: bool = False) -> tuple[Any, Any, Any]:
         """M (armature included), h and the gravity a servo compensates (0 for torque arms unless gravity=True) as
         CasADi expressions: what every symbolic model of the arm builds on."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from collections.abc import Callable, Mapping
@@ -197,6 +198,60 @@ def check_settings(section: str, settings: Any, checks: Mapping[str, Check]) -> 
 
 
 SEED = integer(0, 2**32 - 1)  # what numpy and Lightning accept
+
+
+def setting(
+    default: Any = dataclasses.MISSING, *, check: Check | None = None, factory: Any = dataclasses.MISSING
+) -> Any:
+    """A settings dataclass field with its check declared beside it (check_fields runs them): no parallel table."""
+    return dataclasses.field(default=default, default_factory=factory, metadata={"check": check})
+
+
+def check_fields(section: str, settings: Any, dims: Dims) -> None:
+    """Every field of a settings dataclass by the check declared with it, nested settings under their own key; the
+    first bad one raises one line naming `section.key`, its value and what is allowed."""
+    for f in dataclasses.fields(settings):
+        value = getattr(settings, f.name)
+        if dataclasses.is_dataclass(value):
+            check_fields(f"{section}.{f.name}", value, dims)
+        check = f.metadata.get("check")
+        allowed = None if check is None else check(plain(value), dims)
+        if allowed is not None:
+            raise SettingError(f"{section}.{f.name}={plain(value)!r}: expected {allowed}")
+
+
+def settings_from(cls: type, values: Any, section: str) -> Any:
+    """The settings dataclass cls from a config node or dict (nested dataclass fields from nested mappings): an
+    unknown or missing key is one line naming it and the keys there are (the checks are check_fields')."""
+    if dataclasses.is_dataclass(values):
+        return values
+    values = dict(plain(values) or {})
+    known = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - set(known))
+    if unknown:
+        raise SettingError(f"{section}.{unknown[0]}: not a setting here; expected one of {sorted(known)}")
+    missing = [n for n, f in known.items() if n not in values and _required(f)]
+    if missing:
+        raise SettingError(f"{section}.{missing[0]} is missing: expected it set (the settings {sorted(known)})")
+    for name, value in values.items():
+        nested = _nested_default(known[name])
+        if nested is not None and isinstance(value, Mapping):  # over the field's own default: a kind's defaults stay
+            given = settings_from(type(nested), {**dataclasses.asdict(nested), **value}, f"{section}.{name}")
+            values[name] = given
+    return cls(**values)
+
+
+def _required(f: dataclasses.Field) -> bool:
+    """A field without a default."""
+    return f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+
+
+def _nested_default(f: dataclasses.Field) -> Any:
+    """A field's default where it is a settings dataclass (nested settings), else None."""
+    if f.default_factory is not dataclasses.MISSING:
+        made = f.default_factory()
+        return made if dataclasses.is_dataclass(made) else None
+    return None
 
 
 def plain(value: Any) -> Any:

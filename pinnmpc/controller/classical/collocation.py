@@ -56,31 +56,19 @@ def period_maps(stages: int, intervals: int, tau: float) -> tuple[np.ndarray, np
 
 
 def inverse_dynamics(system: Any, coulomb_width: float | None = None) -> ca.Function:
-    """r(q, v, a, u) = M(q) a + h(q, v) - tau_act(q, v, u) of the system (SX): its casadi_inverse_dynamics where it
-    has one, else from its CasADi terms (the PowerCube's closed form, a URDF arm's adam model), else as
-    a - f(x, u)'s accelerations.
+    """r(q, v, a, u) = M(q) a + h(q, v) - tau_act(q, v, u) of the system: its casadi_inverse_dynamics (every arm of
+    pinnmpc.systems gives one; a user's System without it: a - f(x, u)'s accelerations).
 
     coulomb_width: sign(v) friction smoothed as tanh(v / width), as system.casadi_rhs(width) smooths it."""
     if coulomb_width is not None and not coulomb_width > 0:
         raise ValueError(f"controller.coulomb_width={coulomb_width!r}; expected a number > 0 (rad/s) or null")
-    if hasattr(system, "casadi_inverse_dynamics"):  # the system's own, where it offers one
-        return system.casadi_inverse_dynamics(*(() if coulomb_width is None else (coulomb_width,)))
+    width = () if coulomb_width is None else (coulomb_width,)
+    own = getattr(system, "casadi_inverse_dynamics", None)
+    if own is not None:
+        return own(*width)
     nq = system.nq
     q, v, a, u = (ca.SX.sym(name, n) for name, n in (("q", nq), ("v", nq), ("a", nq), ("u", len(system.input_names))))
-    if hasattr(system, "params") and hasattr(system, "coulomb_joints"):  # the PowerCube
-        from pinnmpc.systems.powercube import generalized_forces, mass_matrix
-
-        x = ca.vertcat(q, v)
-        sign = None if coulomb_width is None else ca.tanh(v[system.coulomb_joints[0]] / coulomb_width)
-        m11, m12, m22 = mass_matrix(x, system.params)
-        f1, f2 = generalized_forces(x, u, system.params, coulomb_sign=sign)
-        r = ca.vertcat(m11 * a[0] + m12 * a[1] - f1, m12 * a[0] + m22 * a[1] - f2)
-    elif hasattr(system, "casadi_terms"):  # a URDF arm: M (armature included), h and a servo's g, as its casadi_rhs
-        m, h, g = system.casadi_terms(q, v)
-        r = m @ a + system._bias(h, g) - system.actuation_torque(v, u)
-    else:
-        rhs = system.casadi_rhs() if coulomb_width is None else system.casadi_rhs(coulomb_width)
-        r = a - rhs(ca.vertcat(q, v), u)[nq:]
+    r = a - system.casadi_rhs(*width)(ca.vertcat(q, v), u)[nq:]
     return ca.Function(f"{system.name}_inverse_dynamics", [q, v, a, u], [r], ["q", "v", "a", "u"], ["r"], {"cse": True})
 
 

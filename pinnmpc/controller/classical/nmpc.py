@@ -14,15 +14,15 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
 
+from pinnmpc.controller.base import StepStats, checked_settings
 from pinnmpc.controller.classical.ocp import CasadiOCP, NlpSolver, Solution, merged
 from pinnmpc.controller.classical.rti import RTI_STATUS, RtiSolver, rti_function, rti_solver
+from pinnmpc.controller.classical.settings import ClassicalSettings
 from pinnmpc.controller.estimator import OffsetFree
-from pinnmpc.controller.nmpc import StepStats
 from pinnmpc.plant.stick_slip import coulomb_joints
+from pinnmpc.systems.settings import system_dims
 
-TRANSCRIPTIONS = ("rk4", "radau")  # controller.transcription: RK4 shooting or Radau IIA collocation
 RTI_STATUSES = {"Solve_Succeeded", "Maximum_Iterations_Exceeded", RTI_STATUS}  # one step's usable ends
 
 
@@ -231,60 +231,52 @@ class CasadiNMPC:
         self._estimator.update(x - self.solver.flow(*self._last))
 
 
-def sqpmethod_options(cfg: dict[str, Any], options: dict[str, Any]) -> dict[str, Any]:
-    """sqpmethod's options with the QP solver controller.qpsol (else the one they name, else qrqp) and its options
-    from controller.qpsols."""
+def sqpmethod_options(cfg: ClassicalSettings, options: dict[str, Any]) -> dict[str, Any]:
+    """sqpmethod's options with the QP solver controller.qpsol and its options from controller.qpsols (merged with
+    those written for it under solvers.sqpmethod)."""
     named = options.get("qpsol")
-    qpsol = str(cfg.get("qpsol") or named or "qrqp")
-    qp_options = dict((cfg.get("qpsols") or {}).get(qpsol) or {})
+    qpsol = cfg.qpsol
+    qp_options = dict((cfg.qpsols or {}).get(qpsol) or {})
     if named == qpsol:  # options written for this QP solver under solvers.sqpmethod too
         qp_options = merged(qp_options, options.get("qpsol_options") or {})
     return {**options, "qpsol": qpsol, "qpsol_options": qp_options}
 
 
 def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
-    """CasadiNMPC from conf/controller/casadi.yaml (a DictConfig or a plain dict) for a system of pinnmpc.systems."""
-    if isinstance(cfg, DictConfig):
-        cfg = OmegaConf.to_container(cfg, resolve=True)
-    plugin, rti = str(cfg.get("solver", "sqpmethod")), bool(cfg.get("rti", False))
-    if rti and plugin != "sqpmethod":
-        raise ValueError(f"rti=true takes one SQP step per sample: it needs solver=sqpmethod, got {plugin!r}")
-    transcription = cfg.get("transcription", "rk4")
-    if transcription not in TRANSCRIPTIONS:
-        raise ValueError(f"controller.transcription={transcription!r}; expected one of {list(TRANSCRIPTIONS)}")
-    low = system.input_box.low if cfg.get("u_low") is None else cfg["u_low"]
-    high = system.input_box.high if cfg.get("u_high") is None else cfg["u_high"]
+    """CasadiNMPC from its settings (ClassicalSettings, or a config node or dict of them: conf/controller/casadi.yaml),
+    each checked; what a Python caller leaves out takes ClassicalSettings' default, as the commands do."""
+    cfg = checked_settings(ClassicalSettings, cfg, system_dims(system))
+    assert isinstance(cfg, ClassicalSettings)
+    plugin, rti, transcription = cfg.solver, cfg.rti, cfg.transcription
+    low = system.input_box.low if cfg.u_low is None else cfg.u_low
+    high = system.input_box.high if cfg.u_high is None else cfg.u_high
 
     def make_ocp(coulomb_width: float | None = None) -> CasadiOCP:
         """The OCP of these settings, on the exact model or with its sign(v) friction smoothed."""
-        problem = (system, cfg["horizon"], cfg["Q"], cfg["R"], cfg.get("R_rate"), low, high)
-        limits = cfg.get("joint_limits")
+        problem = (system, cfg.horizon, cfg.Q, cfg.R, cfg.R_rate, low, high)
         if transcription == "radau":
             from pinnmpc.controller.classical.collocation import RadauOCP
 
-            stages, intervals = cfg.get("collocation_stages", 3), cfg.get("collocation_intervals", 1)
-            return RadauOCP(*problem, stages, intervals, joint_limits=limits, coulomb_width=coulomb_width)
-        steps = cfg.get("rk4_steps") if coulomb_width is None else None
-        return CasadiOCP(*problem, rk4_steps=steps, joint_limits=limits, coulomb_width=coulomb_width)
+            stages, intervals = cfg.collocation_stages, cfg.collocation_intervals
+            return RadauOCP(*problem, stages, intervals, joint_limits=cfg.joint_limits, coulomb_width=coulomb_width)
+        steps = cfg.rk4_steps if coulomb_width is None else None
+        return CasadiOCP(*problem, rk4_steps=steps, joint_limits=cfg.joint_limits, coulomb_width=coulomb_width)
 
     ocp = make_ocp()
-    options = dict((cfg.get("solvers") or {}).get(plugin) or {})
+    options = dict((cfg.solvers or {}).get(plugin) or {})
     if plugin == "sqpmethod":
         options = sqpmethod_options(cfg, options)
-    hessian, codegen = str(cfg.get("hessian", "gauss_newton")), bool(cfg.get("codegen", True))
-    if rti and hessian != "gauss_newton":
-        raise ValueError(f"rti=true takes Gauss-Newton steps: it needs hessian=gauss_newton, got {hessian!r}")
-    level = str(cfg.get("codegen_opt", "-O2"))
+    hessian, codegen, level = cfg.hessian, cfg.codegen, cfg.codegen_opt
     extra = [rti_function(ocp)] if rti else []  # compiled with the solver's functions: their code is shared
     solver = ocp.solver(plugin, options, hessian, codegen, level, extra)
-    smooth_solver, width = None, cfg.get("coulomb_width")
+    smooth_solver, width = None, cfg.coulomb_width
     if width is not None and coulomb_joints(system):  # RK4: its own sub-steps, the smoothed model is stiffer
         smooth_solver = make_ocp(float(width)).solver(plugin, options, hessian, codegen, level)
     cold_solver = None
     if rti:  # one Gauss-Newton step from the shifted solution; the first step (and any after a fallback) solves fully
         qp_data = solver.functions["rti_qp"]
         cold_solver, solver = solver, rti_solver(ocp, options["qpsol"], options["qpsol_options"], qp_data, solver.flow)
-    d = cfg.get("disturbance") or {}
+    d = cfg.disturbance
     label = f"casadi-{plugin}"
     label += f"-{options['qpsol']}" if plugin == "sqpmethod" and options["qpsol"] != "qrqp" else ""
     label += f"-{transcription}" if transcription != "rk4" else ""
@@ -292,13 +284,13 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
         ocp,
         solver,
         label=label + ("-rti" if rti else ""),
-        warm_start=bool(cfg.get("warm_start", True)),
+        warm_start=cfg.warm_start,
         rti=rti,
         cold_solver=cold_solver,
-        disturbance_gain=float(d.get("gain", 0.0)),
-        disturbance_max=d.get("max_abs"),
-        disturbance_notch=bool(d.get("notch") or False),  # null (the network's setting, given to the bench's rows): off
+        disturbance_gain=float(d.gain),
+        disturbance_max=d.max_abs,
+        disturbance_notch=bool(d.notch),  # null: off
         smooth_solver=smooth_solver,
-        **{k: cfg[k] for k in ("rti_limit_steps",) if k in cfg},  # else CasadiNMPC's default
-        keep_unconverged=bool(cfg.get("keep_unconverged", True)),
+        rti_limit_steps=cfg.rti_limit_steps,
+        keep_unconverged=cfg.keep_unconverged,
     )
