@@ -15,7 +15,7 @@ from pinnmpc.cli import check_choices, run_job
 def main(cfg: DictConfig) -> None:
     """CLI: one summary line with the fitted values and where the system went."""
     # imported here: --help and a refused setting answer before torch loads
-    from pinnmpc.robot_data.export import run_identify
+    from pinnmpc.robot_data.identify_job import run_identify
 
     run_job(lambda run_dir: run_identify(cfg, run_dir), "pinnmpc.identify", _summary)
 

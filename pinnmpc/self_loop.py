@@ -15,7 +15,7 @@ from pinnmpc.cli import check_choices, run_job
 def main(cfg: DictConfig) -> None:
     """CLI: headline numbers and where the outputs went."""
     # imported here: --help and a refused setting answer before torch loads
-    from pinnmpc.simulation.open_loop import run_self_loop
+    from pinnmpc.simulation.self_loop import run_self_loop
 
     run_job(lambda run_dir: run_self_loop(cfg, run_dir), "pinnmpc.self_loop", _summary)
 

@@ -108,12 +108,12 @@ def central_jacobian(
 
 def prior_misses(arm: Any, kinds: tuple[str, ...], x0: torch.Tensor, u: torch.Tensor) -> list[torch.Tensor]:
     """Per prior kind, its RMSE per state at tau against fine RK4 (h = 0.1 ms) on the points (x0, u)."""
-    from pinnmpc.surrogate.prior import FrozenArmPrior
+    from pinnmpc.surrogate.prior import ArmPrior
     from pinnmpc.training.data import reference_flow
 
     t = torch.full((x0.shape[0], 1), arm.tau, dtype=torch.float64)
     true = reference_flow(arm, x0, u, arm.tau, 1e-4).double()
-    return [(FrozenArmPrior(arm, kind)(t, x0, u)[0] - true).square().mean(0).sqrt() for kind in kinds]
+    return [(ArmPrior(arm, kind)(t, x0, u)[0] - true).square().mean(0).sqrt() for kind in kinds]
 
 
 def check_compiled_prior(prior: Any, x0: torch.Tensor, u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

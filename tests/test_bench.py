@@ -511,7 +511,7 @@ def test_the_robot_section_runs_every_controller_on_the_robot(tmp_path: Path) ->
          f"robot.adapted={CHECKPOINTS / 'planar3-lab.pt'}", "robot.references=[default]", "progress=false"]
     )  # fmt: skip
     robot = run_bench(cfg, tmp_path)["robot"]
-    keys = ["classical_nominal", "pinn_shipped", "pinn_adapted", "pinn_shipped_nominal"]
+    keys = ["casadi_nominal", "pinn_shipped", "pinn_adapted", "pinn_shipped_nominal"]
     assert list(robot["rows"]) == [f"{k}@builtin:default" for k in keys]
     assert all(r["status"] == "ok" and r["steps"] == 3 for r in robot["rows"].values())
     (paired,) = robot["paired_ocp"]  # the two networks' loops again, their samples interleaved

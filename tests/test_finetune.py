@@ -12,8 +12,8 @@ from pinnmpc.controller.build import build_nmpc
 from pinnmpc.plant.mujoco_robot import make_mujoco_plant
 from pinnmpc.references import Reference
 from pinnmpc.robot_data.logs import RobotLog, write_log
-from pinnmpc.robot_data.physics import physics_model
-from pinnmpc.surrogate.prior import FrozenArmPrior
+from pinnmpc.robot_data.residual_model import physics_model
+from pinnmpc.surrogate.prior import ArmPrior
 from pinnmpc.systems import system_config
 from pinnmpc.training.run import train
 from tests.conftest import TINY_TRAIN
@@ -167,7 +167,7 @@ def test_the_physics_residual_of_an_identified_model(make_cfg, tmp_path, lab_log
     arms = [out.model.config["prior"]["dynamics"] for out in outs]
     assert arms[0]["name"] == "planar3" and arms[1]["name"] == "planar3_fit" and arms[1]["payload"]["mass"] == 0.5
     t = torch.full((4, 1), 0.1, dtype=torch.float64)
-    fitted_prior = FrozenArmPrior(load_system(fitted))(t, x0, u)[0]
+    fitted_prior = ArmPrior(load_system(fitted))(t, x0, u)[0]
     np.testing.assert_allclose(outs[1].model.prior(t, x0, u)[0].numpy(), fitted_prior.numpy(), atol=1e-12)
     assert not torch.allclose(outs[0].model.prior(t, x0, u)[0], fitted_prior, atol=1e-4)
     other = _fitted_planar3(tmp_path / "other" / "planar3_fit.yaml", origin="powercube")

@@ -15,8 +15,8 @@ pytest.importorskip("mujoco")
 from pinnmpc import load_system  # noqa: E402 (after the skip)
 from pinnmpc.plant.mujoco_robot import MujocoPlant  # noqa: E402
 from pinnmpc.robot_data.collect import collect  # noqa: E402
-from pinnmpc.robot_data.export import system_yaml, write_system  # noqa: E402
 from pinnmpc.robot_data.identify import identify  # noqa: E402
+from pinnmpc.robot_data.identify_job import system_yaml, write_system  # noqa: E402
 from pinnmpc.robot_data.logs import read_log, write_log  # noqa: E402
 from pinnmpc.systems.urdf import Payload, RigidArm, locked_urdf  # noqa: E402
 

@@ -20,7 +20,7 @@ pytest.importorskip("mujoco")
 from pinnmpc import load_system  # noqa: E402 (after the skip)
 from pinnmpc.cli import run_cli  # noqa: E402
 from pinnmpc.robot_data.collect import collect, run_collect  # noqa: E402
-from pinnmpc.robot_data.export import run_identify  # noqa: E402
+from pinnmpc.robot_data.identify_job import run_identify  # noqa: E402
 from pinnmpc.robot_data.logs import RobotLog, read_log, read_logs, write_log  # noqa: E402
 from tests.conftest import ROOT, TINY_TRAIN  # noqa: E402
 

@@ -13,7 +13,7 @@ import torch
 from pinnmpc import load_surrogate, load_system
 from pinnmpc.surrogate import Surrogate
 from pinnmpc.surrogate.network import PINN
-from pinnmpc.surrogate.prior import EIGEN_FROM_JOINTS, MEMO_SIZE, FrozenArmPrior
+from pinnmpc.surrogate.prior import EIGEN_FROM_JOINTS, MEMO_SIZE, ArmPrior
 from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian, divided_differences
 from pinnmpc.training.capacity import one_step_data, run_capacity
 from pinnmpc.training.data import CollocationDataModule, reference_flow
@@ -26,8 +26,8 @@ TAU = 0.1
 
 
 @pytest.fixture(scope="module")
-def prior() -> FrozenArmPrior:
-    return FrozenArmPrior("planar3")
+def prior() -> ArmPrior:
+    return ArmPrior("planar3")
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +90,7 @@ def test_a_servos_dry_friction_enters_the_prior_where_the_servo_settles() -> Non
     assert float((settled[:8].abs() / u[:8].abs()).max()) < 0.3  # near rest it sticks
     true = reference_flow(rough, x0, u, TAU, 1e-4).double()
     t = torch.full((64, 1), TAU, dtype=torch.float64)
-    miss = [(FrozenArmPrior(arm)(t, x0, u)[0] - true)[:, 3:].square().mean().sqrt() for arm in (rough, servo)]
+    miss = [(ArmPrior(arm)(t, x0, u)[0] - true)[:, 3:].square().mean().sqrt() for arm in (rough, servo)]
     assert float(miss[0]) < 0.7 * float(miss[1])
 
 
@@ -131,7 +131,7 @@ def test_the_eigen_jacobian_agrees_with_ad_through_the_series(prior, points) -> 
 
 
 def test_a_seven_joint_arm_takes_the_eigen_path_and_it_matches_finite_differences() -> None:
-    panda = FrozenArmPrior("panda")
+    panda = ArmPrior("panda")
     arm, tau, n = panda.arm, panda.arm.tau, panda.nq
     fast = panda.compiled(tau)
     assert n >= EIGEN_FROM_JOINTS and isinstance(fast.with_jacobian, EigenPriorJacobian)
@@ -208,7 +208,7 @@ def test_training_with_the_prior_lowers_the_loss_and_exports_it(make_cfg, tmp_pa
 
 def test_the_prior_is_refused_where_it_cannot_work(make_cfg, tmp_path) -> None:
     with pytest.raises(ValueError, match="needs an arm from a URDF.*system='powercube' is PowerCube"):
-        FrozenArmPrior("powercube")
+        ArmPrior("powercube")
     box = dict(state_low=[-1.0] * 6, state_high=[1.0] * 6, input_low=[-1.0] * 3, input_high=[1.0] * 3, t_max=0.1)
     with pytest.raises(ValueError, match="model.prior='euler'; expected null or one of"):
         PINN(**box, prior={"kind": "euler", "system": "planar3"})

@@ -9,7 +9,7 @@ import torch
 from omegaconf import OmegaConf
 
 from pinnmpc import load_system
-from pinnmpc.surrogate.prior import FRICTION_STEPS, FrozenArmPrior
+from pinnmpc.surrogate.prior import FRICTION_STEPS, ArmPrior
 from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
 from pinnmpc.systems import build_system, system_config
 from tests.conftest import check_compiled_prior, check_substep_flow, prior_misses
@@ -35,7 +35,7 @@ def points(arm):
 
 
 def test_the_coriolis_torques_at_the_moving_velocity_bring_the_prior_closer(arm, points) -> None:
-    friction, moving = (FrozenArmPrior(arm, kind) for kind in ("frozen_arm_friction", KIND))
+    friction, moving = (ArmPrior(arm, kind) for kind in ("frozen_arm_friction", KIND))
     assert (friction.steps, moving.steps, moving.coriolis) == (FRICTION_STEPS, FRICTION_STEPS, True)
     miss = prior_misses(arm, ("frozen_arm_friction", KIND), *points)
     # measured: joints 2 and 3 (carried by the others' swing) 0.8x and 0.58x in the angle, the base alike
@@ -45,12 +45,12 @@ def test_the_coriolis_torques_at_the_moving_velocity_bring_the_prior_closer(arm,
 
 def test_it_starts_at_x0_and_its_time_derivative_is_exact(arm, points) -> None:
     # eps: the fast modes' curvature makes a wider difference quotient miss by 1e-4
-    check_substep_flow(FrozenArmPrior(arm, KIND), *points, eps=1e-7, atol=1e-5)
+    check_substep_flow(ArmPrior(arm, KIND), *points, eps=1e-7, atol=1e-5)
 
 
 def test_its_compiled_forms_and_jacobians_match_torch_and_finite_differences(arm, points) -> None:
     """The controller's C (AD on small arms, eigendecomposition on large ones) and the export's MX form."""
-    prior, (x0, u) = FrozenArmPrior(arm, KIND), (a[:6] for a in points)
+    prior, (x0, u) = ArmPrior(arm, KIND), (a[:6] for a in points)
     x, jac = check_compiled_prior(prior, x0, u)
     eigen = EigenPriorJacobian(arm, arm.tau, prior.kv.numpy(), prior.steps, True, "_coriolis_test")
     xe, je = eigen(x0.numpy(), u.numpy())
@@ -64,7 +64,7 @@ def test_the_eigen_jacobians_christoffel_form_holds_on_an_identified_arm(points)
     cfg = OmegaConf.to_container(system_config("planar3"), resolve=True)
     cfg["dynamics"].update(name="planar3_heavy", payload={"mass": 0.4})
     arm = build_system(OmegaConf.create(cfg)).with_mismatch(mass_scale=1.3)
-    prior, (x0, u) = FrozenArmPrior(arm, KIND), (a[:6] for a in points)
+    prior, (x0, u) = ArmPrior(arm, KIND), (a[:6] for a in points)
     x, jac = prior.with_jacobian(torch.full((6, 1), arm.tau, dtype=torch.float64), x0, u)
     xe, je = EigenPriorJacobian(arm, arm.tau, prior.kv.numpy(), prior.steps, True, "_coriolis_heavy")(
         x0.numpy(), u.numpy()

@@ -11,7 +11,7 @@ import torch
 
 from pinnmpc import load_system
 from pinnmpc.surrogate.casadi_network import prior_function
-from pinnmpc.surrogate.prior import FRICTION_STEPS, FrozenArmPrior
+from pinnmpc.surrogate.prior import FRICTION_STEPS, ArmPrior
 from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
 from pinnmpc.training.data import reference_flow
 from tests.conftest import central_jacobian, check_substep_flow
@@ -45,24 +45,24 @@ def test_moving_friction_predicts_a_servo_with_dry_friction_closer_than_settled_
     x0, u = points
     t = torch.full((64, 1), TAU, dtype=torch.float64)
     true = reference_flow(rough, x0, u, TAU, 1e-4).double()
-    settled, moving = (FrozenArmPrior(rough, kind) for kind in ("frozen_arm", KIND))
+    settled, moving = (ArmPrior(rough, kind) for kind in ("frozen_arm", KIND))
     assert (settled.steps, moving.steps) == (0, FRICTION_STEPS)
     miss = [(p(t, x0, u)[0] - true).square().mean(0).sqrt() for p in (settled, moving)]
     assert bool((miss[1][:3] < 0.8 * miss[0][:3]).all()), (miss[0], miss[1])  # angles
     assert bool((miss[1][3:] < miss[0][3:]).all()), (miss[0], miss[1])  # velocities
     # without dry friction the kind changes nothing: one exact solve, the same flow
-    plain = FrozenArmPrior(smooth, KIND)
+    plain = ArmPrior(smooth, KIND)
     assert plain.steps == 0
-    np.testing.assert_array_equal(plain(t, x0, u)[0].numpy(), FrozenArmPrior(smooth)(t, x0, u)[0].numpy())
+    np.testing.assert_array_equal(plain(t, x0, u)[0].numpy(), ArmPrior(smooth)(t, x0, u)[0].numpy())
 
 
 def test_it_starts_at_x0_and_its_time_derivative_is_exact(servo, points) -> None:
-    check_substep_flow(FrozenArmPrior(servo[1], KIND), *points, eps=1e-6, atol=1e-6)
+    check_substep_flow(ArmPrior(servo[1], KIND), *points, eps=1e-6, atol=1e-6)
 
 
 def test_its_compiled_forms_and_jacobians_match_torch_and_finite_differences(servo, points) -> None:
     """The controller's C (AD on small arms, eigendecomposition on large ones) and the export's MX form."""
-    prior, (x0, u) = FrozenArmPrior(servo[1], KIND), (a[:6] for a in points)
+    prior, (x0, u) = ArmPrior(servo[1], KIND), (a[:6] for a in points)
     t = torch.full((6, 1), TAU, dtype=torch.float64)
     x, jac = prior.with_jacobian(t, x0, u)
     xn, jn = prior.compiled(TAU).with_jacobian(x0.numpy(), u.numpy())
@@ -81,11 +81,11 @@ def test_its_compiled_forms_and_jacobians_match_torch_and_finite_differences(ser
 
 def test_an_unknown_kind_is_refused() -> None:
     with pytest.raises(ValueError, match="model.prior='frozen_arm_rk4'; expected null or one of"):
-        FrozenArmPrior("planar3", "frozen_arm_rk4")
+        ArmPrior("planar3", "frozen_arm_rk4")
 
 
 def test_a_flow_over_another_period_than_the_arms_is_refused(servo) -> None:
     """The sub-steps cut the arm's tau: compiled at another tau the C would not be the torch prior's flow."""
-    prior = FrozenArmPrior(servo[1], KIND)
+    prior = ArmPrior(servo[1], KIND)
     with pytest.raises(ValueError, match=r"frozen_arm_friction prior's sub-steps cut the arm's period \(0.1 s\)"):
         prior.compiled(0.05)

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from pinnmpc import load_surrogate, load_system
-from pinnmpc.surrogate.prior import MIDPOINT_JACOBIAN, MIDPOINT_STEPS, FrozenArmPrior
+from pinnmpc.surrogate.prior import MIDPOINT_JACOBIAN, MIDPOINT_STEPS, ArmPrior
 from pinnmpc.surrogate.substeps import midpoint_substeps, relaxation
 from pinnmpc.systems.sampling import random_pairs
 from tests.conftest import check_compiled_prior, check_substep_flow, prior_misses
@@ -21,7 +21,7 @@ POINTS = tuple(a.double() for a in random_pairs(ARM, 64, 3))  # fresh states and
 
 
 def test_taking_the_arm_at_its_mid_configuration_brings_the_prior_much_closer() -> None:
-    mid = FrozenArmPrior(ARM, KIND)
+    mid = ArmPrior(ARM, KIND)
     assert (mid.steps, mid.coriolis, mid.midpoint) == (MIDPOINT_STEPS, True, True)
     miss = prior_misses(ARM, ("frozen_arm_moving", KIND), *POINTS)
     # measured: 3.6-11x closer per state (the angles least)
@@ -29,11 +29,11 @@ def test_taking_the_arm_at_its_mid_configuration_brings_the_prior_much_closer() 
 
 
 def test_it_starts_at_x0_and_its_time_derivative_is_exact() -> None:
-    check_substep_flow(FrozenArmPrior(ARM, KIND), *POINTS, eps=1e-7, atol=1e-5)
+    check_substep_flow(ArmPrior(ARM, KIND), *POINTS, eps=1e-7, atol=1e-5)
 
 
 def test_its_compiled_and_exported_forms_and_jacobian_match_torch_and_finite_differences() -> None:
-    prior = FrozenArmPrior(ARM, KIND)
+    prior = ArmPrior(ARM, KIND)
     check_compiled_prior(prior, *(a[:6] for a in POINTS))
     with pytest.raises(ValueError, match="a midpoint_arm prior's sub-steps cut the arm's period"):
         prior.compiled(2 * ARM.tau)
@@ -43,7 +43,7 @@ def test_on_a_long_arm_its_value_is_exact_and_the_frozen_arms_jacobian_stands_in
     """The Panda (7 joints): the compiled value is the torch prior's; its Jacobian, by AD several times the value's
     cost, is the arm held at q0's (MIDPOINT_JACOBIAN, exact by eigendecomposition), a stand-in and said to be one."""
     arm = load_system("panda")
-    prior, held = FrozenArmPrior(arm, KIND), FrozenArmPrior(arm, MIDPOINT_JACOBIAN)
+    prior, held = ArmPrior(arm, KIND), ArmPrior(arm, MIDPOINT_JACOBIAN)
     x0, u = random_pairs(arm, 16, 5)
     x0, u = x0.double(), u.double()
     x, jac = prior.with_jacobian(torch.full((16, 1), arm.tau, dtype=torch.float64), x0, u)
@@ -55,13 +55,13 @@ def test_on_a_long_arm_its_value_is_exact_and_the_frozen_arms_jacobian_stands_in
     shipped = load_surrogate(system="panda")  # the controller is told: its solvers treat their models as inexact
     assert prior.compiled(arm.tau).stand_in_jacobian and shipped.approximate_jacobians
     assert shipped.numpy_flow().approximate_jacobians
-    assert not FrozenArmPrior(ARM, KIND).compiled(ARM.tau).stand_in_jacobian  # planar3: its own, by AD
+    assert not ArmPrior(ARM, KIND).compiled(ARM.tau).stand_in_jacobian  # planar3: its own, by AD
 
 
 def test_each_sub_step_takes_one_mass_matrix_and_one_coriolis_torque() -> None:
     """The predictor holds the arm without its moving torques, and the end velocity is predicted with the torques the
     sub-step before held: per period steps + 1 of each (the first at x0 itself), what the value costs most."""
-    prior = FrozenArmPrior(ARM, KIND)
+    prior = ArmPrior(ARM, KIND)
     calls = {"torque": 0, "terms": 0}
     kv, h = prior.kv, ARM.tau / prior.steps
     x0, u = POINTS

@@ -29,9 +29,9 @@ from pinnmpc.cli import (
     release,
 )
 from pinnmpc.simulation.metrics import verdict
-from pinnmpc.simulation.open_loop import run_self_loop
 from pinnmpc.simulation.robustness import run_robustness
 from pinnmpc.simulation.run import run_closed_loop
+from pinnmpc.simulation.self_loop import run_self_loop
 from pinnmpc.surrogate import SHIPPED, load_surrogate
 from pinnmpc.systems import load_system
 from pinnmpc.training.job_settings import validate_train

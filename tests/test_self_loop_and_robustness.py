@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from pinnmpc.simulation.open_loop import run_self_loop, sine_inputs
 from pinnmpc.simulation.robustness import run_robustness
+from pinnmpc.simulation.self_loop import run_self_loop, sine_inputs
 
 
 def test_sine_inputs_are_the_papers():

@@ -13,7 +13,7 @@ import torch
 from omegaconf import OmegaConf
 
 from pinnmpc.surrogate import CheckpointError, Surrogate, load_surrogate
-from pinnmpc.surrogate.prior import FrozenArmPrior
+from pinnmpc.surrogate.prior import ArmPrior
 from pinnmpc.systems import Box, RigidArm, build_system, load_system
 from pinnmpc.systems.urdf import URDF_DIR
 from pinnmpc.training.models import fresh_model
@@ -114,7 +114,7 @@ def test_a_users_arm_loads_by_path_and_its_prior_is_its_own(tmp_path: Path) -> N
     )
     arm = load_system(yaml)
     assert arm.urdf == str(urdf) and arm.nq == 2
-    prior = FrozenArmPrior(OmegaConf.to_container(OmegaConf.load(yaml).dynamics))  # what a network's config holds
+    prior = ArmPrior(OmegaConf.to_container(OmegaConf.load(yaml).dynamics))  # what a network's config holds
     assert prior.arm.urdf == str(urdf) and prior.nq == 2  # not the shipped planar3
     with pytest.raises(ValueError, match="no such file; expected a system .yaml"):
         load_system(tmp_path / "nope.yaml")

@@ -22,7 +22,7 @@ from pinnmpc.bench.common import (
     optimality_solvers,
 )
 from pinnmpc.bench.timing import as_numpy
-from pinnmpc.controller.arrays import Array
+from pinnmpc.controller.array_backend import Array
 from pinnmpc.controller.base import Controller
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver

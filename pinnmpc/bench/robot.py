@@ -40,13 +40,13 @@ def robot_controllers(
     r, shared = cfg.robot, estimator(cfg)  # the shipped and (robot.adapted) fine-tuned networks: `networks`
     classical = OmegaConf.merge(classical_cfg(cfg, classical_solvers(cfg)[0]), shared)
     pinn = OmegaConf.merge(controller_cfg(cfg), shared)
-    rows = [("classical_nominal", "classical NMPC, nominal model", build_casadi_nmpc(classical, system), None)]
+    rows = [("casadi_nominal", "classical NMPC, nominal model", build_casadi_nmpc(classical, system), None)]
     if r.identified is not None:
         fitted = load_system(str(r.identified))
         if tuple(fitted.state_names) != tuple(system.state_names):
             raise ValueError(f"robot.identified={r.identified} is another arm: states {fitted.state_names}")
         rows.append(
-            ("classical_identified", "classical NMPC, identified model", build_casadi_nmpc(classical, fitted), None)
+            ("casadi_identified", "classical NMPC, identified model", build_casadi_nmpc(classical, fitted), None)
         )
     labels = {"pinn_shipped": "PINN-MPC, shipped network", "pinn_adapted": "PINN-MPC, fine-tuned network"}
     for key, net in networks.items():
@@ -98,7 +98,7 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
     one_step = {}
     if cfg.robot.logs:
         fitted = cfg.robot.identified
-        models = {} if fitted is None else {"classical_identified": load_system(str(fitted))}
+        models = {} if fitted is None else {"casadi_identified": load_system(str(fitted))}
         one_step = held_out_rmse(system, networks, [str(p) for p in cfg.robot.logs], models, int(cfg.robot.rk4_steps))
     return {
         "one_step_rmse": one_step,
@@ -147,7 +147,7 @@ def worst_angle_mae(row: dict[str, Any], angles: list[str]) -> float:
 
 
 ONE_STEP_LABELS = {
-    "classical_identified": "identified model (RK4)",
+    "casadi_identified": "identified model (RK4)",
     "pinn_shipped": "shipped network",
     "pinn_adapted": "fine-tuned network",
 }
@@ -166,7 +166,7 @@ def md_robot(section: dict[str, Any], system: dict[str, Any]) -> str:
     for key in keys:
         mine = [rows[f"{key}@{ref}"] for ref in refs]
         maes = [worst_angle_mae(r, angles) for r in mine]
-        base = [worst_angle_mae(rows[f"classical_nominal@{ref}"], angles) for ref in refs]
+        base = [worst_angle_mae(rows[f"casadi_nominal@{ref}"], angles) for ref in refs]
         ratio = max(m / b for m, b in zip(maes, base))
         ocp = max(r["ocp_time_s"]["median"] for r in mine)
         p99 = max(r["ocp_time_s"].get("p99", float("nan")) for r in mine)
@@ -178,7 +178,7 @@ def md_robot(section: dict[str, Any], system: dict[str, Any]) -> str:
         table.append([mine[0]["label"], *(fmt(m) for m in maes), fmt(ratio), *times, str(past), str(limits), status])
     estimator = "with" if section["offset_free"] else "without"
     one_step, names = section.get("one_step_rmse") or {}, system["state_names"]
-    nets = [k for k in ("classical_identified", "pinn_shipped", "pinn_adapted") if k in one_step]
+    nets = [k for k in ("casadi_identified", "pinn_shipped", "pinn_adapted") if k in one_step]
     rmse = (
         [
             "",

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pinnmpc.controller.arrays import Array
+from pinnmpc.controller.array_backend import Array
 
 LIMIT_KEYS = ("low", "high", "weight", "margin")
 OPTIONAL_LIMIT_KEYS = ("lookahead",)

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from pinnmpc.controller import shooting
-from pinnmpc.controller.arrays import Array, cat, xp_of
+from pinnmpc.controller.array_backend import Array, cat, xp_of
 from pinnmpc.controller.limits import LIMIT_KEYS, JointLimits, as_float
 from pinnmpc.surrogate.flowmap import FlowMap, check_flow_map, numpy_path
 

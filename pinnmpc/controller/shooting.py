@@ -12,7 +12,7 @@ from typing import Protocol
 
 import numpy as np
 
-from pinnmpc.controller.arrays import Array, xp_of
+from pinnmpc.controller.array_backend import Array, xp_of
 
 
 class Predictor(Protocol):

@@ -1,5 +1,6 @@
 """Data from a robot: the log format (logs.py), collecting logs from a simulated robot (collect.py), fitting the
-model's physical coefficients to them (identify.py) and that fitted model as a fine-tuning's physics (physics.py)."""
+model's physical coefficients to them (identify.py, the job in identify_job.py) and that fitted model as a
+fine-tuning's physics (residual_model.py)."""
 
 from pinnmpc.robot_data.logs import (
     RobotLog,

@@ -2,7 +2,7 @@
 put the surrogate into their own CasADi problems (Opti, nlpsol, code generation) with CasADi's exact derivatives.
 
 The network is an MX graph (dense matrix products with the weights as constants: compact to serialise and to
-generate C from); the frozen-arm prior, where the network has one, is the formula of FrozenArmPrior.compiled as
+generate C from); the frozen-arm prior, where the network has one, is the formula of ArmPrior.compiled as
 an SX function called from that graph, with M^-1 kv by Cholesky and exp - I squared as such, so that it keeps
 float64 agreement with torch's matrix_exp on a stiff 7-joint arm too.
 """
@@ -18,9 +18,9 @@ import torch
 from pinnmpc.surrogate import mlp
 from pinnmpc.surrogate.activations import Ops
 from pinnmpc.surrogate.checkpoint import Surrogate
-from pinnmpc.surrogate.decay import TAYLOR_DEGREE
+from pinnmpc.surrogate.matrix_exp import TAYLOR_DEGREE
 from pinnmpc.surrogate.network import PINN
-from pinnmpc.surrogate.prior import FrozenArmPrior
+from pinnmpc.surrogate.prior import ArmPrior
 from pinnmpc.surrogate.substeps import friction_substeps, midpoint_substeps
 
 SOFTPLUS_THRESHOLD = 20.0  # torch's softplus returns its input above this, and so does the export
@@ -78,11 +78,11 @@ def _relaxation(n: int, kv: np.ndarray) -> ca.Function:
     return ca.Function("relaxation", [m], [ca.solve(chol, ca.solve(chol.T, ca.diag(ca.DM(kv))))], {"cse": True})
 
 
-def prior_function(prior: FrozenArmPrior, tau: float) -> ca.Function:
-    """x_p(tau) of the frozen-arm prior as a function (x0, u) -> x_p: FrozenArmPrior.compiled's formula with M^-1 kv
+def prior_function(prior: ArmPrior, tau: float) -> ca.Function:
+    """x_p(tau) of the frozen-arm prior as a function (x0, u) -> x_p: ArmPrior.compiled's formula with M^-1 kv
     by Cholesky and E - I from _expm1, as matrix operations (MX), so that its Jacobian and C stay compact."""
     n, kv = prior.nq, prior.kv.numpy()
-    h = tau / max(1, prior.steps)  # sub-steps with moving friction (FrozenArmPrior.steps)
+    h = tau / max(1, prior.steps)  # sub-steps with moving friction (ArmPrior.steps)
     s = prior.squarings(h)
     x, u = ca.MX.sym("x", 2 * n), ca.MX.sym("u", n)
     q0, v0 = x[:n], x[n:]

@@ -16,7 +16,7 @@ from torch import Tensor, nn
 
 from pinnmpc.surrogate import mlp
 from pinnmpc.surrogate.activations import TORCH, check_activation
-from pinnmpc.surrogate.prior import FrozenArmPrior, check_prior
+from pinnmpc.surrogate.prior import ArmPrior, check_prior
 
 IC_MODES = ("hard", "gated", "soft")  # exact x(0) = x0; exact with relaxation gates; the paper's data loss
 
@@ -218,7 +218,7 @@ class PINN(nn.Module):
         n_trig = len(periodic) + 2 * len(angle_sums)  # cosines of the periodic states, then sin and cos of the sums
         self.net = TangentMLP(n_lin + n_trig, self.n_head * self.n_gates, hidden, activation)
         # no parameters, no state; the arm from its description (older networks: by its system name)
-        self.prior = None if prior is None else FrozenArmPrior(prior.get("dynamics") or prior["system"], prior["kind"])
+        self.prior = None if prior is None else ArmPrior(prior.get("dynamics") or prior["system"], prior["kind"])
 
     @property
     def sum_columns(self) -> tuple[slice, slice]:

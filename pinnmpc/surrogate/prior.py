@@ -32,7 +32,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor, nn
 
-from pinnmpc.surrogate import decay
+from pinnmpc.surrogate import matrix_exp
 from pinnmpc.surrogate.substeps import (
     friction_substeps,
     midpoint_step,
@@ -55,7 +55,7 @@ MIDPOINT_JACOBIAN = "frozen_arm"  # the kind whose exact Jacobian (by eigendecom
 #   midpoint_arm's on arms of EIGEN_FROM_JOINTS or more joints: its own, by AD, would cost several times the value;
 #   frozen_arm_moving's is 2x closer to it and 2x dearer, and tracks no closer (docs/design.md)
 SQUARING_NORM = 0.5  # the largest 1-norm of X / 2^s the export's general Taylor series (degree
-#   decay.TAYLOR_DEGREE) is trusted at: its remainder is then ~1e-14
+#   matrix_exp.TAYLOR_DEGREE) is trusted at: its remainder is then ~1e-14
 RATE_MARGIN = 1.5  # the largest rate of M^-1 kv sampled over the box, times this, is what squarings plan for
 MEMO_SIZE = 8  # input sets kept, least recently used out first (collocation, anchors, validation, and the data
 #   loss's t = 0, new at every step): each holds its inputs alive
@@ -78,9 +78,10 @@ class CompiledPrior:
     stand_in_jacobian: bool = False  # J is another prior's (MIDPOINT_JACOBIAN), not the derivative of x_p
 
 
-class FrozenArmPrior(nn.Module):
-    """x_p(t) of the arm frozen at q0 (see the module docstring) for a URDF arm: a System, its `dynamics`
-    description (what a network's config stores) or the name of a shipped system; kind: one of KINDS."""
+class ArmPrior(nn.Module):
+    """The physics prior x_p(t) of a URDF arm (see the module docstring), of the kind model.prior names (KINDS: the
+    arm frozen at q0, with its friction or moving torques, or re-linearised at midpoints): a System, its `dynamics`
+    description (what a network's config stores) or the name of a shipped system."""
 
     def __init__(self, system: Any, kind: str = "frozen_arm") -> None:
         super().__init__()
@@ -133,7 +134,7 @@ class FrozenArmPrior(nn.Module):
         """Whether the compiled Jacobian is another prior's (MIDPOINT_JACOBIAN): midpoint_arm on a long arm."""
         return self.midpoint and self.nq >= EIGEN_FROM_JOINTS
 
-    def __deepcopy__(self, memo: dict) -> FrozenArmPrior:
+    def __deepcopy__(self, memo: dict) -> ArmPrior:
         """Shared, not copied: it has no state to diverge (its robot model holds modules that do not copy)."""
         return self
 
@@ -271,11 +272,11 @@ class FrozenArmPrior(nn.Module):
 
     def squarings(self, tau: float, symmetric: bool = False) -> int:
         """Squarings s of exp(-A tau): general, so that |A tau / 2^s| <= SQUARING_NORM (the export's series);
-        symmetric, the fewest the symmetric series needs for A's eigenvalues (pinnmpc.surrogate.decay). Both over
+        symmetric, the fewest the symmetric series needs for A's eigenvalues (pinnmpc.surrogate.matrix_exp). Both over
         the boxes, sampled, with a 1.5x margin."""
         a = self._box_rates()
         if symmetric:
-            return decay.squarings(float(torch.linalg.eigvals(a).real.max()) * tau * RATE_MARGIN)
+            return matrix_exp.squarings(float(torch.linalg.eigvals(a).real.max()) * tau * RATE_MARGIN)
         norm = float(torch.linalg.matrix_norm(a * tau, ord=1).max()) * RATE_MARGIN
         return max(0, math.ceil(math.log2(norm / SQUARING_NORM)))
 
@@ -308,7 +309,7 @@ class FrozenArmPrior(nn.Module):
         def held(q: ca.SX, u: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX]:
             """v_ss, kv^-1 M (I - E) (at q0: dq(tau)/dv0) and E over h of the arm held at q."""
             m, c0 = frozen(q, u)
-            e = decay.decay(m, self.kv.numpy(), h, s)
+            e = matrix_exp.decay(m, self.kv.numpy(), h, s)
             return c0 / kv, ca.mtimes(ca.diag(1 / kv), ca.mtimes(m, ca.SX.eye(n) - e)), e
 
         if self.midpoint:  # sub-steps at configurations of their own: the held arm compiled once, called per sub-step
@@ -338,7 +339,7 @@ class FrozenArmPrior(nn.Module):
             # linearisation is that arm's, its model's value exact (an inexact-Jacobian SQP; docs/design.md)
             lib = compile_functions(tag, [value], opt="-O2")
             exact = BatchedFunction(lib[value.name()])
-            held_prior = FrozenArmPrior(self.arm, MIDPOINT_JACOBIAN).compiled(tau).with_jacobian
+            held_prior = ArmPrior(self.arm, MIDPOINT_JACOBIAN).compiled(tau).with_jacobian
             fast = CompiledPrior(exact, lambda x0, u: [exact(x0, u)[0], held_prior(x0, u)[1]], True)
         elif n >= EIGEN_FROM_JOINTS:
             from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian

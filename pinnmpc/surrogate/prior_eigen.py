@@ -63,11 +63,11 @@ class EigenPriorJacobian:
         suffix: str = "",
     ) -> None:
         """steps: sub-steps with the dry friction at the moving velocity (0: one solve); coriolis: the sub-steps hold
-        C(q0, w) w too (FrozenArmPrior.moving_torque); suffix: the compiled functions' name suffix."""
+        C(q0, w) w too (ArmPrior.moving_torque); suffix: the compiled functions' name suffix."""
         from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
         n = self.n = arm.nq
-        span = tau / max(1, steps)  # one solve over tau, or sub-steps with moving friction (FrozenArmPrior.steps)
+        span = tau / max(1, steps)  # one solve over tau, or sub-steps with moving friction (ArmPrior.steps)
         kh = ca.DM(np.sqrt(kv))
         q, u, lam, vt = ca.SX.sym("q", n), ca.SX.sym("u", n), ca.SX.sym("lam", n), ca.SX.sym("v", n * n)
         x0 = ca.SX.sym("x", 2 * n)

@@ -25,7 +25,7 @@ def friction_substeps(
     sub-step the friction is held at the mean of the start velocity and a predicted end velocity (exponential Heun),
     the linear rest solved exactly; relax(d) -> (kv^-1 M (I - E(h)) d, E(h) d); any array namespace. x0 = (q0, v0),
     vss = c0 / kv of the drive without the friction. spans: per sub-step the (length, relax) it advances by, its
-    torques still predicted over h (FrozenArmPrior._solve_moving: x_p(t) for t anywhere on the grid of h)."""
+    torques still predicted over h (ArmPrior._solve_moving: x_p(t) for t anywhere on the grid of h)."""
     for k in range(steps):
         predicted = held_flow(x0, vss, friction(x0[1]), kv, h, relax)[1]
         x0 = held_flow(x0, vss, friction(0.5 * (x0[1] + predicted)), kv, *(spans[k] if spans else (h, relax)))

@@ -66,7 +66,7 @@ class SelfLoopFigure(L.Callback):
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """The plant side of the test is fixed: compute it once (on the process that logs)."""
-        from pinnmpc.simulation.open_loop import rollout_plant, sine_inputs
+        from pinnmpc.simulation.self_loop import rollout_plant, sine_inputs
 
         if self.every_n_epochs <= 0 or not trainer.is_global_zero:
             return

@@ -5,12 +5,12 @@ from __future__ import annotations
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.surrogate.network import PINN
-from pinnmpc.surrogate.prior import FrozenArmPrior
+from pinnmpc.surrogate.prior import ArmPrior
 from pinnmpc.surrogate.staged import StagedPINN
 from pinnmpc.systems.base import System
+from pinnmpc.training.correction import staged_model
 from pinnmpc.training.data import flow_scale
 from pinnmpc.training.grow import grown_model
-from pinnmpc.training.stage import staged_model
 
 
 def build_model(cfg: DictConfig, system: System, prior_arm: dict | None = None) -> PINN | StagedPINN:
@@ -55,7 +55,7 @@ def fresh_model(cfg: DictConfig, system: System, prior_arm: dict | None = None) 
     scale = cfg.model.output_scale
     if scale == "auto":
         a = cfg.model.auto_scale
-        start = None if prior is None else FrozenArmPrior(prior_arm or system, prior["kind"])
+        start = None if prior is None else ArmPrior(prior_arm or system, prior["kind"])
         scale = flow_scale(system, cfg.t_max, a.samples, a.h, a.quantile, cfg.seed, start)
     return PINN(
         state_low=system.state_box.low,

@@ -18,7 +18,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.callbacks import Timer
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.robot_data.physics import physics_model
+from pinnmpc.robot_data.residual_model import physics_model
 from pinnmpc.surrogate.checkpoint import load_surrogate
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems.base import System

@@ -15,7 +15,7 @@ from typing import Any, Protocol
 import numpy as np
 from torch import Tensor
 
-from pinnmpc.controller.arrays import Array
+from pinnmpc.controller.array_backend import Array
 from pinnmpc.controller.box_step import BOUND_TOL
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.util.checks import boolean, real, whole

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pinnmpc.controller.arrays import Array, Nd
+from pinnmpc.controller.array_backend import Array, Nd
 from pinnmpc.controller.box_step import newton_step, normal_equations
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers.base import (

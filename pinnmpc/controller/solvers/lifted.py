@@ -11,7 +11,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from pinnmpc.controller.arrays import Array, Nd
+from pinnmpc.controller.array_backend import Array, Nd
 from pinnmpc.controller.box_step import newton_step
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.shooting import linearise, reached
