@@ -4,6 +4,7 @@ and a fit to a robot whose truth is known recovers it."""
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -226,3 +227,32 @@ def test_the_identify_command_reports_and_writes_the_place(known_log: Path, tmp_
     loaded = load_system(out)
     np.testing.assert_allclose(loaded.payload.pos, LAB["payload"]["pos"], atol=5e-3)
     assert loaded.payload.link == "link3"
+
+
+def test_identify_says_when_the_robot_is_outside_the_models_class(known_log: Path, tmp_path: Path) -> None:
+    """In class (the known robot) the fit leaves well under class_residual of each joint's torque scale; on the
+    shop robot (Stribeck and load friction, droop, cogging, lag) it leaves more, and fit.json and the warnings say
+    the robot is outside the model's class."""
+    from hydra import compose, initialize_config_dir
+
+    from pinnmpc.robot_data.identify_job import run_identify
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    collect_overrides = ["system=planar3", "plant.robot=shop", "robot_time=12", "fine=10",
+                         "episodes.kinds=[excitation]", "excitation.duration=6", "progress=false"]  # fmt: skip
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        shop_cfg = compose(config_name="collect", overrides=collect_overrides)
+    stem = tmp_path / "shop" / "robot_log"
+    stem.parent.mkdir()
+    write_log(stem, collect(shop_cfg, load_system("planar3"), None, None, meta={"robot": "shop"}))
+    for log, outside in ((known_log, False), (stem.with_suffix(".npz"), True)):
+        run = tmp_path / ("out" if outside else "in")
+        overrides = ["system=planar3", f"logs=[{log}]", f"out={run / 'fit.yaml'}", "validation_periods=20",
+                     "rk4_steps=20", "max_samples=3000"]  # fmt: skip
+        with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+            cfg = compose(config_name="identify", overrides=overrides)
+        result = run_identify(cfg, run)
+        assert result["outside_class"] is outside, result["residual_fraction"]
+        assert (max(result["residual_fraction"]) > cfg.class_residual) is outside
+        said = any("outside the model's class" in w for w in result["warnings"])
+        assert said is outside and json.loads((run / "fit.json").read_text())["outside_class"] is outside

@@ -135,7 +135,7 @@ def test_bad_robots_fail_in_one_line(robot: dict[str, Any], says: str) -> None:
 def test_robot_names_and_step_errors() -> None:
     """An unknown robot name lists the known ones; a bad input or state raises PlantError, not garbage."""
     system = load_system("planar3")
-    with pytest.raises(ValueError, match=r"plant.robot='lap'; expected null or one of \['lab'\]"):
+    with pytest.raises(ValueError, match=r"plant.robot='lap'; expected null or one of \['lab', 'shop'\]"):
         make_mujoco_plant(system, system.tau, system_config("planar3").robots, "lap")
     with pytest.raises(ValueError, match="system.robots.bad: robot armature"):
         make_mujoco_plant(system, system.tau, {"bad": {"armature": [1.0]}}, "bad")
@@ -161,5 +161,5 @@ def test_a_closed_loop_on_the_nominal_mujoco_robot_tracks_as_on_the_model(make_c
         assert robot["mae"][joint] == pytest.approx(tight["mae"][joint], rel=0.01), joint
     lab = make_cfg("closed_loop", [*common, "plant=mujoco", "plant.robot=lab"])
     assert run_closed_loop(lab, tmp_path / "c")["mae"]["q_joint3"] > 3 * robot["mae"]["q_joint3"]  # a real mismatch
-    with pytest.raises(ValueError, match=r"plant.robot='nope'; expected null or one of \['lab'\]"):
+    with pytest.raises(ValueError, match=r"plant.robot='nope'; expected null or one of \['lab', 'shop'\]"):
         run_closed_loop(make_cfg("closed_loop", [*common, "plant=mujoco", "plant.robot=nope"]), tmp_path / "d")

@@ -3,7 +3,9 @@ kind has (ControllerSettings, DisturbanceSettings), each field with its default,
 
 A kind's own settings subclass ControllerSettings (the network NMPC's in controller/settings.py, the classical NMPC's
 in controller/classical/settings.py) and register with the kind (pinnmpc.controller.registry); Hydra composes them
-as the structured config behind conf/controller/<name>.yaml (group schema/controller).
+as the structured config behind conf/controller/<name>.yaml (group schema/controller). Fields are annotated Any for
+Hydra: the check declared with each field is its type, so a bad value from the command line is that check's one line
+naming the key (checked_settings), not a composition error.
 """
 
 from __future__ import annotations
@@ -74,11 +76,11 @@ class DisturbanceSettings:
     """Offset-free MPC (pinnmpc.controller.estimator): every predicted step gets an additive d, the last one-step
     prediction error filtered."""
 
-    gain: float = setting(0.7, check=c.real(0.0, 1.0))
+    gain: Any = setting(0.7, check=c.real(0.0, 1.0))
     """0: off (the paper's controller); 1: d = the last error; in (0, 1): an exponential filter of it."""
     max_abs: Any = setting(None, check=_state_bounds)
     """Per-state bound on |d| (positions, velocities); null: unbounded (the configs: system.control.disturbance_max)."""
-    notch: bool | None = setting(None, check=c.optional(c.boolean()))
+    notch: Any = setting(None, check=c.optional(c.boolean()))
     """Average the last two prediction errors before the filter: an error that flips sign every sample (a robot's
     stick-slip seen at the control rate) stays out of d, a lasting one enters half a sample later; null: the kind's
     choice (the network NMPC: on for a network fine-tuned on robot logs; the classical NMPC: off)."""
@@ -89,9 +91,9 @@ class ControllerSettings:
     """What every controller kind has: the horizon, the cost's weights, the input box, the joint limits, the warm
     start and the offset-free estimator (`controller.<field>=value`)."""
 
-    kind: str = setting("pinn", check=c.text())
+    kind: Any = setting("pinn", check=c.text())
     """The registered controller kind that builds from these settings (pinnmpc.controller.registry)."""
-    horizon: int = setting(5, check=c.whole(1))
+    horizon: Any = setting(5, check=c.whole(1))
     """Prediction horizon H (steps of tau)."""
     Q: Any = setting(check=c.weight("nx"))
     """State weight: diagonal (list of nx) or an nx x nx PSD matrix (the configs: system.control.Q)."""
@@ -106,7 +108,7 @@ class ControllerSettings:
     joint_limits: Any = setting(None, check=_limits)
     """Soft joint position limits on every predicted state, {low, high, weight, margin, lookahead}; null: none (the
     configs: system.control.joint_limits; docs/design.md, NMPC)."""
-    warm_start: bool = setting(True, check=c.boolean())
+    warm_start: Any = setting(True, check=c.boolean())
     """Start each solve from the previous solution shifted by one step."""
     disturbance: DisturbanceSettings = setting(factory=DisturbanceSettings)
     """The offset-free estimator."""

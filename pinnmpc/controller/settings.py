@@ -34,27 +34,27 @@ class NetworkSettings(ControllerSettings):
     flow map; the paper's own controller is solver=rmsprop disturbance.gain=0 (the defaults: Gauss-Newton,
     offset-free)."""
 
-    kind: str = setting("pinn", check=c.one_of("pinn"))
+    kind: Any = setting("pinn", check=c.one_of("pinn"))
     """pinn: this kind (controller=nmpc, controller=exact)."""
-    solver: str = setting("lifted_gauss_newton", check=c.one_of(*SOLVERS))
+    solver: Any = setting("lifted_gauss_newton", check=c.one_of(*SOLVERS))
     """lifted_gauss_newton (fastest) | gauss_newton | rmsprop (the paper's) | lbfgs; its settings are
     solvers.<name> (pinnmpc/controller/solvers/)."""
     solvers: dict[str, Any] = setting(factory=dict, check=_solver_options)
     """Each solver's settings (controller.solvers.<name>.<field>=value; the configs compose every solver's
     dataclass here); a solver not named takes its dataclass's defaults."""
-    model: str = setting("surrogate", check=c.one_of(*MODELS))
+    model: Any = setting("surrogate", check=c.one_of(*MODELS))
     """What the OCP predicts with: surrogate (the network replaces integration: the paper's controller) |
     exact_values (the true model, integrated by compiled RK4, gives the predicted states and the network only
     their Jacobians; Gauss-Newton solvers) | prior (the network's physics prior alone: what the network adds)."""
-    exact_rk4_steps: int | None = setting(None, check=c.optional(c.whole(1)))
+    exact_rk4_steps: Any = setting(None, check=c.optional(c.whole(1)))
     """exact_values: RK4 sub-steps per tau; null: the fewest stable on the state box (as the classical NMPC's)."""
-    rti: bool | None = setting(None, check=c.optional(c.boolean()))
+    rti: Any = setting(None, check=c.optional(c.boolean()))
     """The real-time iteration (solver=lifted_gauss_newton): rti_steps lifted steps per sample from the last plan's
     states, the first solve (and any after a fallback) full; null: on for a network trained on the model (or
     fine-tuned against an identified model), and with a trust bound for one fine-tuned on robot logs alone; false:
     every sample solved to convergence (controller/build.py real_time_default). The classical kind's key is the
     same (controller.rti)."""
-    rti_trust: float | None = setting(None, check=_trust)
+    rti_trust: Any = setting(None, check=_trust)
     """The real-time iteration's trust bound for a network fine-tuned on robot logs: a step moving an input by more
     than this fraction of its box width is solved fully; null: none (the configs: system.control.rti_trust)."""
 

@@ -2,53 +2,32 @@
 
 The controller and the surrogate know the URDF's rigid bodies and the system's actuation law. This plant simulates
 them in another engine (MuJoCo instead of Pinocchio/adam), and a named robot (conf/system/<arm>.yaml, `robots`) adds
-what the nominal model leaves out: a payload at the tip, motor armature and dry joint friction. Only this module reads
-a robot's description. Each period holds the input and integrates by explicit RK4 at a fixed step around
-`mujoco.mj_forward`, applying the system's actuation law at every stage; the velocity servo compensates the gravity
+what the nominal model leaves out (pinnmpc/plant/effects.py: a payload, armature, dry friction, and effects outside the
+identification's class: Stribeck and load-dependent friction, torque-speed droop, cogging, actuator lag). Each
+period holds the input and integrates by explicit RK4 at a fixed step around `mujoco.mj_forward`, applying the
+system's actuation law and the robot's applied effects at every stage; the velocity servo compensates the gravity
 of the nominal arm it was tuned on, so a payload's weight is a real mismatch.
 """
 
 from __future__ import annotations
 
-import math
+import dataclasses
 import time
 import xml.etree.ElementTree as ET
-from collections.abc import Mapping, Sequence
-from dataclasses import Field, dataclass, field, fields
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pinnmpc.plant.effects import NOMINAL, EffectLaw, RobotEffects, attribute_effects, robot_effects
 from pinnmpc.plant.scipy_plant import PlantError
 from pinnmpc.plant.settings import MujocoPlantSettings
 from pinnmpc.systems import RigidArm
 from pinnmpc.systems.urdf import locked_urdf
 
-PAYLOAD_KEYS = ("mass", "pos")
 PAYLOAD_BODY = "pinnmpc_payload"  # the point mass's body in the compiled model
-
-
-@dataclass(frozen=True)
-class RobotEffects:
-    """A validated robot description: what the physical arm has that the nominal model does not. A per-joint effect
-    is one field whose metadata names its unit and the MuJoCo joint attribute it sets: robot_effects checks it and
-    compile_arm applies it from there."""
-
-    payload_mass: float = 0.0  # kg, a point mass fixed to the tip
-    payload_pos: tuple[float, float, float] | None = None  # m, in the tip frame (None: the tip itself)
-    armature: tuple[float, ...] = field(default=(), metadata={"unit": "kg m^2", "joint_attribute": "armature"})
-    """per joint, added to the mass matrix diagonal (rotor inertia)"""
-    frictionloss: tuple[float, ...] = field(default=(), metadata={"unit": "N m", "joint_attribute": "frictionloss"})
-    """per joint, MuJoCo's dry friction (a soft constraint)"""
-
-
-def per_joint_effects() -> tuple[Field, ...]:
-    """RobotEffects' per-joint fields (those with a joint attribute)."""
-    return tuple(f for f in fields(RobotEffects) if "joint_attribute" in f.metadata)
-
-
-ROBOT_KEYS = ("payload", *(f.name for f in per_joint_effects()))  # what a robot description may name
 
 
 def _import_mujoco() -> Any:
@@ -58,67 +37,6 @@ def _import_mujoco() -> Any:
     except ImportError:
         raise ModuleNotFoundError("plant=mujoco needs the mujoco package: pip install mujoco") from None
     return mujoco
-
-
-def _plain(value: Any) -> Any:
-    """Nested mappings and sequences (OmegaConf nodes, numpy arrays included) as dicts and lists, so checks see one
-    type."""
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Mapping):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, Sequence) and not isinstance(value, str | bytes):
-        return [_plain(v) for v in value]
-    return value
-
-
-def _number(key: str, value: Any, unit: str) -> float:
-    """One finite number >= 0, or a one-line error naming the key."""
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value < 0:
-        raise ValueError(f"robot {key}={value!r}; expected a finite number >= 0 ({unit})")
-    return float(value)
-
-
-def _per_joint(key: str, value: Any, joints: Sequence[str], unit: str) -> tuple[float, ...]:
-    """One finite number >= 0 per joint, or a one-line error naming the key."""
-    n = len(joints)
-    ok = isinstance(value, list) and len(value) == n
-    ok = ok and all(not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v) for v in value)
-    if not ok or any(v < 0 for v in value):
-        raise ValueError(
-            f"robot {key}={value!r}; expected {n} finite numbers >= 0 ({unit}), one per joint {list(joints)}"
-        )
-    return tuple(float(v) for v in value)
-
-
-def robot_effects(robot: Mapping[str, Any] | None, joints: Sequence[str]) -> RobotEffects:
-    """Check a robot description (None: the nominal model) before anything is compiled."""
-    if robot is None:
-        return RobotEffects()
-    robot = _plain(robot)
-    if not isinstance(robot, dict):
-        raise ValueError(f"robot={robot!r}; expected a mapping with some of {list(ROBOT_KEYS)}")
-    unknown = [k for k in robot if k not in ROBOT_KEYS]
-    if unknown:
-        raise ValueError(f"robot keys {unknown}; expected some of {list(ROBOT_KEYS)}")
-    n = len(joints)
-    effects: dict[str, Any] = {}
-    for f in per_joint_effects():
-        value = robot.get(f.name)
-        effects[f.name] = (0.0,) * n if value is None else _per_joint(f.name, value, joints, f.metadata["unit"])
-    payload = robot.get("payload")
-    if payload is not None:
-        if not isinstance(payload, dict) or "mass" not in payload or any(k not in PAYLOAD_KEYS for k in payload):
-            raise ValueError(f"robot payload={payload!r}; expected {{mass: kg, pos: [x, y, z] m in the tip frame}}")
-        effects["payload_mass"] = _number("payload.mass", payload["mass"], "kg")
-        pos = payload.get("pos")
-        if pos is not None:
-            ok = isinstance(pos, list) and len(pos) == 3
-            ok = ok and all(not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v) for v in pos)
-            if not ok:
-                raise ValueError(f"robot payload.pos={pos!r}; expected 3 finite numbers (m, in the tip frame)")
-            effects["payload_pos"] = tuple(float(v) for v in pos)
-    return RobotEffects(**effects)
 
 
 def _mjcf_urdf(system: RigidArm) -> tuple[str, str]:
@@ -155,9 +73,10 @@ def _tip_body(system: RigidArm, root_text: str, last_link: str) -> str:
     raise ValueError(f"{system.name}: tip_frame={system.tip_frame!r} is neither a link nor a joint of {system.urdf}")
 
 
-def compile_arm(system: RigidArm, effects: RobotEffects = RobotEffects()) -> Any:
+def compile_arm(system: RigidArm, effects: RobotEffects = NOMINAL) -> Any:
     """The arm as a mujoco.MjModel: URDF inertias as written (scaled by system.mass_scale), gravity from the system,
-    no contacts, limits, damping or springs; the robot's payload, armature and frictionloss on top."""
+    no contacts, limits, damping or springs; the robot's payload and joint attributes (armature, frictionloss) on
+    top (its applied effects are MujocoPlant's)."""
     if getattr(system, "payload", None) or getattr(system, "armature", None):
         raise ValueError(
             f"system {system.name} models a payload or armature; expected plant=mujoco on an arm without them "
@@ -181,7 +100,7 @@ def compile_arm(system: RigidArm, effects: RobotEffects = RobotEffects()) -> Any
         j.frictionloss, j.armature = 0.0, 0.0
         j.limited = mujoco.mjtLimited.mjLIMITED_FALSE
         j.actfrclimited = mujoco.mjtLimited.mjLIMITED_FALSE
-    for f in per_joint_effects():
+    for f in attribute_effects():
         values = getattr(effects, f.name)
         for i, name in enumerate(system.joints if values else ()):
             setattr(by_name[name], f.metadata["joint_attribute"], values[i])
@@ -212,7 +131,7 @@ class MujocoPlant:
 
     system: RigidArm
     tau: float
-    robot: Mapping[str, Any] | None = None  # None: the nominal model; else {payload, armature, frictionloss}
+    robot: Mapping[str, Any] | None = None  # None: the nominal model; else a robot description (plant/effects.py)
     substeps: int = MujocoPlantSettings.substeps  # RK4 steps per control period (pinnmpc/plant/settings.py)
     step_times: list[float] = field(default_factory=list)
     stick_slip_steps: int = 0  # no stick-slip redo here: kept so callers read every plant alike
@@ -246,6 +165,9 @@ class MujocoPlant:
         self._qpos, self._qvel, self._qfrc, self._qacc = d.qpos, d.qvel, d.qfrc_applied, d.qacc
         self._forward = mujoco.mj_forward
         self._mujoco = mujoco
+        self._law = EffectLaw(self.effects) if self.effects.applied else None
+        self._lag = self.effects.lag
+        self._held: tuple[np.ndarray, np.ndarray] | None = None  # lag: (the last period's end state, filter state)
 
     def _gravity(self, q: np.ndarray) -> np.ndarray:
         """g(q) of the nominal arm (mass-scaled as the system): what its velocity servo compensates."""
@@ -257,15 +179,38 @@ class MujocoPlant:
         return out[self._dadr]
 
     def acceleration(self, q: np.ndarray, v: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """dv/dt of one state under input u: the system's actuation law as applied joint force, MuJoCo's dynamics."""
+        """dv/dt of one state under input u (the actuator's, after any lag): the system's actuation law and the
+        robot's applied effects as joint force, MuJoCo's dynamics."""
         torque = self.system.actuation_torque(v, u)
         if self._servo:
             torque = torque + self._gravity(q)
+        if self._law is not None:  # what the motor gives, through the robot's droop, friction and cogging
+            torque = self._law.joint_force(q, v, torque)
         self._qpos[self._qadr] = q
         self._qvel[self._dadr] = v
         self._qfrc[self._dadr] = torque
         self._forward(self.model, self.data)
         return self._qacc[self._dadr].copy()
+
+    def needed_input(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """The actuator's input that gives acceleration a at (q, v) on this robot (before any lag): MuJoCo's inverse
+        dynamics of the arm (its dry friction as Coulomb, tanh(slip_slope v)) back through the applied effects and
+        the actuation law, which is affine in the input. For sizing a robot against the input box."""
+        mj = self._mujoco
+        if not hasattr(self, "_inverse"):  # the robot without its friction constraint, which mj_inverse cannot see
+            smooth = dataclasses.replace(self.effects, frictionloss=(0.0,) * self.system.nq)
+            self._inverse = compile_arm(self.system, smooth)
+            self._inverse_data = mj.MjData(self._inverse)
+        m, d = self._inverse, self._inverse_data
+        d.qpos[self._qadr], d.qvel[self._dadr], d.qacc[self._dadr] = q, v, a
+        mj.mj_inverse(m, d)
+        dry = np.asarray(self.effects.frictionloss or (0.0,) * self.system.nq)
+        joint = d.qfrc_inverse[self._dadr] + dry * np.tanh(self.effects.slip_slope * v)
+        motor = joint if self._law is None else self._law.needed_motor(q, v, joint)
+        if self._servo:
+            motor = motor - self._gravity(q)
+        zero, one = self.system.actuation_torque(v, 0.0 * v), self.system.actuation_torque(v, 1.0 + 0.0 * v)
+        return (motor - zero) / (one - zero)
 
     def rhs(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """dx/dt of one state, as system.rhs: for checks against the model."""
@@ -273,7 +218,9 @@ class MujocoPlant:
         return np.concatenate((x[n:], self.acceleration(x[:n], x[n:], u)))
 
     def _integrate(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Classical RK4 at h = tau / substeps with the input held."""
+        """Classical RK4 at h = tau / substeps with the input held (through the actuator's lag where it has one)."""
+        if self._lag:
+            return self._integrate_lagged(x0, u)
         n, h = self.system.nq, self.tau / self.substeps
         q, v = x0[:n].copy(), x0[n:].copy()
         acc = self.acceleration
@@ -288,6 +235,30 @@ class MujocoPlant:
             q = q + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
             v = v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
         return np.concatenate((q, v))
+
+    def _integrate_lagged(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """RK4 of (q, v, a) with the actuator's input a filtered, da/dt = (u - a) / lag. The filter state carries over
+        when x0 is the last period's end state (a closed loop), else it starts settled at u (a lone step)."""
+        n, h, k = self.system.nq, self.tau / self.substeps, 1.0 / self._lag
+        held = self._held
+        a = held[1].copy() if held is not None and np.array_equal(held[0], x0) else u.copy()
+        q, v = x0[:n].copy(), x0[n:].copy()
+        acc = self.acceleration
+        for _ in range(self.substeps):
+            b1 = k * (u - a)
+            a1 = acc(q, v, a)
+            q2, v2, c2 = q + 0.5 * h * v, v + 0.5 * h * a1, a + 0.5 * h * b1
+            b2, a2 = k * (u - c2), acc(q2, v2, c2)
+            q3, v3, c3 = q + 0.5 * h * v2, v + 0.5 * h * a2, a + 0.5 * h * b2
+            b3, a3 = k * (u - c3), acc(q3, v3, c3)
+            q4, v4, c4 = q + h * v3, v + h * a3, a + h * b3
+            b4, a4 = k * (u - c4), acc(q4, v4, c4)
+            q = q + h / 6.0 * (v + 2.0 * v2 + 2.0 * v3 + v4)
+            v = v + h / 6.0 * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+            a = a + h / 6.0 * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
+        x1 = np.concatenate((q, v))
+        self._held = (x1.copy(), a)
+        return x1
 
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """One zero-hold period; raises PlantError on a bad input or a non-finite state."""
@@ -307,6 +278,20 @@ class MujocoPlant:
         if not np.all(np.isfinite(x1)):
             raise PlantError(f"plant state became non-finite from x0={x0.tolist()}, u={u_t.tolist()}")
         return x1
+
+
+def input_demand(plant: MujocoPlant, t: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Per sample of a reference (t, x), the largest fraction of the input box a joint's command needs on the
+    plant's robot (inverse dynamics, accelerations by finite differences; with an actuator lag T the command
+    u + T du/dt that the lag turns into u): above 1, the robot cannot follow it."""
+    n = plant.system.nq
+    acc = np.gradient(x[:, n:], t, axis=0)
+    u = np.stack([plant.needed_input(x[i, :n], x[i, n:], acc[i]) for i in range(len(t))])
+    if plant.effects.lag:
+        u = u + plant.effects.lag * np.gradient(u, t, axis=0)
+    low, high = np.asarray(plant.system.input_box.low), np.asarray(plant.system.input_box.high)
+    fraction = np.where(u >= 0, u / np.where(high > 0, high, np.inf), u / np.where(low < 0, low, -np.inf))
+    return np.abs(fraction).max(axis=1)
 
 
 def make_mujoco_plant(

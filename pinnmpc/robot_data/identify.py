@@ -265,6 +265,13 @@ def _rms(r: np.ndarray, mask: np.ndarray | None = None) -> list[float]:
     return [float(v) for v in np.sqrt(np.where(mask, r**2, 0.0).sum(axis=0) / np.maximum(count, 1))]
 
 
+def residual_fraction(system: RigidArm, fit: Fit) -> list[float]:
+    """The fit's torque residual per joint over the joint's torque scale: near zero when the robot lies in the
+    model's class (what is left is the logs' integration and stick-slip), a few percent when it has effects no
+    coefficient here expresses."""
+    return (np.asarray(fit.torque_rms) / _torque_scale(system)).tolist()
+
+
 def _torque_scale(system: RigidArm) -> np.ndarray:
     """A typical torque per joint: half the input range (servos: the gain times it)."""
     half = (np.asarray(system.input_box.high) - np.asarray(system.input_box.low)) / 2

@@ -6,15 +6,17 @@ from __future__ import annotations
 
 import copy
 import json
+import logging
 import re
 import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.robot_data.checks import cut_short_note
-from pinnmpc.robot_data.identify import Fit, identify
+from pinnmpc.robot_data.identify import Fit, identify, residual_fraction
 from pinnmpc.robot_data.logs import read_logs
 from pinnmpc.robot_data.settings import validate_identify
 from pinnmpc.systems.registry import load_system
@@ -22,6 +24,8 @@ from pinnmpc.systems.settings import job_system
 from pinnmpc.systems.urdf import Payload, RigidArm, portable_urdf
 from pinnmpc.util.io import atomic_create, atomic_write, save_json
 from pinnmpc.util.paths import CONF, PACKAGE  # never written: conf/ and the installed package
+
+log = logging.getLogger(__name__)
 
 NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
@@ -145,6 +149,18 @@ def run_identify(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         rk4_steps=int(cfg.rk4_steps),
         seed=int(cfg.seed),
     )
+    fraction = residual_fraction(system, fit)
+    outside = max(fraction) > float(cfg.class_residual)
+    if outside:
+        worst = int(np.argmax(fraction))
+        note = (
+            f"the robot is outside the model's class: the fit leaves {fraction[worst]:.3g} of {system.joints[worst]}'s "
+            f"torque scale unexplained (class_residual={cfg.class_residual:g}); effects no coefficient here expresses "
+            "(Stribeck or load-dependent friction, motor droop, cogging, actuator lag) remain: fine-tune a network on "
+            "the logs (docs/robot.md)"
+        )
+        log.warning("%s", note)
+        notes.append(note)
     composed = OmegaConf.to_container(cfg.system, resolve=True)
     text = system_yaml(composed, fit, [lg.meta for lg in logs], paths, notes)
     write_system(out, text, bool(cfg.overwrite))
@@ -159,6 +175,8 @@ def run_identify(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         "nominal_torque_rms": fit.nominal_torque_rms,
         "prediction_rmse": fit.prediction_rmse,
         "nominal_prediction_rmse": fit.nominal_prediction_rmse,
+        "residual_fraction": fraction,
+        "outside_class": outside,
         "robot_time_s": float(sum(lg.robot_time for lg in logs)),
         "warnings": notes,
         "wall_s": time.perf_counter() - start,

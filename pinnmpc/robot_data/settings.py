@@ -39,6 +39,7 @@ COLLECT: dict[str, Check] = {  # conf/collect.yaml
 
 
 IDENTIFY: dict[str, Check] = {  # conf/identify.yaml
+    "class_residual": c.positive(),
     "logs": c.listof(c.text()),
     "out": c.optional(c.text()),
     "overwrite": c.boolean(),

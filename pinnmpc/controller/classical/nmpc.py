@@ -223,6 +223,12 @@ class CasadiNMPC:
         """The disturbance the next solve predicts with (None: off or not estimated yet)."""
         return self._estimator.value
 
+    def prediction_error(self, x_prev: np.ndarray, u_prev: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """x - F(x_prev, u_prev) of the model this controller predicts with (undisturbed): the model monitor's
+        one-step miss, as the network NMPC's (metrics.json's model_monitor and model_fits)."""
+        flow = self.solver.flow(np.asarray(x_prev, dtype=np.float64), np.asarray(u_prev, dtype=np.float64))
+        return np.asarray(x, dtype=np.float64) - flow
+
     def _estimate_disturbance(self, x: np.ndarray) -> None:
         """Offset-free MPC as NMPC's: what the model missed over the last period (x - F(x_prev, u_prev)),
         filtered by the gain and bounded by disturbance_max, is added to every predicted step."""

@@ -64,46 +64,46 @@ class ClassicalSettings(ControllerSettings):
     """Classical NMPC on the true model (pinnmpc.controller.classical.nmpc): the same cost, bounds, limits and
     horizon as the network NMPC; the model transcribed by RK4 shooting or Radau IIA collocation, solved by CasADi."""
 
-    kind: str = setting("casadi", check=c.one_of("casadi"))
+    kind: Any = setting("casadi", check=c.one_of("casadi"))
     """casadi: this kind (controller=casadi)."""
     disturbance: DisturbanceSettings = setting(factory=_estimator_off)
     """The offset-free estimator: off by default here (gain 0, no notch)."""
-    solver: str = setting("sqpmethod", check=c.one_of(*PLUGINS))
+    solver: Any = setting("sqpmethod", check=c.one_of(*PLUGINS))
     """ipopt | sqpmethod | fatrop (CasADi nlpsol plugins); their options are solvers.<name>."""
     solvers: dict[str, Any] = setting(factory=_nlp_options, check=_options)
     """Options passed to casadi.nlpsol per plugin (controller.solvers.sqpmethod.max_iter=30)."""
-    transcription: str = setting("rk4", check=c.one_of(*TRANSCRIPTIONS))
+    transcription: Any = setting("rk4", check=c.one_of(*TRANSCRIPTIONS))
     """rk4: multiple shooting over RK4 sub-steps (rk4_steps) | radau: Radau IIA collocation, the stage accelerations
     unknowns of the residual M(q) a + h(q, v) - tau(q, v, u) = 0 (no M^-1)."""
-    collocation_stages: int = setting(3, check=c.whole(1))
+    collocation_stages: Any = setting(3, check=c.whole(1))
     """radau: points per interval (order 2 * stages - 1)."""
-    collocation_intervals: int = setting(1, check=c.whole(1))
+    collocation_intervals: Any = setting(1, check=c.whole(1))
     """radau: intervals per tau."""
-    qpsol: str = setting("qrqp", check=c.one_of(*QP_SOLVERS))
+    qpsol: Any = setting("qrqp", check=c.one_of(*QP_SOLVERS))
     """QP solver of sqpmethod and of the real-time iteration: qrqp (active set, built in) | hpipm (interior point on
     the OCP's stage structure, Riccati recursion) | osqp (ADMM)."""
     qpsols: dict[str, Any] = setting(factory=_qp_options, check=_options)
     """Each QP solver's options (CasADi's conic plugin options)."""
-    hessian: str = setting("gauss_newton", check=c.one_of("gauss_newton", "exact"))
+    hessian: Any = setting("gauss_newton", check=c.one_of("gauss_newton", "exact"))
     """gauss_newton: the cost's Hessian only (constant, convex QPs) | exact: with the dynamics' curvature."""
-    rk4_steps: int | None = setting(None, check=c.optional(c.whole(1)))
+    rk4_steps: Any = setting(None, check=c.optional(c.whole(1)))
     """rk4: sub-steps per tau in the prediction model; null: the fewest stable on the state box."""
-    coulomb_width: float | None = setting(None, check=c.optional(c.positive()))
+    coulomb_width: Any = setting(None, check=c.optional(c.positive()))
     """rad/s: a failed solve is repeated on the model with sign(v) friction smoothed as tanh(v / width); only arms
     with a sign(v) term (the PowerCube); null: no repeat (the configs: system.control.coulomb_width)."""
-    keep_unconverged: bool = setting(True, check=c.boolean())
+    keep_unconverged: Any = setting(True, check=c.boolean())
     """A solve that does not converge still applies its inputs when, simulated through the model, they cost less
     than the previous plan's (counted unconverged, not a fallback); false: the previous plan, shifted."""
-    rti: bool = setting(False, check=c.boolean())
+    rti: Any = setting(False, check=c.boolean())
     """Real-time iteration: one Gauss-Newton step per sample from the shifted solution, on the QP with the
     collocation's accelerations eliminated (classical/rti.py); the first sample, and any after a fallback, solves
     fully (needs solver=sqpmethod, hessian=gauss_newton)."""
-    rti_limit_steps: int = setting(2, check=c.whole(0))
+    rti_limit_steps: Any = setting(2, check=c.whole(0))
     """Real-time iteration: more steps, each from the last, in a sample whose plan reaches where a joint-limit
     penalty acts (it switches on and off there, which one step does not follow); 0: none."""
-    codegen: bool = setting(True, check=c.boolean())
+    codegen: Any = setting(True, check=c.boolean())
     """Generate C for the solver's functions and compile them (cached by source hash)."""
-    codegen_opt: str = setting("-O2", check=c.one_of(*OPT_LEVELS))
+    codegen_opt: Any = setting("-O2", check=c.one_of(*OPT_LEVELS))
     """C optimisation level of that code: lower levels compile a 7-joint arm's large generated code sooner and
     solve slower (compiled once, cached)."""
 
