@@ -511,8 +511,15 @@ def test_the_robot_section_runs_every_controller_on_the_robot(tmp_path: Path) ->
          f"robot.adapted={CHECKPOINTS / 'planar3-lab.pt'}", "robot.references=[default]", "progress=false"]
     )  # fmt: skip
     robot = run_bench(cfg, tmp_path)["robot"]
-    keys = ["casadi_nominal", "pinn_shipped", "pinn_adapted", "pinn_shipped_nominal"]
+    classical = ["casadi_nominal", "casadi_nominal_converged", "casadi_nominal_est", "casadi_nominal_converged_est"]
+    keys = [*classical, "pinn_shipped", "pinn_adapted", "pinn_shipped_nominal"]
     assert list(robot["rows"]) == [f"{k}@builtin:default" for k in keys]
+    assert robot["rows"]["casadi_nominal_est@builtin:default"]["disturbance_gain"] == 0.7
+    assert robot["rows"]["casadi_nominal@builtin:default"]["real_time"] is True  # planar3: a real-time iteration
+    assert robot["rows"]["casadi_nominal_converged@builtin:default"]["real_time"] is False
+    best = robot["best_classical"]["builtin:default"]
+    mae = {k: max(robot["rows"][f"{k}@builtin:default"]["mae"][f"q_joint{j}"] for j in (1, 2, 3)) for k in classical}
+    assert best in classical and mae[best] == min(mae.values())
     assert all(r["status"] == "ok" and r["steps"] == 3 for r in robot["rows"].values())
     (paired,) = robot["paired_ocp"]  # the two networks' loops again, their samples interleaved
     assert (paired["samples"], paired["status"], paired["base"]) == (3, "ok", "pinn_shipped")
@@ -520,5 +527,6 @@ def test_the_robot_section_runs_every_controller_on_the_robot(tmp_path: Path) ->
     assert all(0 < paired["ocp_median_s"][k] <= paired["ocp_p95_s"][k] for k in ("pinn_shipped", "pinn_adapted"))
     report = (tmp_path / "bench.md").read_text()
     assert "## 7. On the robot `lab`" in report and "samples interleaved in one process" in report
+    assert "Best classical per reference" in report
     with pytest.raises(ValueError, match="expected plant=mujoco plant.robot=<name>"):
         run_bench(_cfg(["system=planar3", *off, "robot.enabled=true", "progress=false"]), tmp_path / "b")

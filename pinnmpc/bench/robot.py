@@ -40,18 +40,47 @@ def robot_controllers(
     r, shared = cfg.robot, estimator(cfg)  # the shipped and (robot.adapted) fine-tuned networks: `networks`
     classical = OmegaConf.merge(classical_cfg(cfg, classical_solvers(cfg)[0]), shared)
     pinn = OmegaConf.merge(controller_cfg(cfg), shared)
-    rows = [("casadi_nominal", "classical NMPC, nominal model", build_casadi_nmpc(classical, system), None)]
+    models = {"nominal": system}
     if r.identified is not None:
         fitted = load_system(str(r.identified))
         if tuple(fitted.state_names) != tuple(system.state_names):
             raise ValueError(f"robot.identified={r.identified} is another arm: states {fitted.state_names}")
-        rows.append(
-            ("casadi_identified", "classical NMPC, identified model", build_casadi_nmpc(classical, fitted), None)
-        )
+        models["identified"] = fitted
+    rows = []
+    variants = classical_variants(cfg, classical) if r.get("classical_variants") else [("", "", {})]
+    for name, model in models.items():
+        for suffix, tail, changes in variants:
+            settings = OmegaConf.merge(classical, changes)
+            label = f"classical NMPC, {name} model{tail}"
+            rows.append((f"casadi_{name}{suffix}", label, build_casadi_nmpc(settings, model), None))
     labels = {"pinn_shipped": "PINN-MPC, shipped network", "pinn_adapted": "PINN-MPC, fine-tuned network"}
     for key, net in networks.items():
         rows.append((key, labels[key], build_nmpc(pinn, net, system), net.domain))
     return rows
+
+
+def classical_variants(cfg: DictConfig, classical: DictConfig) -> list[tuple[str, str, dict[str, Any]]]:
+    """(key suffix, label tail, changes) of the classical NMPC at its best engineers' settings on a robot: the arm's
+    default, its other mode (converged or real-time, sqpmethod only) and each with the estimator switched the other
+    way (robot.offset_free's default off: on with the network controller's; on: off)."""
+    modes = [("", "", {})]
+    if classical.solver == "sqpmethod":
+        fast = bool(classical.get("rti", False))
+        modes.append(("_converged", ", converged", {"rti": False}) if fast else ("_rti", ", real-time", {"rti": True}))
+    on = float(classical.disturbance.gain) > 0
+    other = {"disturbance": {"gain": 0.0}} if on else {"disturbance": cfg.controller.disturbance}
+    tail = ", no estimator" if on else ", offset-free"
+    return [*modes, *((f"{k}_{'noest' if on else 'est'}", t + tail, {**c, **other}) for k, t, c in modes)]
+
+
+def best_classical(rows: dict[str, dict[str, Any]], refs: list[str], angles: list[str]) -> dict[str, str]:
+    """Per reference, the classical row with the smallest worst joint-angle MAE among those that ran ok."""
+    out = {}
+    for ref in refs:
+        mine = {k: r for k, r in rows.items() if k.startswith("casadi_") and r["reference"] == ref}
+        ok = {k: r for k, r in mine.items() if r["status"] == "ok"} or mine
+        out[ref] = min(ok, key=lambda k: worst_angle_mae(ok[k], angles)).split("@")[0]
+    return out
 
 
 def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str, Any]:
@@ -109,6 +138,7 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
         "adapted": None if cfg.robot.adapted is None else str(cfg.robot.adapted),
         "identified": None if cfg.robot.identified is None else str(cfg.robot.identified),
         "rows": rows,
+        "best_classical": best_classical(rows, [ref.name for ref in refs], list(system.state_names[: system.nq])),
         "paired_ocp": paired,
     }
 
@@ -191,6 +221,16 @@ def md_robot(section: dict[str, Any], system: dict[str, Any]) -> str:
         else []
     )
     paired = md_paired(section.get("paired_ocp") or [])
+    best = section.get("best_classical") or {}
+    if best:
+        label = {r["controller"]: r["label"] for r in rows.values()}
+        paired = [
+            "",
+            "Best classical per reference (smallest worst joint-angle MAE of the classical rows): "
+            + "; ".join(f"{r}: {label[k]}, {fmt(worst_angle_mae(rows[f'{k}@{r}'], angles))}" for r, k in best.items())
+            + ".",
+            *paired,
+        ]
     return "\n".join(
         [
             f"## 7. On the robot `{section['robot']}` (a robot the model is not)",

@@ -26,6 +26,7 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
     "robot.identified": c.optional(c.text()),
     "robot.logs": c.optional(c.listof(c.text())),
     "robot.rk4_steps": c.integer(1),
+    "robot.classical_variants": c.boolean(),
     "optimality.n_states": c.integer(1),
     "optimality.random_starts": c.integer(0),
     "scaling.horizons": c.listof(c.integer(1)),
