@@ -47,8 +47,10 @@ TINY = [
     "scaling.warmup=1",
     "scaling.step_repeats=2",
     "scaling.step_warmup=1",
+    "floor.horizons=[2,4]",
+    f"floor.max_steps={MAX_STEPS}",
 ]
-SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "kinds")
+SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "kinds", "floor")
 SECTIONS_OFF = [f"{s}.enabled=false" for s in SECTIONS]
 
 
@@ -497,6 +499,16 @@ def test_bad_sizes_are_refused_before_any_work(tmp_path: Path, override: str, me
     with pytest.raises(SettingError) as e:
         run_bench(_cfg([*TINY, *override.split()]), tmp_path)
     assert str(e.value).startswith(message) and not list(tmp_path.iterdir())
+
+
+def test_the_floor_section_times_the_network_beside_each_solve(bench: tuple[dict[str, Any], Path]) -> None:
+    """Section 9: per horizon, the controller's OCP time and the network's own evaluation at its nodes, timed after
+    each solve of one closed loop; the controller's time includes that evaluation, so the ratio is above 1."""
+    result, run_dir = bench
+    rows = result["floor"]["rows"]
+    assert [r["horizon"] for r in rows] == [2, 4] and all(r["steps"] == MAX_STEPS for r in rows)
+    assert all(0 < r["floor_median_s"] < r["ocp_median_s"] and r["ratio_median"] > 1 for r in rows)
+    assert "## 9. The network controller against its floor" in (run_dir / "bench.md").read_text()
 
 
 def test_a_zero_target_is_a_target_and_null_is_none() -> None:

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from pinnmpc.bench.common import status_suffix
+from pinnmpc.bench.floor import md_floor
 from pinnmpc.bench.kinds import md_kinds
 from pinnmpc.bench.loops import mode
 from pinnmpc.bench.robot import md_robot
@@ -409,6 +410,8 @@ def render_markdown(result: dict[str, Any]) -> str:
         parts.append(md_robot(result["robot"], system))
     if "kinds" in result:
         parts.append(md_kinds(result["kinds"], names))
+    if "floor" in result:
+        parts.append(md_floor(result["floor"], names))
     elapsed = ", ".join(f"{k} {v:.1f} s" for k, v in result["elapsed_s"].items())
     parts += [f"Wall time per section: {elapsed}.", ""]
     return "\n".join(parts)

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.bench.classical import CASADI_CONFIG, available, bench_classical, classical_plot
 from pinnmpc.bench.common import bench_reference, optimality_solvers, paper_rows
+from pinnmpc.bench.floor import bench_floor
 from pinnmpc.bench.kinds import bench_kinds
 from pinnmpc.bench.loops import OCPProblem, bench_closed_loop, run_controller
 from pinnmpc.bench.optimality import bench_optimality
@@ -68,7 +69,8 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     names = tuple(system.state_names)
     pinn64 = load_pinn(cfg, system)
     kinds = cfg.get("kinds") is not None and cfg.kinds.enabled
-    need_ref = cfg.closed_loop.enabled or cfg.optimality.enabled or cfg.classical.enabled or kinds
+    floor = cfg.get("floor") is not None and cfg.floor.enabled
+    need_ref = cfg.closed_loop.enabled or cfg.optimality.enabled or cfg.classical.enabled or kinds or floor
     ref = bench_reference(cfg, system, pinn64.tau) if need_ref else None
     result: dict[str, Any] = {
         "machine": machine_info(),
@@ -108,6 +110,8 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     if kinds:
         ran = [s for s in ("closed_loop", "classical") if s in result and "skipped" not in result[s]]
         result["kinds"] = timed("kinds", lambda: bench_kinds(cfg, system, ref, ran))
+    if floor:
+        result["floor"] = timed("floor", lambda: bench_floor(cfg, system, pinn64, ref))
     result["targets"] = check_targets(cfg, result, names)
     result["elapsed_s"] = {k: float(v) for k, v in elapsed.items()}
     save_json(run_dir / "bench.json", result)

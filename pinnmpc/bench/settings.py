@@ -27,6 +27,8 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
     "robot.logs": c.optional(c.listof(c.text())),
     "robot.rk4_steps": c.integer(1),
     "robot.classical_variants": c.boolean(),
+    "floor.horizons": c.listof(c.integer(1)),
+    "floor.max_steps": c.optional(c.integer(1)),
     "optimality.n_states": c.integer(1),
     "optimality.random_starts": c.integer(0),
     "scaling.horizons": c.listof(c.integer(1)),
@@ -41,7 +43,7 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
 }
 
 
-BENCH_SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "robot", "kinds")
+BENCH_SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "robot", "kinds", "floor")
 
 
 def validate_bench(cfg: DictConfig, system: Any) -> None:

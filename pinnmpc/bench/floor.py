@@ -1,0 +1,105 @@
+"""Section 9: the network controller against its own floor. Per sample the controller cannot avoid evaluating the
+network's values and Jacobians at the horizon's nodes and the estimator's one step; everything else in its OCP time
+is its own overhead. The floor is timed right after each solve of a real closed loop, on that sample's nodes (the
+plan's predicted states and inputs), so both see the same machine at the same moment (the ratio a shared machine's
+drift cannot bias)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from pinnmpc.bench.common import controller_cfg
+from pinnmpc.bench.loops import loop_row
+from pinnmpc.controller.build import build_nmpc
+from pinnmpc.references.files import Reference
+from pinnmpc.surrogate.checkpoint import Surrogate
+from pinnmpc.surrogate.flowmap import numpy_path
+from pinnmpc.systems.base import System
+from pinnmpc.util.tables import fmt
+
+log = logging.getLogger(__name__)
+
+
+class FloorProbe:
+    """The controller with the floor timed after each of its solves: the network's step_with_jacobian on the
+    horizon's nodes (batch H) and one step (the estimator's), the same calls its Gauss-Newton model makes."""
+
+    def __init__(self, controller: Any, flow: Any) -> None:
+        self.inner, self.flow = controller, flow
+        self.ocp_s: list[float] = []
+        self.floor_s: list[float] = []
+
+    def __getattr__(self, name: str) -> Any:
+        """Everything else is the controller's (stats, bounds, describe, the monitor)."""
+        return getattr(self.inner, name)
+
+    def make_step(self, x: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
+        """The controller's input, then the floor on the plan it just made."""
+        start = time.perf_counter()
+        u = self.inner.make_step(x, x_ref)
+        solved = time.perf_counter()
+        plan = self.inner.U.numpy()  # (H, nu): the inputs the next solve starts from
+        nodes = np.vstack([np.asarray(x, dtype=np.float64)[None], np.asarray(x_ref, dtype=np.float64)[:-1]])
+        floor_start = time.perf_counter()
+        self.flow.step_with_jacobian(nodes, plan)
+        self.flow.step(nodes[:1], plan[:1])
+        done = time.perf_counter()
+        self.ocp_s.append(solved - start)
+        self.floor_s.append(done - floor_start)
+        return u
+
+
+def bench_floor(cfg: DictConfig, system: System, surrogate: Surrogate, ref: Reference) -> dict[str, Any]:
+    """Per horizon of floor.horizons: the configured controller's closed loop on the reference with its floor timed
+    sample by sample; the OCP median, the floor median and the median of the per-sample ratio."""
+    flow = numpy_path(surrogate) or surrogate
+    run_cfg = OmegaConf.merge(cfg, {"closed_loop": {"max_steps": cfg.floor.max_steps}})
+    rows = []
+    for horizon in cfg.floor.horizons:
+        probe = FloorProbe(build_nmpc(controller_cfg(cfg, horizon=int(horizon)), surrogate, system), flow)
+        row = loop_row(run_cfg, system, probe, surrogate.domain, surrogate.tau, ref)  # type: ignore[arg-type]
+        ocp, floor = np.asarray(probe.ocp_s), np.asarray(probe.floor_s)
+        rows.append(
+            {
+                "horizon": int(horizon),
+                "status": row["status"],
+                "steps": row["steps"],
+                "mae": row["mae"],
+                "ocp_median_s": float(np.median(ocp)),
+                "floor_median_s": float(np.median(floor)),
+                "ratio_median": float(np.median(ocp / floor)),
+                "ratio_p95": float(np.percentile(ocp / floor, 95)),
+                "iterations_mean": row["iterations_mean"],
+            }
+        )
+        log.info("floor: H=%d done, %.2fx the floor", horizon, rows[-1]["ratio_median"])
+    return {"solver": str(cfg.controller.solver), "reference": ref.name, "rows": rows}
+
+
+def md_floor(section: dict[str, Any], names: Sequence[str]) -> str:
+    """Section 9's table: the controller's OCP time against its floor, per horizon."""
+    nq = len(names) // 2
+    lines = [
+        f"## 9. The network controller against its floor ({section['solver']}, {section['reference']})",
+        "",
+        "Floor: the network's values and Jacobians at the horizon's nodes and the estimator's one step, timed right "
+        "after each solve of the same closed loop; ratio: the median of the per-sample OCP / floor.",
+        "",
+        "| H | OCP median (ms) | floor median (ms) | ratio (median) | ratio (p95) | iterations | worst joint MAE "
+        "| status |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in section["rows"]:
+        worst = max(float(r["mae"][n]) for n in names[:nq])
+        ocp, floor = fmt(1e3 * r["ocp_median_s"]), fmt(1e3 * r["floor_median_s"])
+        lines.append(
+            f"| {r['horizon']} | {ocp} | {floor} | {fmt(r['ratio_median'])} | {fmt(r['ratio_p95'])} | "
+            f"{fmt(r['iterations_mean'])} | {fmt(worst)} | {r['status']} |"
+        )
+    return "\n".join([*lines, ""])
