@@ -75,6 +75,13 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     null (auto): the controller decides from its model (pinnmpc.controller.build.trust_default: the arm's
     system.control.rti_trust for a network fine-tuned on robot logs, every step trusted otherwise); inf: every step
     trusted; a solver built without a controller treats null as inf."""
+    cold_states: str = "reference"
+    """Where a cold solve's lifted states start (the first sample, any after a fallback): reference (the reference's
+    states, as multiple-shooting codes start: the horizon's nonlinearity spread over its nodes, so long horizons
+    converge in a few lifted steps) | rollout (of U0 from x0)."""
+    cold_max_iter: int = 20
+    """Lifted iterations of a cold solve before single shooting takes over (lifted_max_iter for the others): from
+    the reference's states a long horizon converges in a few more than a warm solve needs."""
     tol_promise_inexact: float = 1e-3
     """controller.model=exact_values: relative slack of the check that a stop's cost keeps the model's promise
     (the Jacobians are the PINN's, not the derivatives of the values, so promises are inexact)."""
@@ -83,7 +90,9 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("rti_steps", "lifted_max_iter", "lifted_max_iter_inexact"):
+        if self.cold_states not in ("reference", "rollout"):
+            raise ValueError(f"LiftedGaussNewtonSolver.cold_states={self.cold_states!r}; expected reference or rollout")
+        for name in ("rti_steps", "lifted_max_iter", "lifted_max_iter_inexact", "cold_max_iter"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"LiftedGaussNewtonSolver.{name}={value!r}; expected a whole number >= 1")
@@ -137,6 +146,9 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
                 # this sample is solved fully from where the steps got to
                 nodes[:, 1:] = states[:, :-1]
                 done += self.rti_steps
+        elif self.cold_states == "reference":
+            nodes[:, 1:] = refb[:, :-1]
+            U = node_inputs(ocp, nodes, refb, U, lo, hi, self.damping)
         else:
             nodes[:, 1:] = ocp.rollout(x0b, U.reshape(-1, horizon, nu))[:, :-1]
         start_cost = None  # the model's cost of U0 at the first linearisation
@@ -146,7 +158,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         was_cut = np.ones(batch, dtype=bool)  # whether a bound cut the previous step short (none taken yet)
         promised = np.full(batch, np.inf)  # the model's cost of the point each problem stops at (after its step)
         inexact = getattr(ocp.flow, "approximate_jacobians", False)
-        for _ in range(self.lifted_max_iter_inexact if inexact else self.lifted_max_iter):
+        cap = self.cold_max_iter if prior is None else self.lifted_max_iter
+        for _ in range(self.lifted_max_iter_inexact if inexact else cap):
             # the whole batch every time (no row gathering: batch-1 solves are dominated by per-op overhead);
             # problems that stopped take no further steps, their states only settle onto the prediction
             pred, sens, defect, steps = linearise(ocp, nodes, U)
@@ -234,6 +247,31 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     def _warm_shape(ocp: HorizonOCP) -> tuple[int, ...]:
         """Shape per problem of the warm array this solver takes: the last plan's states x_1..x_H."""
         return (ocp.horizon, ocp.nx)
+
+
+NODE_STEPS = 3  # Gauss-Newton steps of node_inputs: each one batched network call at the horizon's nodes
+
+
+def node_inputs(
+    ocp: HorizonOCP, nodes: np.ndarray, refb: np.ndarray, U: np.ndarray, lo: np.ndarray, hi: np.ndarray, damping: float
+) -> np.ndarray:
+    """A cold solve's inputs: at every node of the reference on its own, the input whose step lands nearest the next
+    reference state (the OCP's state weight, its input weight as regularisation, within the box), by a few batched
+    Gauss-Newton steps. With the lifted states at the reference this starts the horizon near its solution."""
+    batch, horizon, nx = nodes.shape
+    nu = ocp.nu
+    w_q, w_r = ocp.weights[np][0], ocp.weights[np][1]
+    u = U.reshape(batch, horizon, nu).copy()
+    lo3, hi3 = lo.reshape(batch, horizon, nu), hi.reshape(batch, horizon, nu)
+    for _ in range(NODE_STEPS):
+        y, _, b = ocp.step_with_jacobian(nodes, u)
+        wb = w_q @ b  # (B, H, nx, nu)
+        r = ((y - refb) @ w_q.T)[..., None]  # (B, H, nx, 1)
+        hess = wb.swapaxes(-1, -2) @ wb + w_r.T @ w_r
+        hess += damping * np.eye(nu) * np.maximum(np.einsum("...ii->...", hess)[..., None, None] / nu, 1e-30)
+        grad = wb.swapaxes(-1, -2) @ r + (w_r.T @ w_r @ u[..., None])
+        u = np.clip(u - np.linalg.solve(hess, grad)[..., 0], lo3, hi3)
+    return u.reshape(batch, horizon * nu)
 
 
 def valid_trust(value: object) -> bool:
