@@ -446,7 +446,8 @@ def test_lifted_solver_gives_inexact_jacobians_more_lifted_steps(s: Surrogate) -
     x_ref = ocp.rollout(x0[None], U_true[None])  # the true model's states: reachable
     low, high = np.full((H, NU), -0.5), np.full((H, NU), 0.5)
     problem = Problem(ocp, x0[None], x_ref, np.zeros((1, NU)), low, high)
-    U, info, _ = LiftedGaussNewtonSolver(max_iter=0, lifted_max_iter=1).solve(problem, np.zeros((1, H, NU)))
+    solver = LiftedGaussNewtonSolver(max_iter=0, lifted_max_iter=1, cold_max_iter=1, cold_states="rollout")
+    U, info, _ = solver.solve(problem, np.zeros((1, H, NU)))  # from a rollout: node_inputs would start it near
     assert bool(info.converged[0]) and 5 < int(info.iterations[0]) <= 20
     assert np.abs(U[0] - U_true).max() < 1e-4  # the inputs that made the reference (R keeps it off by ~1e-5)
     _, short, _ = LiftedGaussNewtonSolver(max_iter=0, lifted_max_iter_inexact=3).solve(problem, np.zeros((1, H, NU)))

@@ -79,9 +79,10 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     """Where a cold solve's lifted states start (the first sample, any after a fallback): reference (the reference's
     states, as multiple-shooting codes start: the horizon's nonlinearity spread over its nodes, so long horizons
     converge in a few lifted steps) | rollout (of U0 from x0)."""
-    cold_max_iter: int = 20
+    cold_max_iter: int = 5
     """Lifted iterations of a cold solve before single shooting takes over (lifted_max_iter for the others): from
-    the reference's states a long horizon converges in a few more than a warm solve needs."""
+    the reference's states and node_inputs a horizon of 40 converges in 2-3; more only add to a solve that crawls
+    (a network fine-tuned on stick-slip at rest)."""
     tol_promise_inexact: float = 1e-3
     """controller.model=exact_values: relative slack of the check that a stop's cost keeps the model's promise
     (the Jacobians are the PINN's, not the derivatives of the values, so promises are inexact)."""
