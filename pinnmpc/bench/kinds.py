@@ -12,7 +12,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pinnmpc.bench.loops import loop_row
-from pinnmpc.controller.registry import builder_of, controller_kinds, controller_settings
+from pinnmpc.controller.registry import build_registered, controller_kinds
 from pinnmpc.references.files import Reference
 from pinnmpc.systems.base import System
 
@@ -41,8 +41,7 @@ def bench_kinds(cfg: DictConfig, system: System, ref: Reference, sections: Seque
             rows[kind] = {"section": COVERED[kind], "ran": COVERED[kind] in sections}
             continue
         run_cfg = kind_config(cfg, kind)
-        settings = controller_settings(run_cfg.controller, system)
-        controller, domain, tau = builder_of(kind)(settings, run_cfg, system)
+        controller, domain, tau = build_registered(run_cfg, system)
         rows[kind] = loop_row(run_cfg, system, controller, domain, tau, ref)
         log.info("kinds: %s done (%s)", kind, rows[kind]["status"])
     return {"reference": ref.name, "rows": rows}

@@ -47,7 +47,7 @@ def robot_controllers(
             raise ValueError(f"robot.identified={r.identified} is another arm: states {fitted.state_names}")
         models["identified"] = fitted
     rows = []
-    variants = classical_variants(cfg, classical) if r.get("classical_variants") else [("", "", {})]
+    variants = classical_at_best(cfg, classical) if r.get("classical_variants") else [("", "", {})]
     for name, model in models.items():
         for suffix, tail, changes in variants:
             settings = OmegaConf.merge(classical, changes)
@@ -59,7 +59,7 @@ def robot_controllers(
     return rows
 
 
-def classical_variants(cfg: DictConfig, classical: DictConfig) -> list[tuple[str, str, dict[str, Any]]]:
+def classical_at_best(cfg: DictConfig, classical: DictConfig) -> list[tuple[str, str, dict[str, Any]]]:
     """(key suffix, label tail, changes) of the classical NMPC at its best engineers' settings on a robot: the arm's
     default, its other mode (converged or real-time, sqpmethod only) and each with the estimator switched the other
     way (robot.offset_free's default off: on with the network controller's; on: off)."""

@@ -61,11 +61,6 @@ def _entry(kind: str) -> tuple[Builder, type[ControllerSettings]]:
     return _KINDS[kind]
 
 
-def builder_of(kind: str) -> Builder:
-    """The builder of a registered kind."""
-    return _entry(kind)[0]
-
-
 def settings_class(kind: str) -> type[ControllerSettings]:
     """The settings dataclass of a registered kind."""
     return _entry(kind)[1]
