@@ -191,6 +191,10 @@ def test_collect_logs_the_robot_stream_through_libfranka(sim_host: str, tmp_path
         dq = np.diff(xf[:, :7], axis=0) / (0.05 / 10)  # each fine step moves as its mean velocity says (a state
         #   read a tick late misses it by 0.1-0.3 rad/s; the first step, from rest under the full jerk, by up to 0.04)
         assert np.abs(dq - 0.5 * (xf[1:, 7:] + xf[:-1, 7:]))[1:].max() < 0.05
+    ramp = np.asarray(log.meta["command_acceleration"])  # franky's ramp, which identify leaves out of the fit
+    np.testing.assert_allclose(ramp, [15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])  # the Panda's limits, factor 1
+    u = log.u[log.episode == 0][:-1]  # the excitation: no command further from the last than half a period's ramp
+    assert np.all(np.abs(np.diff(np.vstack((np.zeros(7), u)), axis=0)) <= 0.5 * 0.05 * ramp + 1e-12)
 
 
 @pytest.mark.slow

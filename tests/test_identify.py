@@ -153,6 +153,31 @@ def test_servo_coulomb_law_in_every_backend() -> None:
         dataclasses.replace(arm, coulomb=[1.0])
 
 
+def test_a_servo_that_compensates_coriolis_too_in_every_backend() -> None:
+    """servo_compensation='bias' (franky-sim's joint velocity controller): M dv/dt = K (u - v) for the arm alone,
+    the same in torch, numpy (Pinocchio), CasADi and MuJoCo, and with a payload torch and numpy agree; the arm's
+    ArmPrior holds no Coriolis torque then; an unknown compensation is refused in one line."""
+    from pinnmpc.surrogate.prior import ArmPrior
+
+    arm = dataclasses.replace(load_system("panda"), servo_compensation="bias")
+    x, u = states(arm, 6)
+    ref = arm.rhs(x, u)
+    m, _, _ = arm.dynamics_terms(torch.from_numpy(x[:, :7]), torch.from_numpy(x[:, 7:]))
+    law = np.linalg.solve(m.numpy(), (np.asarray(arm.servo_gain) * (u - x[:, 7:]))[..., None])[..., 0]
+    np.testing.assert_allclose(ref[:, 7:], law, rtol=1e-9, atol=1e-9 * np.abs(law).max())
+    assert np.abs(arm.rhs(torch.from_numpy(x), torch.from_numpy(u)).numpy() - ref).max() <= 1e-10 * np.abs(ref).max()
+    assert np.abs(np.asarray(arm.casadi_rhs()(x[0], u[0])).ravel() - ref[0]).max() <= 1e-10 * np.abs(ref).max()
+    mujoco = np.array([MujocoPlant(arm, arm.tau).rhs(xi, ui) for xi, ui in zip(x, u)])
+    assert np.abs(mujoco - ref).max() <= 1e-6 * np.abs(ref).max()
+    assert np.abs(load_system("panda").rhs(x, u) - ref).max() > 1e-3 * np.abs(ref).max()  # gravity alone differs
+    loaded = dataclasses.replace(arm, payload=Payload(0.5, (0.0, 0.0, 0.05)))
+    both = loaded.rhs(x, u), loaded.rhs(torch.from_numpy(x), torch.from_numpy(u)).numpy()
+    assert np.abs(both[0] - both[1]).max() <= 1e-9 * np.abs(both[0]).max()
+    assert not ArmPrior(arm, "midpoint_arm").coriolis and ArmPrior(load_system("panda"), "midpoint_arm").coriolis
+    with pytest.raises(ValueError, match=r"servo_compensation='all'; expected one of \['gravity', 'bias'\]"):
+        dataclasses.replace(arm, servo_compensation="all")
+
+
 def test_identify_recovers_a_servos_joint_friction(tmp_path: Path) -> None:
     """A Panda whose servos fight known joint friction, excited for 8 s: the fit recovers the servo gains and that
     friction within 3 % from the nominal model, which has none."""
@@ -256,3 +281,25 @@ def test_identify_says_when_the_robot_is_outside_the_models_class(known_log: Pat
         assert (max(result["residual_fraction"]) > cfg.class_residual) is outside
         said = any("outside the model's class" in w for w in result["warnings"])
         assert said is outside and json.loads((run / "fit.json").read_text())["outside_class"] is outside
+
+
+def test_settle_leaves_out_the_ramp_after_each_command(tmp_path: Path) -> None:
+    """A Panda whose servo demand follows each command through a first-order lag (as franky ramps a Franka's): the
+    fit over every interval mistakes the ramp for weak gains; leaving out the first intervals of each period
+    (settle, 10 lag times) recovers them within 1 %; a settle of the whole period is refused in one line."""
+    from hydra import compose, initialize_config_dir
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    overrides = ["system=panda", "robot_time=8", "fine=20", "episodes.kinds=[excitation]", "excitation.duration=4",
+                 "progress=false", "plant.robot=ramp", "+system.robots.ramp.lag=0.002"]  # fmt: skip
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose(config_name="collect", overrides=overrides)
+    nominal = load_system("panda")
+    write_log(tmp_path / "robot_log", collect(cfg, nominal, None, None, meta={"robot": "ramp"}))
+    log = read_log(tmp_path / "robot_log.npz", nominal)
+    gains = {s: identify(nominal, [log], ["servo_gain"], validation_periods=0, settle=s).values["servo_gain"]
+             for s in (0.0, 0.02)}  # fmt: skip
+    assert np.abs(np.asarray(gains[0.0]) / nominal.servo_gain - 1).max() > 0.05  # measured: 3-9 % low
+    np.testing.assert_allclose(gains[0.02], nominal.servo_gain, rtol=0.01)
+    with pytest.raises(ValueError, match=r"settle=0.05; expected 0 <= settle < the control period 0.05 s"):
+        identify(nominal, [log], ["servo_gain"], validation_periods=0, settle=0.05)

@@ -35,6 +35,7 @@ class FrankaPlant:
         self.fine: list[tuple[float, np.ndarray]] = []  # (t, x) of every state read while a period ran
         self.server: SimServer | None = None
         self.robot: Any = None
+        self.command_acceleration: np.ndarray | None = None  # how fast franky ramps each joint's command, rad/s^2
         self.closed = False
         self.rest = False  # whether the arm ended at rest (close() says)
         self.host = settings.host
@@ -49,22 +50,37 @@ class FrankaPlant:
         try:
             host = settings.host
             if settings.simulator != "none":
-                host = host or free_loopback()
-                start_q = np.asarray(settings.initial_q or np.mean(self.safety.limits, axis=0), dtype=float)
-                log_path = None if run_dir is None else Path(run_dir) / "franky_sim.log"
-                self.server = SimServer(host, gains, start_q, log_path)
-                self.server.wait_ready(settings.start_timeout)
+                host = self._start_server(host, gains, run_dir)
             self.host = host
             realtime = franky.RealtimeConfig.Enforce if settings.realtime_kernel else franky.RealtimeConfig.Ignore
             self.robot = franky.Robot(host, realtime_config=realtime)
             self.robot.relative_dynamics_factor = settings.relative_dynamics_factor
             self.safety.cap_velocity(np.asarray(self.robot.joint_velocity_limit.max, dtype=float)[: self.nq])
+            limit = np.asarray(self.robot.joint_acceleration_limit.max, dtype=float)[: self.nq]
+            self.command_acceleration = limit * settings.relative_dynamics_factor  # rad/s^2: franky's ramp
             if self.robot.has_errors:
                 self.errors.append(f"at connect: {self.robot.state.current_errors}")
                 self.robot.recover_from_errors()
         except BaseException:
             self.close()
             raise
+
+    def _start_server(self, host: str | None, gains: list[float], run_dir: Path | None, tries: int = 3) -> str:
+        """franky-sim on `host`, or on the first free loopback address; a server that exits before serving on a
+        free address (another run took it between the check and the bind) is started again on the next one."""
+        start_q = np.asarray(self.settings.initial_q or np.mean(self.safety.limits, axis=0), dtype=float)
+        log_path = None if run_dir is None else Path(run_dir) / "franky_sim.log"
+        for attempt in range(tries):
+            address = host or free_loopback()
+            self.server = SimServer(address, gains, start_q, log_path)
+            try:
+                self.server.wait_ready(self.settings.start_timeout)
+                return address
+            except RuntimeError:
+                self.server.stop()
+                if host or attempt == tries - 1 or not self.server.exited_early:
+                    raise
+        raise RuntimeError(f"plant=franka: franky-sim did not start in {tries} tries")  # tries >= 1 returns above
 
     def now(self) -> float:
         """The robot's clock, s."""

@@ -61,6 +61,7 @@ class SimServer:
             cmd, stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent
         )
         self.pid = self.proc.pid
+        self.exited_early = False  # whether it exited before serving (its address taken by another server)
 
     def wait_ready(self, timeout: float) -> None:
         """Block until the server accepts libfranka connections; a server that exits or never answers is stopped
@@ -68,6 +69,7 @@ class SimServer:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
+                self.exited_early = True
                 raise RuntimeError(
                     f"plant=franka: franky-sim on {self.host} exited with code {self.proc.returncode} before serving "
                     "(its log: franky_sim.log in the run dir)"

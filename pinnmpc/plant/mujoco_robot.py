@@ -157,10 +157,11 @@ class MujocoPlant:
         same = np.array_equal(qadr, np.arange(n)) and np.array_equal(dadr, np.arange(n))
         self._qadr, self._dadr = (slice(None), slice(None)) if same else (qadr, dadr)
         self._servo = self.system.actuation == "velocity_servo"
-        if self._servo:  # the servo's gravity compensation: the nominal arm's, computed in its own data
+        if self._servo:  # the servo's gravity (or bias) compensation: the nominal arm's, computed in its own data
             self._servo_model = compile_arm(self.system) if self.robot is not None else self.model
-            self._servo_data = mujoco.MjData(self._servo_model)  # its qvel stays 0: its bias force is gravity alone
+            self._servo_data = mujoco.MjData(self._servo_model)  # qvel 0 (gravity alone) unless it compensates bias
             self._gravity_out = np.empty(n)
+            self._with_bias = self.system.servo_compensation == "bias"
         d = self.data  # views into MjData, bound once: the stage function runs 4 substeps times per period
         self._qpos, self._qvel, self._qfrc, self._qacc = d.qpos, d.qvel, d.qfrc_applied, d.qacc
         self._forward = mujoco.mj_forward
@@ -169,12 +170,16 @@ class MujocoPlant:
         self._lag = self.effects.lag
         self._held: tuple[np.ndarray, np.ndarray] | None = None  # lag: (the last period's end state, filter state)
 
-    def _gravity(self, q: np.ndarray) -> np.ndarray:
-        """g(q) of the nominal arm (mass-scaled as the system): what its velocity servo compensates."""
+    def _gravity(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """g(q), or g(q) + C(q, v) v (system.servo_compensation 'bias'), of the nominal arm (mass-scaled as the
+        system): what its velocity servo compensates."""
         mj, m, d, out = self._mujoco, self._servo_model, self._servo_data, self._gravity_out
         d.qpos[self._qadr] = q
         mj.mj_kinematics(m, d)
         mj.mj_comPos(m, d)
+        if self._with_bias:
+            d.qvel[self._dadr] = v
+            mj.mj_comVel(m, d)
         mj.mj_rne(m, d, 0, out)
         return out[self._dadr]
 
@@ -183,7 +188,7 @@ class MujocoPlant:
         robot's applied effects as joint force, MuJoCo's dynamics."""
         torque = self.system.actuation_torque(v, u)
         if self._servo:
-            torque = torque + self._gravity(q)
+            torque = torque + self._gravity(q, v)
         if self._law is not None:  # what the motor gives, through the robot's droop, friction and cogging
             torque = self._law.joint_force(q, v, torque)
         self._qpos[self._qadr] = q
@@ -208,7 +213,7 @@ class MujocoPlant:
         joint = d.qfrc_inverse[self._dadr] + dry * np.tanh(self.effects.slip_slope * v)
         motor = joint if self._law is None else self._law.needed_motor(q, v, joint)
         if self._servo:
-            motor = motor - self._gravity(q)
+            motor = motor - self._gravity(q, v)
         zero, one = self.system.actuation_torque(v, 0.0 * v), self.system.actuation_torque(v, 1.0 + 0.0 * v)
         return (motor - zero) / (one - zero)
 

@@ -105,7 +105,8 @@ def excitation_episode(
 ) -> Episode:
     """Random input steps held 1..hold periods on top of a weak feedback to random targets in the middle `fraction`
     of the joint range (gravity of the model compensated on torque arms), no step pushing a joint on beyond `speed`
-    of its velocity bound (servos: commands clipped there); stops where the state leaves `box`."""
+    of its velocity bound (servos: commands clipped there); on a robot that ramps its commands (plant=franka) no
+    command moves further from the last than the ramp covers in half a period; stops where the state leaves `box`."""
     n, tau = system.nq, system.tau
     limits = system.joint_limits or type(system.state_box)(system.state_box.low[:n], system.state_box.high[:n])
     lo, hi = np.asarray(limits.low), np.asarray(limits.high)
@@ -117,6 +118,8 @@ def excitation_episode(
     x = np.concatenate((mid + half * rng.uniform(-1, 1, n), np.zeros(n)))
     x = recorder.start(x)  # a robot answers with where it is
     us, target, offset, left, status = [], x[:n], np.zeros(n), 0, "ok"
+    ramp = getattr(recorder.plant, "command_acceleration", None)
+    step_max = None if ramp is None else 0.5 * tau * np.asarray(ramp)  # the servo follows within half a period
     low, high = np.asarray(box.low), np.asarray(box.high)
     for k in range(steps):
         if k % every == 0:
@@ -131,6 +134,9 @@ def excitation_episode(
         else:
             m, g, _ = system.dynamics_terms(torch.from_numpy(q[None]), torch.zeros(1, n, dtype=torch.float64))
             u = g[0].numpy() + m[0].numpy() @ (w * w * (target - q) - 2 * zeta * w * v) + push  # h(v=0) = g
+        if step_max is not None:
+            last = us[-1] if us else np.zeros(n)  # the arm starts at rest
+            u = np.clip(u, last - step_max, last + step_max)
         u = np.clip(u, ulo, uhi)
         try:
             x = recorder.step(x, u)
@@ -180,6 +186,9 @@ def collect(
     states logged with Gaussian noise of cfg.noise_sigma. checkpoint gets the log so far at each episode's end (its
     meta marked cut short), so a killed run keeps its finished episodes; None: stopped before any episode ended."""
     recorder = fine_plant(system, cfg.plant, int(cfg.fine), cfg.system.get("robots"))
+    ramp = getattr(recorder.plant, "command_acceleration", None)
+    if ramp is not None:  # identify leaves out the intervals where the servo still ramps towards a command
+        meta = {**(meta or {}), "command_acceleration": [float(a) for a in ramp]}
     try:  # a robot (plant=franka) stops its arm and its server however the collect ends
         return _collect(cfg, system, controller, reference, recorder, stop, meta, checkpoint)
     finally:

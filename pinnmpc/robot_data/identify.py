@@ -43,12 +43,14 @@ STENCIL = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0, 
 
 @dataclass
 class Intervals:
-    """Fine intervals inside hold periods: both ends' q, v (n, 2, nq), their length dt (n,) and the input u (n, nu)."""
+    """Fine intervals inside hold periods: both ends' q, v (n, 2, nq), their length dt (n,), the input u (n, nu) and
+    whether each joint's servo follows u there (n, nq): false while a robot still ramps towards the command."""
 
     q: np.ndarray
     v: np.ndarray
     dt: np.ndarray
     u: np.ndarray
+    settled: np.ndarray
 
 
 @dataclass
@@ -65,9 +67,14 @@ class Fit:
     nominal_prediction_rmse: list[float]  # the same for the nominal model
 
 
-def intervals(logs: Sequence[RobotLog], max_samples: int | None = None, seed: int = 0) -> Intervals:
-    """Every fine interval inside a hold period of the logs (control-rate periods where a log has no fine part),
-    up to max_samples of them drawn at random."""
+def intervals(
+    logs: Sequence[RobotLog], max_samples: int | None = None, seed: int = 0, settle: float = 0.0
+) -> Intervals:
+    """Every fine interval inside a hold period of the logs (control-rate periods where a log has no fine part), up
+    to max_samples of them drawn at random. A joint's servo counts as settled (Intervals.settled) in intervals that
+    begin `settle` s or more after their period, and where a log's meta gives the robot's `command_acceleration`
+    (rad/s^2 per joint: franky ramps each velocity command at most that fast) only once the ramp from the period's
+    start velocity to the command has had time to end too."""
     parts = []
     for log in logs:
         fine = log.fine
@@ -77,15 +84,18 @@ def intervals(logs: Sequence[RobotLog], max_samples: int | None = None, seed: in
         begin = np.maximum.accumulate(np.where(first, np.arange(len(ep)), 0))
         start = np.flatnonzero(((np.arange(len(ep)) - begin) % fine == 0) & np.r_[ep[1:] == ep[:-1], False])
         u = log.u[np.r_[log.episode[1:] == log.episode[:-1], False]]
+        accel = log.meta.get("command_acceleration")
+        ramp = np.abs(u - x[start, n:]) / np.asarray(accel, dtype=float) if accel else np.zeros_like(u)
+        ramp = ramp + settle - 1e-9 * log.tau  # a sub-time on the settle time counts
         for a in range(fine):
             i = start + a
             ends = np.stack((x[i], x[i + 1]), axis=1)
-            parts.append((ends[..., :n], ends[..., n:], t[i + 1] - t[i], u))
-    q, v, dt, u = (np.concatenate(p) for p in zip(*parts))
+            parts.append((ends[..., :n], ends[..., n:], t[i + 1] - t[i], u, (t[i] - t[start])[:, None] >= ramp))
+    q, v, dt, u, settled = (np.concatenate(p) for p in zip(*parts))
     if max_samples is not None and len(q) > max_samples:
         keep = np.sort(np.random.default_rng(seed).choice(len(q), max_samples, replace=False))
-        q, v, dt, u = q[keep], v[keep], dt[keep], u[keep]
-    return Intervals(q, v, dt, u)
+        q, v, dt, u, settled = q[keep], v[keep], dt[keep], u[keep], settled[keep]
+    return Intervals(q, v, dt, u, settled)
 
 
 def _terms(system: RigidArm, q: np.ndarray, v: np.ndarray, chunk: int = 4096) -> tuple[np.ndarray, ...]:
@@ -186,16 +196,21 @@ def identify(
     validation_periods: int = 1000,
     rk4_steps: int = 50,
     seed: int = 0,
+    settle: float = 0.0,
 ) -> Fit:
     """Fit the named coefficients (of KEYS) to the logs; payload gives the mass's place (mass ignored; None: the
     tip, as the MuJoCo robots' convention), with "payload_pos" where the search for it starts (within place_range
     m per axis). A joint's equation counts only where its speed exceeds min_speed at both ends of the interval:
-    slower, a real arm's dry friction sticks and slips, which no smooth model follows."""
+    slower, a real arm's dry friction sticks and slips, which no smooth model follows. Intervals that begin less than
+    `settle` s into their period are left out (a command reaching the servo late or ramped: plant=franka), and those
+    while a logged command ramp (meta `command_acceleration`) runs."""
     unknown = [k for k in fit if k not in KEYS]
     if unknown:
         raise ValueError(f"fit {unknown}; expected some of {list(KEYS)}")
     if "payload_pos" in fit and "payload" not in fit:
         raise ValueError("fit.payload_pos=true needs fit.payload=true: the place is searched with the mass")
+    if not 0 <= settle < system.tau:
+        raise ValueError(f"settle={settle}; expected 0 <= settle < the control period {system.tau} s")
     if "payload_pos" in fit and not (math.isfinite(place_range) and place_range > 0):
         raise ValueError(f"payload.range={place_range!r}; expected a finite number > 0 (m)")
     friction = ("servo_gain", "coulomb") if system.actuation == "velocity_servo" else ("viscous", "coulomb")
@@ -204,10 +219,10 @@ def identify(
     if not fit:
         raise ValueError(f"nothing to fit for actuation {system.actuation}; expected some of {list(allowed)}")
     payload = payload or Payload(0.0)
-    s = intervals(logs, max_samples, seed)
+    s = intervals(logs, max_samples, seed, settle)
     terms = _interval_terms(_bare(system), s)  # M, h, g of the bare arm: the regression's and the place search's
     a, b, names, joint = regression(system, s, fit, payload, terms)
-    used = (np.abs(s.v).min(axis=1) > min_speed).reshape(-1)
+    used = ((np.abs(s.v).min(axis=1) > min_speed) & s.settled).reshape(-1)
     check_enough(int(used.sum()) // system.nq, 20 * len(names), f"the logs (joints above min_speed={min_speed})",
                  tau=system.tau, fine=logs[0].fine, t_max=system.tau / logs[0].fine)  # fmt: skip
     weight = used / _torque_scale(system)[joint]  # each joint's equation relative to its torque range

@@ -148,6 +148,7 @@ def run_identify(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         validation_periods=int(cfg.validation_periods),
         rk4_steps=int(cfg.rk4_steps),
         seed=int(cfg.seed),
+        settle=float(cfg.settle),
     )
     fraction = residual_fraction(system, fit)
     outside = max(fraction) > float(cfg.class_residual)

@@ -55,6 +55,7 @@ IDENTIFY: dict[str, Check] = {  # conf/identify.yaml
     "payload.link": c.optional(c.text()),
     "max_samples": c.optional(c.integer(1)),
     "min_speed": c.real(0.0),
+    "settle": c.real(0.0),
     "validation_periods": c.integer(0),
     "rk4_steps": c.integer(1),
     "seed": SEED,

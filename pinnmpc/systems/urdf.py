@@ -24,6 +24,7 @@ from torch import Tensor
 from pinnmpc.systems.actuation import settled_velocity
 from pinnmpc.systems.actuation import xp as _xp
 from pinnmpc.systems.base import Box, check_shapes
+from pinnmpc.systems.urdf_casadi import CasadiArm
 from pinnmpc.systems.urdf_files import URDF_DIR as URDF_DIR  # re-exported: where users' arms are looked up
 from pinnmpc.systems.urdf_files import (
     Payload,
@@ -37,19 +38,22 @@ from pinnmpc.systems.urdf_files import (
 from pinnmpc.systems.urdf_files import portable_urdf as portable_urdf  # re-exported: how an arm's file is recorded
 
 ACTUATIONS = ("torque", "velocity_servo")
+COMPENSATIONS = ("gravity", "bias")  # what a velocity servo adds to K (u - v): g(q), or g(q) + C(q, v) v
 
 
 @dataclass(frozen=True)
-class RigidArm:
+class RigidArm(CasadiArm):
     """A fixed-base serial arm from a URDF with joint state x = (q, v) and one input per joint.
 
     actuation='torque': joint torque = u - D v - C tanh(s v) (viscous plus smoothed Coulomb friction).
     actuation='velocity_servo': joint torque = g(q) + K (u - v) - C tanh(s v), a gravity-compensated velocity
-    servo (C optional: none in the nominal arms, a fitted model's joint friction the servo must overcome).
+    servo (C optional: none in the nominal arms, a fitted model's joint friction the servo must overcome);
+    servo_compensation='bias' adds the Coriolis and centrifugal torques too (g(q) + C(q, v) v, as franky-sim's joint
+    velocity controller does), so that M(q) dv/dt = K (u - v) for the arm without a payload.
     mass_scale multiplies M and h (every link's mass and inertia) and friction_scale D and C, or K and C for a
     servo: plant mismatch for robustness runs; 1.0 is the nominal arm the surrogate learns.
     payload (a point mass on a link) and armature (per joint, on M's diagonal) are what an identified model adds;
-    neither is scaled by mass_scale, and a servo compensates the gravity of the arm without the payload.
+    neither is scaled by mass_scale, and a servo compensates the gravity (and bias) of the arm without the payload.
     """
 
     name: str
@@ -72,6 +76,7 @@ class RigidArm:
     joint_limits: Box | None = None  # joint position limits, nq entries (None: none; see urdf_limits for the URDF's)
     payload: Payload | None = None  # a point mass fixed to a link ({mass, pos, link} in config); None: none
     armature: tuple[float, ...] = ()  # kg m^2 per joint added to M's diagonal (rotor inertia); (): none
+    servo_compensation: str = "gravity"  # a velocity servo's model-based torque: "gravity" g(q) or "bias" g + C v
     joint_prefix: str | None = None  # stripped from joint names in state and input names (None: "<name>_"); an
     #   identified model of an arm keeps its arm's names with it
     state_names: tuple[str, ...] = field(init=False)
@@ -102,6 +107,10 @@ class RigidArm:
         set_("state_units", tuple(self.state_units) or ("rad",) * n + ("rad/s",) * n)
         if self.actuation not in ACTUATIONS:
             raise ValueError(f"{self.name}: actuation={self.actuation!r}; expected one of {list(ACTUATIONS)}")
+        if self.servo_compensation not in COMPENSATIONS:
+            raise ValueError(
+                f"{self.name}: servo_compensation={self.servo_compensation!r}; expected one of {list(COMPENSATIONS)}"
+            )
         default_unit = "N m" if self.actuation == "torque" else "rad/s"
         set_("input_units", tuple(self.input_units) or (default_unit,) * n)
         need = ("viscous", "coulomb") if self.actuation == "torque" else ("servo_gain",)
@@ -240,30 +249,38 @@ class RigidArm:
         return self._adam[dtype, nominal]
 
     def dynamics_terms(self, q: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """M (B, n, n), h (B, n) and the gravity g (B, n) a servo compensates (the arm's without the payload) for a
-        flat batch, the joint block of adam's floating base."""
+        """M (B, n, n), h (B, n) and what a servo compensates (B, n): the gravity, or the bias h of servo_compensation
+        'bias', of the arm without the payload, for a flat batch, the joint block of adam's floating base."""
         kd, b, n = self._kindyn(q.dtype), q.shape[0], self.nq
-        base = torch.eye(4, dtype=q.dtype).expand(b, 4, 4)
+        base, still = torch.eye(4, dtype=q.dtype).expand(b, 4, 4), torch.zeros(b, 6, dtype=q.dtype)
         m = kd.mass_matrix(base, q).reshape(b, n + 6, n + 6)[:, 6:, 6:]
-        h = kd.bias_force(base, q, torch.zeros(b, 6, dtype=q.dtype), v).reshape(b, n + 6)[:, 6:]
+        h = kd.bias_force(base, q, still, v).reshape(b, n + 6)[:, 6:]
         servo = self.actuation == "velocity_servo"
         kg = self._kindyn(q.dtype, nominal=True) if servo and self.payload is not None else kd
-        g = kg.gravity_term(base, q).reshape(b, n + 6)[:, 6:] if servo else 0 * h
+        if not servo:
+            g = 0 * h
+        elif self.servo_compensation == "bias":
+            g = h if kg is kd else kg.bias_force(base, q, still, v).reshape(b, n + 6)[:, 6:]
+        else:
+            g = kg.gravity_term(base, q).reshape(b, n + 6)[:, 6:]
         if self.armature:
             return self.mass_scale * m + torch.diag(torch.tensor(self.armature, dtype=q.dtype)), h, g
         return self.mass_scale * m, h, g
 
     def coriolis_torque(self, q: Tensor, v: Tensor) -> Tensor:
-        """C(q, v) v (B, n) through adam, scaled as the arm's h: what a frozen-arm prior with moving terms holds."""
+        """C(q, v) v (B, n) through adam, scaled as the arm's h, less what a servo compensates: what a frozen-arm
+        prior with moving terms holds."""
         kd, b, n = self._kindyn(q.dtype), q.shape[0], self.nq
         base, still = torch.eye(4, dtype=q.dtype).expand(b, 4, 4), torch.zeros(b, 6, dtype=q.dtype)
-        return self.mass_scale * kd.coriolis_term(base, q, still, v).reshape(b, n + 6)[:, 6:]
+        c = kd.coriolis_term(base, q, still, v).reshape(b, n + 6)[:, 6:]
+        if self._compensates_bias:
+            c = c - self._kindyn(q.dtype, nominal=True).coriolis_term(base, q, still, v).reshape(b, n + 6)[:, 6:]
+        return self.mass_scale * c
 
-    def casadi_coriolis(self) -> ca.Function:
-        """(q, v) -> C(q, v) v as a CasADi SX function (callable on SX, MX or numbers)."""
-        q, v = ca.SX.sym("q", self.nq), ca.SX.sym("v", self.nq)
-        c = self.mass_scale * self._casadi_kindyn().coriolis_term(ca.SX.eye(4), q, ca.SX.zeros(6), v)[6:]
-        return ca.Function(f"{self.name}_coriolis", [q, v], [c], {"cse": True})
+    @property
+    def _compensates_bias(self) -> bool:
+        """Whether the actuation holds the Coriolis torques of the arm without the payload (servo_compensation)."""
+        return self.actuation == "velocity_servo" and self.servo_compensation == "bias"
 
     # -- the arm frozen at q0: the linear part a learned flow map builds on (pinnmpc.surrogate.prior) -----------------
     @property
@@ -278,14 +295,6 @@ class RigidArm:
         carries most of the flow (the rest is learned)."""
         m, g, comp = self.dynamics_terms(q, torch.zeros_like(q))  # h at v = 0 is gravity
         return m, self._frozen_drive(g, u, comp, settled)
-
-    def casadi_frozen_terms(self, settled: bool = True) -> ca.Function:
-        """The same (q, u) -> (M, c0) as a CasADi SX function (adam's CasADi backend)."""
-        n = self.nq
-        q, u = ca.SX.sym("q", n), ca.SX.sym("u", n)
-        m, g, comp = self.casadi_terms(q, ca.SX.zeros(n), gravity=True)
-        drive = self._frozen_drive(g, u, comp, settled)
-        return ca.Function(f"{self.name}_frozen", [q, u], [m, drive], {"cse": True})
 
     def _frozen_drive(self, g: Any, u: Any, comp: Any = None, settled: bool = True) -> Any:
         """c0: the actuation at rest less the gravity it must hold (for a servo: only a payload's, which its
@@ -352,7 +361,12 @@ class RigidArm:
             vp = v
         if self.actuation == "velocity_servo":
             nominal, nominal_data = self._nominal_pinocchio
-            torque = torque + self.mass_scale * pin.computeGeneralizedGravity(nominal, nominal_data, q)
+            held = (
+                pin.nonLinearEffects(nominal, nominal_data, q, vp)
+                if self.servo_compensation == "bias"
+                else pin.computeGeneralizedGravity(nominal, nominal_data, q)
+            )
+            torque = torque + self.mass_scale * held
         acc = pin.aba(model, data, q, vp, torque / self.mass_scale)
         if order is not None:
             acc = acc[np.argsort(order)]
@@ -377,46 +391,6 @@ class RigidArm:
         if x.shape[-1] != 2 * self.nq or u.shape[-1] != self.nq:
             check_shapes(self, x, u)
         return self._rhs_numpy(x, u)
-
-    # -- CasADi: the classical NMPC and the compiled training path ----------------------------------------
-    def casadi_rhs(self) -> ca.Function:
-        """dx/dt = f(x, u) as a CasADi SX function (adam's CasADi backend, the joint block of M and h)."""
-        n = self.nq
-        x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
-        q, v = x[:n], x[n:]
-        m, h, g = self.casadi_terms(q, v)
-        acc = ca.solve(m, self.actuation_torque(v, u) - self._bias(h, g))
-        return ca.Function(f"{self.name}_rhs", [x, u], [ca.vertcat(v, acc)], {"cse": True})
-
-    def casadi_inverse_dynamics(self, coulomb_width: float | None = None) -> ca.Function:
-        """r(q, v, a, u) = M(q) a + h(q, v) - tau(v, u) (SX), as casadi_rhs without M^-1 (no sign(v) term to smooth:
-        coulomb_width is the PowerCube's)."""
-        q, v, a, u = (ca.SX.sym(name, self.nq) for name in ("q", "v", "a", "u"))
-        m, h, g = self.casadi_terms(q, v)
-        r = m @ a + self._bias(h, g) - self.actuation_torque(v, u)
-        return ca.Function(
-            f"{self.name}_inverse_dynamics", [q, v, a, u], [r], ["q", "v", "a", "u"], ["r"], {"cse": True}
-        )
-
-    def casadi_terms(self, q: Any, v: Any, gravity: bool = False) -> tuple[Any, Any, Any]:
-        """M (armature included), h and the gravity a servo compensates (0 for torque arms unless gravity=True) as
-        CasADi expressions: what every symbolic model of the arm builds on."""
-        kd, base = self._casadi_kindyn(), ca.SX.eye(4)
-        m = self.mass_scale * kd.mass_matrix(base, q)[6:, 6:]
-        if self.armature:
-            m = m + ca.diag(ca.DM(self.armature))
-        h = kd.gravity_term(base, q)[6:] if gravity else kd.bias_force(base, q, ca.SX.zeros(6), v)[6:]  # gravity: v=0
-        servo = self.actuation == "velocity_servo"
-        kg = self._casadi_kindyn(nominal=True) if servo and self.payload is not None else kd
-        g = kg.gravity_term(base, q)[6:] if servo else 0
-        return m, h, g
-
-    def _casadi_kindyn(self, nominal: bool = False) -> Any:
-        """adam's CasADi model of the arm (the other joints locked; nominal: without the payload)."""
-        from adam.casadi import KinDynComputations
-
-        text = locked_urdf(Path(self.urdf), self.joints) if nominal else self.model_urdf
-        return KinDynComputations(text, list(self.joints), gravity=np.array([*self.gravity, 0, 0, 0]))
 
     @functools.cached_property
     def compiled(self) -> Any:

@@ -22,6 +22,23 @@ def period_miss(net: PINN, system: System, logs: Sequence[str]) -> Tensor:
     return (pred - x1[at_tau]).square().mean(dim=0).sqrt()
 
 
+def live_features(net: PINN, system: System, logs: Sequence[str], floor: float = 1e-6) -> int:
+    """How many units of the network's last hidden layer are alive (|activation| above floor) somewhere on the logs'
+    transitions: a network that a prior already made exact can have none left, and no gradient then reaches its
+    weights."""
+    from pinnmpc.surrogate import mlp
+    from pinnmpc.surrogate.network import TORCH
+
+    t, x0, u, _ = transitions(read_logs(list(logs), system), system.tau)
+    dtype = net.out_scale.dtype
+    pairs = net.net.pairs()
+    width = pairs[-1][0].shape[1]
+    identity = (torch.eye(width, dtype=dtype), torch.zeros(width, dtype=dtype))
+    with torch.no_grad():
+        h = mlp.value(TORCH, [*pairs[:-1], identity], net.net.activation, net._inputs(t.to(dtype), x0, u))
+    return int((h.abs().amax(dim=0) > floor).sum())
+
+
 def widen_heads(net: PINN, miss: Tensor) -> Tensor:
     """Each head's output scale raised to at least miss (its state's), the last layer's rows shrunk by the same
     factor: the same function, a scale the robot's misses fit in. Returns the new head scale."""
