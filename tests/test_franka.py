@@ -69,6 +69,19 @@ def test_each_controller_kind_closes_the_loop_through_libfranka(
     assert max(m["mae"][f"q_joint{j}"] for j in range(1, 8)) < 5e-3
 
 
+def test_commands_go_out_at_a_fixed_robot_time_after_their_state(sim_host: str, make_cfg, tmp_path: Path) -> None:
+    """plant.command_at: each command waits on the robot's clock until that long after the state it answers (a
+    dead time the same in every period); metrics.json says when they went out."""
+    from pinnmpc.simulation.run import run_closed_loop
+
+    overrides = ["system=fr3", "plant=franka", "plant.simulator=none", f"plant.host={sim_host}"]
+    overrides.append("plant.command_at=0.03")
+    m = run_closed_loop(make_cfg("closed_loop", [*overrides, "max_steps=8", "progress=false"]), tmp_path)
+    assert m["status"] == "ok" and m["franka"]["errors"] == [], m["status"]
+    offset = m["franka"]["command_offset_s"]
+    assert 0.0295 <= offset["median"] <= offset["max"] < 0.05, offset  # within its tick, inside the period
+
+
 def test_the_safety_layer_slows_before_the_limits_and_clips_the_speed() -> None:
     from pinnmpc.plant.franka_safety import SafetyLayer
     from pinnmpc.plant.settings import FrankaPlantSettings

@@ -47,6 +47,7 @@ class FrankaPlant:
         self.late = 0  # commands that came after their period had ended
         self.sent = 0  # commands sent since the arm was last brought to rest
         self.robot_periods: list[float] = []  # robot time between measurements, s
+        self.send_offsets: list[float] = []  # robot time from each command's state to its sending, s
         try:
             host = settings.host
             if settings.simulator != "none":
@@ -136,6 +137,9 @@ class FrankaPlant:
                 "was stopped"
             )
         command = self.safety.command(np.asarray(u, dtype=float), x_now)
+        if self.settings.command_at > 0:  # a fixed dead time: wait on the robot's clock
+            t_send = self._wait_until(self.period_start + self.settings.command_at)[0]
+        self.send_offsets.append(t_send - self.period_start)
         hold = self.franky.Duration(int(round(self.settings.hold_periods * self.tau * 1e3)))
         motion = self.franky.JointVelocityMotion(command.tolist(), duration=hold)
         self._guarded(lambda: self.robot.move(motion, asynchronous=True), "send a command")
@@ -236,6 +240,10 @@ class FrankaPlant:
             "errors": list(self.errors),
             "safety": dict(self.safety.events),
             "late_commands": int(self.late),
+            "command_offset_s": {
+                "median": float(np.median(self.send_offsets)) if self.send_offsets else float("nan"),
+                "max": float(max(self.send_offsets)) if self.send_offsets else float("nan"),
+            },
             "robot_period_s": {
                 "median": float(np.median(periods)) if periods.size else float("nan"),
                 "max": float(periods.max()) if periods.size else float("nan"),

@@ -117,6 +117,7 @@ FRANKA_CHECKS: dict[str, Check] = {
     "start_tolerance": positive(),
     "rest_speed": positive(),
     "poll_s": positive(),
+    "command_at": real(0.0),
 }
 
 
@@ -165,6 +166,9 @@ class FrankaPlantSettings(MismatchSettings):
     """Wall seconds between two reads of the robot's clock while a period runs."""
     record_fine: bool = False
     """Record the 1 kHz state stream within each period (collect sets it)."""
+    command_at: float = 0.0
+    """s of robot time after the state a command answers at which it is sent (a command ready sooner waits): the
+    same dead time in every period, whatever the controller's wall time and franky-sim's speed; 0: sent at once."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
