@@ -250,18 +250,19 @@ def test_a_network_without_live_features_is_refused_for_fine_tuning(make_cfg, tm
     """A network whose last hidden layer is saturated everywhere on the logs (as fr3.pt's, which its prior made
     exact) gets no gradient: fine-tuning from it is refused in one line naming init_from; a live one is not."""
     from pinnmpc.training.models import build_model
-    from pinnmpc.training.rescale import live_features
+    from pinnmpc.training.rescale import live_features, log_transitions
 
     first = tmp_path / "first"
     train(make_cfg("train", [*TINY, "trainer.max_epochs=1"]), first)
     live = load_surrogate(first / "surrogate.pt").model
-    assert live_features(live, load_system("planar3"), [lab_log]) > 0
+    logged = log_transitions(load_system("planar3"), [lab_log])
+    assert live_features(live, logged) > 0
     saved = torch.load(first / "surrogate.pt", weights_only=False)
     last_hidden = max(int(k.split(".")[2]) for k in saved["state_dict"] if k.startswith("net.layers.")) - 1
     saved["state_dict"][f"net.layers.{last_hidden}.weight"].zero_()
     saved["state_dict"][f"net.layers.{last_hidden}.bias"].fill_(-1000.0)  # silu(-1000): no unit alive
     dead = tmp_path / "dead.pt"
     torch.save(saved, dead)
-    assert live_features(load_surrogate(dead).model, load_system("planar3"), [lab_log]) == 0
+    assert live_features(load_surrogate(dead).model, logged) == 0
     with pytest.raises(ValueError, match=r"init_from=.*dead.pt: no unit of its last hidden layer is alive"):
         build_model(make_cfg("train", [*TINY, f"init_from={dead}", f"data.logs=[{lab_log}]"]), load_system("planar3"))

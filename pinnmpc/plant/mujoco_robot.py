@@ -161,7 +161,7 @@ class MujocoPlant:
             self._servo_model = compile_arm(self.system) if self.robot is not None else self.model
             self._servo_data = mujoco.MjData(self._servo_model)  # qvel 0 (gravity alone) unless it compensates bias
             self._gravity_out = np.empty(n)
-            self._with_bias = self.system.servo_compensation == "bias"
+            self._with_bias = self.system.compensates_bias
         d = self.data  # views into MjData, bound once: the stage function runs 4 substeps times per period
         self._qpos, self._qvel, self._qfrc, self._qacc = d.qpos, d.qvel, d.qfrc_applied, d.qacc
         self._forward = mujoco.mj_forward

@@ -105,9 +105,8 @@ class ArmPrior(nn.Module):
         check_prior(kind)
         self.arm, self.nq, self.kind = arm, arm.nq, kind
         self.midpoint = kind == "midpoint_arm"  # M, gravity and C re-taken per sub-step (midpoint_substeps)
-        self.coriolis = kind in ("frozen_arm_moving", "midpoint_arm") and not (  # C(q0, w) w held per sub-step
-            arm.actuation == "velocity_servo" and arm.servo_compensation == "bias"  # with friction, unless the
-        )  # servo holds it (a payload's share left to the network)
+        # C(q0, w) w held per sub-step with friction, unless the servo holds it (a payload's share left to the network)
+        self.coriolis = kind in ("frozen_arm_moving", "midpoint_arm") and not arm.compensates_bias
         moving = self.coriolis or (
             kind == "frozen_arm_friction" and bool(getattr(arm, "coulomb", None)) and any(arm.coulomb)
         )

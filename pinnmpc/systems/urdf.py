@@ -273,12 +273,12 @@ class RigidArm(CasadiArm):
         kd, b, n = self._kindyn(q.dtype), q.shape[0], self.nq
         base, still = torch.eye(4, dtype=q.dtype).expand(b, 4, 4), torch.zeros(b, 6, dtype=q.dtype)
         c = kd.coriolis_term(base, q, still, v).reshape(b, n + 6)[:, 6:]
-        if self._compensates_bias:
+        if self.compensates_bias:
             c = c - self._kindyn(q.dtype, nominal=True).coriolis_term(base, q, still, v).reshape(b, n + 6)[:, 6:]
         return self.mass_scale * c
 
     @property
-    def _compensates_bias(self) -> bool:
+    def compensates_bias(self) -> bool:
         """Whether the actuation holds the Coriolis torques of the arm without the payload (servo_compensation)."""
         return self.actuation == "velocity_servo" and self.servo_compensation == "bias"
 

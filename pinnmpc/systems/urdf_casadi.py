@@ -19,7 +19,7 @@ class CasadiArm:
         """(q, v) -> C(q, v) v as a CasADi SX function (callable on SX, MX or numbers)."""
         q, v = ca.SX.sym("q", self.nq), ca.SX.sym("v", self.nq)
         c = self._casadi_kindyn().coriolis_term(ca.SX.eye(4), q, ca.SX.zeros(6), v)[6:]
-        if self._compensates_bias:
+        if self.compensates_bias:
             c = c - self._casadi_kindyn(nominal=True).coriolis_term(ca.SX.eye(4), q, ca.SX.zeros(6), v)[6:]
         c = self.mass_scale * c
         return ca.Function(f"{self.name}_coriolis", [q, v], [c], {"cse": True})

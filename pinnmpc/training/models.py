@@ -32,17 +32,17 @@ def build_model(cfg: DictConfig, system: System, prior_arm: dict | None = None) 
             system, cfg.init_from, system.tau, cfg.t_max, hidden, cfg.seed, basis, sums, prior, form, prior_arm
         )
         if cfg.data.get("logs") and isinstance(net, PINN):
-            from pinnmpc.training.rescale import live_features, period_miss, widen_heads
+            from pinnmpc.training.rescale import live_features, log_transitions, period_miss, widen_heads
 
-            logs = [str(p) for p in cfg.data.logs]
-            if not live_features(net, system, logs):
+            logged = log_transitions(system, [str(p) for p in cfg.data.logs])
+            if not live_features(net, logged):
                 raise ValueError(
                     f"init_from={cfg.init_from}: no unit of its last hidden layer is alive on the logs (its prior "
                     "made it exact, its features saturated), so fine-tuning cannot move it; expected a live network: "
                     "train from a fresh one (init_from=null)"
                 )
             if cfg.model.get("rescale_to_logs"):
-                widen_heads(net, period_miss(net, system, logs))
+                widen_heads(net, period_miss(net, system, logged))
         return net
     return fresh_model(cfg, system, prior_arm)
 

@@ -13,23 +13,28 @@ from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems.base import System
 
 
-def period_miss(net: PINN, system: System, logs: Sequence[str]) -> Tensor:
-    """The network's RMS miss per state over every one-period transition of the logs."""
-    t, x0, u, x1 = transitions(read_logs(list(logs), system), system.tau)
+def log_transitions(system: System, logs: Sequence[str]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(t, x0, u, x1) of every transition in the logs up to one period: read once for the checks below."""
+    return transitions(read_logs(list(logs), system), system.tau)
+
+
+def period_miss(net: PINN, system: System, logged: tuple[Tensor, ...]) -> Tensor:
+    """The network's RMS miss per state over every one-period transition of the logs (log_transitions)."""
+    t, x0, u, x1 = logged
     at_tau = (t[:, 0] - system.tau).abs() <= 1e-9 * system.tau
     with torch.no_grad():
         pred = net(t[at_tau].to(net.out_scale.dtype), x0[at_tau], u[at_tau])
     return (pred - x1[at_tau]).square().mean(dim=0).sqrt()
 
 
-def live_features(net: PINN, system: System, logs: Sequence[str], floor: float = 1e-6) -> int:
+def live_features(net: PINN, logged: tuple[Tensor, ...], floor: float = 1e-6) -> int:
     """How many units of the network's last hidden layer are alive (|activation| above floor) somewhere on the logs'
-    transitions: a network that a prior already made exact can have none left, and no gradient then reaches its
-    weights."""
+    transitions (log_transitions): a network that a prior already made exact can have none left, and no gradient
+    then reaches its weights."""
     from pinnmpc.surrogate import mlp
     from pinnmpc.surrogate.network import TORCH
 
-    t, x0, u, _ = transitions(read_logs(list(logs), system), system.tau)
+    t, x0, u, _ = logged
     dtype = net.out_scale.dtype
     pairs = net.net.pairs()
     width = pairs[-1][0].shape[1]
