@@ -82,6 +82,19 @@ def test_commands_go_out_at_a_fixed_robot_time_after_their_state(sim_host: str, 
     assert 0.0295 <= offset["median"] <= offset["max"] < 0.05, offset  # within its tick, inside the period
 
 
+def test_commands_a_whole_period_late_are_planned_for(sim_host: str, make_cfg, tmp_path: Path) -> None:
+    """plant.command_at = tau: each command goes out as the next period begins, whatever the controller's time, and
+    the controller plans from its model's prediction of that period's start."""
+    from pinnmpc.simulation.run import run_closed_loop
+
+    overrides = ["system=fr3", "plant=franka", "plant.simulator=none", f"plant.host={sim_host}", "controller=casadi"]
+    overrides += ["plant.command_at=0.05", "max_steps=12", "progress=false"]
+    m = run_closed_loop(make_cfg("closed_loop", overrides), tmp_path)
+    assert m["status"] == "ok" and m["franka"]["errors"] == [], m["status"]
+    assert 0.0495 <= m["franka"]["command_offset_s"]["median"] <= 0.0515, m["franka"]["command_offset_s"]
+    assert max(m["mae"][f"q_joint{j}"] for j in range(1, 8)) < 5e-3
+
+
 def test_the_safety_layer_slows_before_the_limits_and_clips_the_speed() -> None:
     from pinnmpc.plant.franka_safety import SafetyLayer
     from pinnmpc.plant.settings import FrankaPlantSettings
@@ -208,6 +221,37 @@ def test_collect_logs_the_robot_stream_through_libfranka(sim_host: str, tmp_path
     np.testing.assert_allclose(ramp, [15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])  # the Panda's limits, factor 1
     u = log.u[log.episode == 0][:-1]  # the excitation: no command further from the last than half a period's ramp
     assert np.all(np.abs(np.diff(np.vstack((np.zeros(7), u)), axis=0)) <= 0.5 * 0.05 * ramp + 1e-12)
+
+
+def franka_sim_children() -> list[int]:
+    """The franky-sim servers this process started that still run."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            cmdline = (stat.parent / "cmdline").read_bytes()
+        except (FileNotFoundError, ProcessLookupError, IndexError):
+            continue
+        if int(fields[1]) == os.getpid() and fields[0] != "Z" and b"pinnmpc.plant.franka_sim" in cmdline:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def test_collect_with_an_embedded_robot_leaves_no_server_and_logs_the_inputs_held(make_cfg, tmp_path: Path) -> None:
+    """The collect's settings check starts no robot of its own; with plant.command_at = tau each logged input is the
+    one that drove its period (the first: the arm at rest)."""
+    from pinnmpc.robot_data.collect import run_collect
+    from pinnmpc.robot_data.logs import read_logs
+    from pinnmpc.systems import load_system
+
+    overrides = ["system=fr3", "plant=franka", f"plant.host={own_loopback(2)}", "plant.command_at=0.05"]
+    overrides += ["robot_time=1", "episodes.kinds=[excitation]", "excitation.duration=1", "progress=false"]
+    before = set(franka_sim_children())
+    run_collect(make_cfg("collect", overrides), tmp_path)
+    assert set(franka_sim_children()) <= before
+    (log,) = read_logs([str(tmp_path / "robot_log.npz")], load_system("fr3"))
+    assert log.meta["command_at"] == 0.05 and len(log.x) == 21
+    assert np.all(log.u[0] == 0.0) and np.abs(log.u[1:]).max() > 0  # the first period ran at rest
 
 
 @pytest.mark.slow

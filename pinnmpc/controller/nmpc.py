@@ -32,6 +32,7 @@ class NMPC:
     disturbance_gain: float = 0.0  # offset-free MPC: 0 off; 1 d = the last one-step prediction error; between: filtered
     disturbance_max: Sequence[float] | None = None  # per-state bound on |d| (None: unbounded)
     disturbance_notch: bool = False  # average the last two prediction errors first (pinnmpc.controller.estimator)
+    delay_periods: int = 0  # 1: each input runs a period after its state (plant.command_at = tau): plan ahead
     stats: list[StepStats] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -164,9 +165,11 @@ class NMPC:
         x0, ref = self._checked(x, x_ref)
         start = time.perf_counter()
         fallback = False
+        ahead = None
         try:
             self._estimate_disturbance(x0)
-            U, info, next_warm = self._solve_one(x0, ref)
+            ahead = self._ahead(x0) if self.delay_periods else None
+            U, info, next_warm = self._solve_one(x0 if ahead is None else ahead[1], ref)
             ok = bool(np.isfinite(U).all()) and bool(np.isfinite(np.asarray(info.cost)).all())
         except (RuntimeError, FloatingPointError, np.linalg.LinAlgError):  # e.g. a singular solve on NaN outputs
             ok, info, next_warm = False, None, NO_WARM
@@ -177,9 +180,13 @@ class NMPC:
         elapsed = time.perf_counter() - start
         self._U = self._shifted(U) if self.warm_start else self._cold_start()
         self._warm = next_warm if self.warm_start and not fallback else NO_WARM
+        running = self._u_prev  # the input the plant holds over the coming period when it runs a period late
         self._u_prev = U[0].copy()
-        self._last = (x0.copy(), self._u_prev)
-        self._predicted = self._planned_next(info) if not fallback else None
+        if self.delay_periods:
+            self._last, self._predicted = (x0.copy(), running), None if ahead is None else ahead[0]
+        else:
+            self._last = (x0.copy(), self._u_prev)
+            self._predicted = self._planned_next(info) if not fallback else None
         self.stats.append(
             StepStats(
                 time_s=elapsed,
@@ -190,6 +197,13 @@ class NMPC:
             )
         )
         return U[0].copy()
+
+    def _ahead(self, x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Delay compensation: the model's next state under the input already running, undisturbed and with the
+        offset-free estimate added (the state the next input meets)."""
+        nxt = -self.ocp.prediction_error(x0, self._u_prev, np.zeros_like(x0))  # F(x0, u) = -(0 - F(x0, u))
+        d = self.ocp.disturbance
+        return nxt, nxt if d is None else nxt + d
 
     def prediction_error(self, x_prev: np.ndarray, u_prev: np.ndarray, x: np.ndarray) -> np.ndarray:
         """What the controller's model missed over the last period, x - F(x_prev, u_prev): the closed loop's model

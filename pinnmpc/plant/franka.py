@@ -40,6 +40,11 @@ class FrankaPlant:
         self.rest = False  # whether the arm ended at rest (close() says)
         self.host = settings.host
         gains = settings.servo_gain or list(system.servo_gain)
+        if settings.command_at > self.tau + 1e-9:
+            raise ValueError(
+                f"plant.command_at={settings.command_at} s; expected 0 to the control period {self.tau} s (the "
+                "period: each command goes out as the next period begins)"
+            )
         self.safety = SafetyLayer(system, tau, settings)
         self.period_start = 0.0  # robot time of the state the next command answers, s
         self.measured_at = 0.0  # robot time that state was read at (within a tick after it)
@@ -83,6 +88,12 @@ class FrankaPlant:
                     raise
         raise RuntimeError(f"plant=franka: franky-sim did not start in {tries} tries")  # tries >= 1 returns above
 
+    @property
+    def delay_periods(self) -> int:
+        """1 where each command goes out a whole period after its state (plant.command_at = tau): the closed loop
+        then plans from the predicted start of the period the command runs in; 0 otherwise."""
+        return int(self.settings.command_at >= self.tau - 1e-9)
+
     def now(self) -> float:
         """The robot's clock, s."""
         return float(self.robot.state.time.to_sec())
@@ -103,7 +114,7 @@ class FrankaPlant:
                 motion = self.franky.JointMotion(
                     self.franky.JointState(q0.tolist()), relative_dynamics_factor=self.settings.start_dynamics_factor
                 )
-                self._guarded(lambda m=motion: self.robot.move(m, asynchronous=False), "move to the start")
+                self._guarded(lambda m=motion: self._move_and_join(m, "move to the start"), "move to the start")
         self.sent = 0
         t, x = self.measure()
         self.fine = []
@@ -136,16 +147,17 @@ class FrankaPlant:
                 f"plant.watchdog_periods={self.settings.watchdog_periods} periods of {self.tau * 1e3:.0f} ms; the arm "
                 "was stopped"
             )
-        command = self.safety.command(np.asarray(u, dtype=float), x_now)
         if self.settings.command_at > 0:  # a fixed dead time: wait on the robot's clock
-            t_send = self._wait_until(self.period_start + self.settings.command_at)[0]
+            t_send, x_now = self._wait_until(self.period_start + self.settings.command_at)
+        command = self.safety.command(np.asarray(u, dtype=float), x_now)  # made safe for the state it meets
         self.send_offsets.append(t_send - self.period_start)
         hold = self.franky.Duration(int(round(self.settings.hold_periods * self.tau * 1e3)))
         motion = self.franky.JointVelocityMotion(command.tolist(), duration=hold)
         self._guarded(lambda: self.robot.move(motion, asynchronous=True), "send a command")
         self.sent += 1
         target = self.period_start + self.tau
-        t, x = self._wait_until(target)
+        # a command sent as the next period begins: that period's state is the one read just before it went out
+        t, x = (t_send, x_now) if self.delay_periods else self._wait_until(target)
         self.robot_periods.append(t - self.measured_at)
         self.period_start, self.measured_at = target, t  # periods on the robot's clock, one tau apart
         self.step_times.append(time.perf_counter() - wall)
@@ -189,17 +201,33 @@ class FrankaPlant:
             if self.robot is not None and self.robot.has_errors and not self.robot.recover_from_errors():
                 self.errors.append("automatic error recovery failed")
 
+    def _move_and_join(self, motion: Any, what: str) -> None:
+        """A motion run to its end, waited for only while the robot's clock runs: a robot (or server) that stops
+        answering mid-motion ends the run as a plant failure after plant.stall_timeout, not in a wait forever."""
+        self.robot.move(motion, asynchronous=True)
+        last, since = self.now(), time.monotonic()
+        while not self.robot.join_motion(timeout=self.settings.poll_s * 20):
+            t = self.now()
+            if t > last:
+                last, since = t, time.monotonic()
+            elif time.monotonic() - since > self.settings.stall_timeout:
+                self.errors.append(f"{what}: the robot's clock stood still for {self.settings.stall_timeout} s")
+                raise PlantError(
+                    f"plant=franka: {what}: the robot's clock stood still for plant.stall_timeout="
+                    f"{self.settings.stall_timeout} s of wall time mid-motion (connection lost?)"
+                )
+
     def stop_arm(self) -> None:
         """A joint velocity stop motion, waited for, then error recovery: the arm at rest."""
         if self.robot is None:
             return
         try:
-            self.robot.move(self.franky.JointVelocityStopMotion(), asynchronous=False)
+            self._move_and_join(self.franky.JointVelocityStopMotion(), "stop motion")
         except self.franky.Exception as e:
             self.errors.append(f"stop motion: {type(e).__name__}: {e}")
             self._recover()
-            with contextlib.suppress(self.franky.Exception):
-                self.robot.move(self.franky.JointVelocityStopMotion(), asynchronous=False)
+            with contextlib.suppress(self.franky.Exception, PlantError):
+                self._move_and_join(self.franky.JointVelocityStopMotion(), "stop motion")
         self._recover()
 
     def at_rest(self, settle: float = 1.0) -> bool:
@@ -223,7 +251,8 @@ class FrankaPlant:
         self.closed = True
         try:
             if self.robot is not None:
-                self.stop_arm()
+                with contextlib.suppress(PlantError):  # recorded in self.errors; the server still goes below
+                    self.stop_arm()
                 self.rest = self.at_rest()
         finally:
             self.robot = None  # franky's destructor closes the connection before the server goes

@@ -168,7 +168,9 @@ class FrankaPlantSettings(MismatchSettings):
     """Record the 1 kHz state stream within each period (collect sets it)."""
     command_at: float = 0.0
     """s of robot time after the state a command answers at which it is sent (a command ready sooner waits): the
-    same dead time in every period, whatever the controller's wall time and franky-sim's speed; 0: sent at once."""
+    same dead time in every period, whatever the controller's wall time and franky-sim's speed; 0: sent at once;
+    at most the control period, where each command goes out as the next period begins and the closed loop plans from
+    the model's prediction of that period's start (delay compensation, docs/franka.md)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -26,7 +26,7 @@ from tqdm.auto import tqdm
 
 from pinnmpc.plant.base import Plant, PlantError
 from pinnmpc.plant.build import make_plant
-from pinnmpc.plant.settings import robot_name
+from pinnmpc.plant.settings import plant_settings, robot_name
 from pinnmpc.robot_data.logs import RobotLog, log_files, write_log
 from pinnmpc.robot_data.settings import validate_collect
 from pinnmpc.simulation.loop import run_loop
@@ -148,7 +148,15 @@ def excitation_episode(
             status = "left the state box"
             break
     return Episode("excitation", "excitation", np.array(recorder.states[: len(us) * recorder.fine + 1]),
-                   np.array(us).reshape(-1, n), status)  # fmt: skip
+                   applied(np.array(us).reshape(-1, n), recorder.plant), status)  # fmt: skip
+
+
+def applied(commands: np.ndarray, plant: Any) -> np.ndarray:
+    """The inputs held over each period: the commands, or on a plant that sends each a period late (plant.command_at
+    = tau) the one before (the first period's: zero, the arm at rest), so every logged step is a held input."""
+    if not getattr(plant, "delay_periods", 0) or not len(commands):
+        return commands
+    return np.concatenate((np.zeros_like(commands[:1]), commands[:-1]))
 
 
 def closed_loop_episode(
@@ -168,8 +176,8 @@ def closed_loop_episode(
     run = run_loop(controller, recorder, ref, x0=x0, max_steps=steps, noise_sigma=float(cfg.noise_sigma), seed=seed,
                    progress=False, stop=stop)  # fmt: skip
     periods = len(run.x) - 1  # a failed step's input has no state after it
-    return Episode(kind, ref.name, np.array(recorder.states[: periods * recorder.fine + 1]), run.u[:periods],
-                   run.status)  # fmt: skip
+    return Episode(kind, ref.name, np.array(recorder.states[: periods * recorder.fine + 1]),
+                   applied(run.u[:periods], recorder.plant), run.status)  # fmt: skip
 
 
 def collect(
@@ -188,7 +196,8 @@ def collect(
     recorder = fine_plant(system, cfg.plant, int(cfg.fine), cfg.system.get("robots"))
     ramp = getattr(recorder.plant, "command_acceleration", None)
     if ramp is not None:  # identify leaves out the intervals where the servo still ramps towards a command
-        meta = {**(meta or {}), "command_acceleration": [float(a) for a in ramp]}
+        meta = {**(meta or {}), "command_acceleration": [float(a) for a in ramp],
+                "command_at": float(recorder.plant.settings.command_at)}  # fmt: skip
     try:  # a robot (plant=franka) stops its arm and its server however the collect ends
         return _collect(cfg, system, controller, reference, recorder, stop, meta, checkpoint)
     finally:
@@ -301,7 +310,10 @@ def run_collect(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = None) 
     start = time.perf_counter()
     system = job_system(cfg, validate_collect)
     refuse_existing(run_dir / str(cfg.out), str(cfg.out))
-    fine_plant(system, cfg.plant, int(cfg.fine), cfg.system.get("robots"))  # refuses an unknown or bad robot
+    if cfg.plant.get("kind") == "franka":  # a robot's settings alone: it is connected (or started) once, to collect
+        plant_settings(OmegaConf.to_container(cfg.plant, resolve=True)).make_consistent()
+    else:
+        fine_plant(system, cfg.plant, int(cfg.fine), cfg.system.get("robots"))  # refuses an unknown or bad robot
     controller, _, tau = build_controller(cfg, system)
     if abs(tau - system.tau) > 1e-12 * system.tau:
         raise ValueError(f"the controller's tau={tau} differs from system.tau={system.tau}; expected one period")

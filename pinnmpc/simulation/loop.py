@@ -56,10 +56,12 @@ def run_loop(
     measurement, guard (default: MeasurementGuard on the controller's model) screens it before the controller
     sees it, and no non-finite input ever reaches the plant."""
     horizon, nx = controller.horizon, ref.x.shape[1]
-    steps = len(ref) - horizon - 1
+    delay = delay_compensation(controller, plant)
+    steps = len(ref) - horizon - 1 - delay
     if steps < 1:
         raise ValueError(
-            f"reference {ref.name} has {len(ref)} samples at tau; horizon {horizon} needs at least {horizon + 2}"
+            f"reference {ref.name} has {len(ref)} samples at tau; horizon {horizon} needs at least "
+            f"{horizon + 2 + delay}"
         )
     if max_steps is not None:
         steps = min(steps, int(max_steps))
@@ -73,6 +75,8 @@ def run_loop(
     predict = None if monitor is None else model_step(monitor, nx)
     guard = MeasurementGuard(predict) if guard is None else guard
     errors, last, u_applied = [], None, None
+    low, high = (np.asarray(b, dtype=np.float64) for b in (controller.low, controller.high))
+    running = np.clip(np.zeros(len(low)), low, high)  # the input a late plant holds over the coming period
     for k in tqdm(range(steps), desc="closed loop", unit="step", disable=not progress, file=sys.stderr):
         if stop is not None and stop():
             status = "interrupted"
@@ -93,9 +97,11 @@ def run_loop(
                 warned = True
         if predicted is not None and measured is reading.value:  # a fresh reading the guard accepted
             errors.append(measured - predicted)
-        u = guard.safe_input(k, np.asarray(controller.make_step(measured, ref.x[k + 1 : k + 1 + horizon])), u_applied)
-        last = (measured, np.asarray(u, dtype=np.float64))
-        u_applied = last[1]
+        window = ref.x[k + 1 + delay : k + 1 + delay + horizon]  # a late plant: the plan starts a period on
+        u = guard.safe_input(k, np.asarray(controller.make_step(measured, window)), u_applied)
+        u_applied = np.asarray(u, dtype=np.float64)
+        last = (measured, running if delay else u_applied)  # what drives the plant over the coming period
+        running = u_applied
         guard.applied(u_applied)
         try:
             x = plant.step(x, u)
@@ -115,6 +121,20 @@ def run_loop(
     E = None if monitor is None else np.array(errors, dtype=np.float64).reshape(-1, nx)
     injected = [*sensor.faults(), *(plant.faults() if hasattr(plant, "faults") else [])]
     return LoopResult(np.array(xs), U, status, out_of_box_steps, E, injected, guard)
+
+
+def delay_compensation(controller: Controller, plant: Plant) -> int:
+    """Periods a plant holds each input late (plant.command_at = tau: 1), handed to the controller, which then plans
+    from its prediction of the state the input will meet; a controller without that ability is refused."""
+    delay = int(getattr(plant, "delay_periods", 0))
+    if delay and not hasattr(controller, "delay_periods"):
+        raise ValueError(
+            f"the plant sends each command a period late (plant.command_at = tau) and {type(controller).__name__} "
+            "cannot plan ahead of it; expected plant.command_at < tau or a controller with a model"
+        )
+    if hasattr(controller, "delay_periods"):
+        controller.delay_periods = delay
+    return delay
 
 
 def model_step(monitor: Callable[..., np.ndarray], nx: int) -> Predict:

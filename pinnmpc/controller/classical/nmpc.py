@@ -43,6 +43,7 @@ class CasadiNMPC:
         smooth_solver: NlpSolver | None = None,
         keep_unconverged: bool = True,
         rti_limit_steps: int = 2,
+        delay_periods: int = 0,
     ) -> None:
         self.ocp, self.solver, self.label = ocp, solver, label
         self.horizon, self.nx, self.nu = ocp.horizon, ocp.nx, ocp.nu
@@ -55,6 +56,7 @@ class CasadiNMPC:
             raise ValueError(f"controller.rti_limit_steps={rti_limit_steps!r}; expected a whole number >= 0")
         self.rti_limit_steps = rti_limit_steps  # RTI: more steps per sample where a plan is at the joint limits
         self.disturbance_gain = float(disturbance_gain)
+        self.delay_periods = delay_periods  # 1: each input runs a period after its state; plan from F(x, u_prev)
         self._estimator = OffsetFree(self.nx, self.disturbance_gain, disturbance_max, disturbance_notch)
         self.stats: list[StepStats] = []
         self.reset()
@@ -79,6 +81,7 @@ class CasadiNMPC:
         self._w: np.ndarray | None = None  # the last solution shifted (None: cold start from the measured state)
         self._lam: tuple[np.ndarray, np.ndarray] | None = None  # its multipliers shifted (None: zeros)
         self._last: tuple | None = None  # the last measured state, the input applied and the plan's unknowns (or None)
+        self._predicted: np.ndarray | None = None  # the model's undisturbed x after them, where already computed
         self._estimator.reset()
         self.stats = []
         self.smoothed_solves = 0
@@ -105,10 +108,18 @@ class CasadiNMPC:
             ref = self.ocp.joint_limits.governed(ref)
         start = time.perf_counter()
         sol: Solution | None = None
+        ahead = None
         try:
             self._estimate_disturbance(x0)
+            if self.delay_periods:  # plan from the state the input will meet: the running input's prediction
+                guess = self._last[2] if self._last is not None else None
+                ahead = (self.solver.flow(x0, self._u_prev, guess), guess)
+                d = self._estimator.value if self._estimator.on else None
+                x0_plan = ahead[0] if d is None else ahead[0] + d
+            else:
+                x0_plan = x0
             solver = self.solver if self._w is not None else self.cold_solver
-            self._load(solver, x0, ref)
+            self._load(solver, x0_plan, ref)
             sol = solver()
             ok = self._usable(sol, rti=solver is self.solver and self.rti)
             if ok and solver is self.solver and self.rti and self._at_limits(sol):
@@ -116,7 +127,7 @@ class CasadiNMPC:
             if not ok and self.smooth_solver is not None:  # e.g. sign(v) friction at rest: no smooth NLP solution
                 iterations = sol.iterations
                 solver = self.smooth_solver
-                self._load(solver, x0, ref)
+                self._load(solver, x0_plan, ref)
                 sol = solver()
                 sol.iterations += iterations
                 ok = self._usable(sol, rti=False)
@@ -131,9 +142,14 @@ class CasadiNMPC:
             U = np.clip(np.nan_to_num(self._U, nan=0.0, posinf=0.0, neginf=0.0), self.low, self.high)
         elapsed = time.perf_counter() - start
         self._shift(sol if ok or kept else None, U)
+        running = self._u_prev  # the input the plant holds over the coming period when it runs a period late
         self._u_prev = U[0].copy()
         guess = sol.w[self.ocp.iz[0]].copy() if (ok or kept) and self.ocp.nz else None  # the plan's unknowns
-        self._last = (x0.copy(), self._u_prev, guess)
+        if self.delay_periods:
+            self._last = (x0.copy(), running, guess)  # guess: for the input planned now, the next sample's running one
+            self._predicted = None if ahead is None else ahead[0]
+        else:
+            self._last, self._predicted = (x0.copy(), self._u_prev, guess), None
         self.stats.append(
             StepStats(
                 time_s=elapsed,
@@ -234,7 +250,8 @@ class CasadiNMPC:
         filtered by the gain and bounded by disturbance_max, is added to every predicted step."""
         if not self._estimator.on or self._last is None:
             return
-        self._estimator.update(x - self.solver.flow(*self._last))
+        predicted = self._predicted if self._predicted is not None else self.solver.flow(*self._last)
+        self._estimator.update(x - predicted)
 
 
 def sqpmethod_options(cfg: ClassicalSettings, options: dict[str, Any]) -> dict[str, Any]:
