@@ -62,3 +62,31 @@ def test_a_late_plants_logs_hold_the_input_that_drove_each_period() -> None:
     held = applied(commands, LatePlant(None, 2))
     np.testing.assert_array_equal(held, [[0, 0], [0, 1], [2, 3]])
     np.testing.assert_array_equal(applied(commands, object()), commands)  # an on-time plant: the commands
+
+
+class ClippingPlant(LatePlant):
+    """A late plant whose safety layer clips every command to +-limit and says what it sent (as plant=franka)."""
+
+    def __init__(self, plant, nu: int, limit: float) -> None:
+        super().__init__(plant, nu)
+        self.limit, self.last_command = limit, None
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        self.last_command = np.clip(np.asarray(u, dtype=np.float64), -self.limit, self.limit)
+        return super().step(x, self.last_command)
+
+
+def test_the_loop_logs_and_plans_with_the_input_the_plant_sent(make_cfg) -> None:
+    cfg = make_cfg("closed_loop", ["system=planar3", "progress=false"])
+    system = build_system(cfg.system)
+    ctrl, domain, tau = build_controller(cfg, system)
+    ref = system_reference(cfg, system, tau)
+    free = run_loop(ctrl, LatePlant(make_plant(system, cfg.plant, tau), system.nq), ref, max_steps=30, progress=False)
+    limit = 0.5 * float(np.abs(free.u).max())
+    plant = ClippingPlant(make_plant(system, cfg.plant, tau), system.nq, limit)
+    run = run_loop(ctrl, plant, ref, max_steps=30, domain=domain, progress=False)
+    assert run.status == "ok" and np.abs(run.u).max() <= limit  # the inputs logged are those sent
+    np.testing.assert_array_equal(ctrl.u_prev.numpy(), run.u[-1])  # the next plan starts from the one running
+    assert ctrl.describe()["disturbance_notch"]  # notch=null: on while the plant runs late (docs/franka.md)
+    run_loop(ctrl, make_plant(system, cfg.plant, tau), ref, max_steps=3, progress=False)
+    assert not ctrl.describe()["disturbance_notch"]  # and off again on time (planar3.pt: not fine-tuned on logs)

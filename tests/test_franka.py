@@ -245,13 +245,16 @@ def test_collect_with_an_embedded_robot_leaves_no_server_and_logs_the_inputs_hel
     from pinnmpc.systems import load_system
 
     overrides = ["system=fr3", "plant=franka", f"plant.host={own_loopback(2)}", "plant.command_at=0.05"]
-    overrides += ["robot_time=1", "episodes.kinds=[excitation]", "excitation.duration=1", "progress=false"]
+    overrides += ["robot_time=2.5", "episodes.kinds=[excitation,random]", "excitation.duration=1", "progress=false"]
     before = set(franka_sim_children())
     run_collect(make_cfg("collect", overrides), tmp_path)
     assert set(franka_sim_children()) <= before
     (log,) = read_logs([str(tmp_path / "robot_log.npz")], load_system("fr3"))
-    assert log.meta["command_at"] == 0.05 and len(log.x) == 21
-    assert np.all(log.u[0] == 0.0) and np.abs(log.u[1:]).max() > 0  # the first period ran at rest
+    assert log.meta["command_at"] == 0.05 and sorted(set(log.episode.tolist())) == [0, 1]
+    for e in (0, 1):
+        x, u = log.x[log.episode == e], log.u[log.episode == e][:-1]
+        assert np.all(u[0] == 0.0) and np.abs(u[1:]).max() > 0  # the first period ran at rest
+        assert np.abs(x[1:, 7:] - u).mean() < 0.02  # the servo follows the input logged for its period
 
 
 @pytest.mark.slow

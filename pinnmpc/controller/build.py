@@ -91,4 +91,5 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
         disturbance_gain=float(d.gain),
         disturbance_max=d.max_abs,
         disturbance_notch=notch_default(surrogate) if d.notch is None else d.notch,
+        notch_when_late=d.notch is None,
     )

@@ -79,3 +79,10 @@ class OffsetFree:
         self._previous = error
         self.value = filtered_disturbance(self.value, seen, self.gain, self._bound)
         return self.value
+
+
+def late_notch(notch: bool, when_late: bool, delay_periods: int) -> bool:
+    """The notch of a run: as set, or (controller.disturbance.notch=null) on where the plant holds each input a period
+    late: there the estimate, fed back through the prediction of the period ahead, rang at the sampling rate's
+    Nyquist frequency on franky-sim after a start a few mrad off the reference (docs/franka.md)."""
+    return bool(notch) or (bool(when_late) and delay_periods > 0)

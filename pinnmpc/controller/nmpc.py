@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from pinnmpc.controller.base import Controller, StepStats
-from pinnmpc.controller.estimator import OffsetFree
+from pinnmpc.controller.estimator import OffsetFree, late_notch
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.solvers import NO_WARM, Problem, SolveInfo, Solver
 from pinnmpc.surrogate.checkpoint import Surrogate
@@ -33,6 +33,7 @@ class NMPC:
     disturbance_max: Sequence[float] | None = None  # per-state bound on |d| (None: unbounded)
     disturbance_notch: bool = False  # average the last two prediction errors first (pinnmpc.controller.estimator)
     delay_periods: int = 0  # 1: each input runs a period after its state (plant.command_at = tau): plan ahead
+    notch_when_late: bool = False  # the notch on while the plant runs a period late (controller.disturbance.notch=null)
     stats: list[StepStats] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -65,7 +66,7 @@ class NMPC:
             "controller": "pinn",
             "solver": type(self.solver).__name__,
             "disturbance_gain": self.disturbance_gain,
-            "disturbance_notch": self.disturbance_notch,
+            "disturbance_notch": self._estimator.notch,
             "prediction": getattr(self.ocp.model, "prediction", "surrogate"),
             "real_time": bool(getattr(self.solver, "rti", False)),  # one step per sample: unconverged by design
             "rti_steps": getattr(self.solver, "rti_steps", None),
@@ -112,6 +113,7 @@ class NMPC:
         self._last: tuple[np.ndarray, np.ndarray] | None = None  # the last measured state and the input applied
         self._predicted: np.ndarray | None = None  # the undisturbed surrogate's x after that input, if the plan had it
         self.ocp.disturbance = None
+        self._estimator.notch = late_notch(self.disturbance_notch, self.notch_when_late, self.delay_periods)
         self._estimator.reset()
         self.stats = []
 
@@ -197,6 +199,13 @@ class NMPC:
             )
         )
         return U[0].copy()
+
+    def applied_input(self, u: np.ndarray) -> None:
+        """The input the plant sent in place of the last one planned (a robot's safety layer clipped it): the next
+        solve's u_{-1}, and the one its prediction and estimate start from."""
+        self._u_prev = np.array(u, dtype=np.float64)
+        if self._last is not None and not self.delay_periods:
+            self._last, self._predicted = (self._last[0], self._u_prev), None
 
     def _ahead(self, x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Delay compensation: the model's next state under the input already running, undisturbed and with the

@@ -36,6 +36,7 @@ class FrankaPlant:
         self.server: SimServer | None = None
         self.robot: Any = None
         self.command_acceleration: np.ndarray | None = None  # how fast franky ramps each joint's command, rad/s^2
+        self.last_command: np.ndarray | None = None  # the last command sent, as the safety layer made it
         self.closed = False
         self.rest = False  # whether the arm ended at rest (close() says)
         self.host = settings.host
@@ -135,6 +136,8 @@ class FrankaPlant:
         self._keep(t_send, x_now)
         if not self.sent:  # the arm at rest waits for its first command: its period begins when it goes out
             self.period_start = self.measured_at = t_send
+            if self.delay_periods:  # a period late: the servo holds the arm at rest until then (the input logged)
+                self._send(np.zeros(self.nq))
         self.period_began = self.period_start
         elapsed = t_send - self.period_start
         if elapsed > self.tau:
@@ -151,9 +154,7 @@ class FrankaPlant:
             t_send, x_now = self._wait_until(self.period_start + self.settings.command_at)
         command = self.safety.command(np.asarray(u, dtype=float), x_now)  # made safe for the state it meets
         self.send_offsets.append(t_send - self.period_start)
-        hold = self.franky.Duration(int(round(self.settings.hold_periods * self.tau * 1e3)))
-        motion = self.franky.JointVelocityMotion(command.tolist(), duration=hold)
-        self._guarded(lambda: self.robot.move(motion, asynchronous=True), "send a command")
+        self._send(command)
         self.sent += 1
         target = self.period_start + self.tau
         # a command sent as the next period begins: that period's state is the one read just before it went out
@@ -162,6 +163,13 @@ class FrankaPlant:
         self.period_start, self.measured_at = target, t  # periods on the robot's clock, one tau apart
         self.step_times.append(time.perf_counter() - wall)
         return x
+
+    def _send(self, command: np.ndarray) -> None:
+        """A joint velocity command as an asynchronous motion replacing the last, held plant.hold_periods at most."""
+        hold = self.franky.Duration(int(round(self.settings.hold_periods * self.tau * 1e3)))
+        motion = self.franky.JointVelocityMotion(command.tolist(), duration=hold)
+        self._guarded(lambda: self.robot.move(motion, asynchronous=True), "send a command")
+        self.last_command = np.array(command, dtype=np.float64)
 
     def _keep(self, t: float, x: np.ndarray) -> None:
         """A state read on the robot's clock, kept for the fine samples (plant.record_fine) when it is new."""

@@ -55,6 +55,11 @@ class FineRecorder:
         """The control period."""
         return self.plant.tau * self.fine
 
+    @property
+    def delay_periods(self) -> int:
+        """The robot's: periods it holds each input late (the closed loop plans ahead of them)."""
+        return int(getattr(self.plant, "delay_periods", 0))
+
     def start(self, x0: np.ndarray) -> np.ndarray:
         """A new episode from x0 (the start state, as a robot's recorder returns the measured one)."""
         self.states = [np.asarray(x0, dtype=np.float64)]

@@ -22,6 +22,11 @@ class FrankaRecorder(FineRecorder):
         """The control period (the robot's plant runs whole periods)."""
         return self.plant.tau
 
+    @property
+    def last_command(self) -> np.ndarray | None:
+        """The robot's: the last command sent, as its safety layer made it."""
+        return self.plant.last_command
+
     def start(self, x0: np.ndarray) -> np.ndarray:
         """A new episode: the arm moved to x0's joint angles at rest; returns the measured start state."""
         x = self.plant.start(np.asarray(x0, dtype=np.float64))

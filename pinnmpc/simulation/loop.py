@@ -101,7 +101,6 @@ def run_loop(
         u = guard.safe_input(k, np.asarray(controller.make_step(measured, window)), u_applied)
         u_applied = np.asarray(u, dtype=np.float64)
         last = (measured, running if delay else u_applied)  # what drives the plant over the coming period
-        running = u_applied
         guard.applied(u_applied)
         try:
             x = plant.step(x, u)
@@ -110,6 +109,10 @@ def run_loop(
             log.error("%s; stopping after %d steps", status, k)
             us.append(u)
             break
+        u = sent_instead(controller, plant, u)
+        if not delay:
+            last = (measured, u)
+        running = u
         xs.append(x)
         us.append(u)
         far = diverged(x, state_box)
@@ -121,6 +124,17 @@ def run_loop(
     E = None if monitor is None else np.array(errors, dtype=np.float64).reshape(-1, nx)
     injected = [*sensor.faults(), *(plant.faults() if hasattr(plant, "faults") else [])]
     return LoopResult(np.array(xs), U, status, out_of_box_steps, E, injected, guard)
+
+
+def sent_instead(controller: Controller, plant: Plant, u: np.ndarray) -> np.ndarray:
+    """The input the plant sent for u (a robot's safety layer clips and slows commands), told to a controller that
+    predicts with it; u where the plant does not say."""
+    sent = getattr(plant, "last_command", None)
+    if sent is None or np.array_equal(sent, u):
+        return u
+    if hasattr(controller, "applied_input"):
+        controller.applied_input(sent)
+    return np.array(sent, dtype=np.float64)
 
 
 def delay_compensation(controller: Controller, plant: Plant) -> int:

@@ -19,7 +19,7 @@ from pinnmpc.controller.base import StepStats, checked_settings
 from pinnmpc.controller.classical.ocp import CasadiOCP, NlpSolver, Solution, merged
 from pinnmpc.controller.classical.rti import RTI_STATUS, RtiSolver, rti_function, rti_solver
 from pinnmpc.controller.classical.settings import ClassicalSettings
-from pinnmpc.controller.estimator import OffsetFree
+from pinnmpc.controller.estimator import OffsetFree, late_notch
 from pinnmpc.plant.stick_slip import coulomb_joints
 from pinnmpc.systems.settings import system_dims
 
@@ -44,6 +44,7 @@ class CasadiNMPC:
         keep_unconverged: bool = True,
         rti_limit_steps: int = 2,
         delay_periods: int = 0,
+        notch_when_late: bool = False,
     ) -> None:
         self.ocp, self.solver, self.label = ocp, solver, label
         self.horizon, self.nx, self.nu = ocp.horizon, ocp.nx, ocp.nu
@@ -58,6 +59,7 @@ class CasadiNMPC:
         self.disturbance_gain = float(disturbance_gain)
         self.delay_periods = delay_periods  # 1: each input runs a period after its state; plan from F(x, u_prev)
         self._estimator = OffsetFree(self.nx, self.disturbance_gain, disturbance_max, disturbance_notch)
+        self.disturbance_notch, self.notch_when_late = bool(disturbance_notch), bool(notch_when_late)
         self.stats: list[StepStats] = []
         self.reset()
 
@@ -82,6 +84,7 @@ class CasadiNMPC:
         self._lam: tuple[np.ndarray, np.ndarray] | None = None  # its multipliers shifted (None: zeros)
         self._last: tuple | None = None  # the last measured state, the input applied and the plan's unknowns (or None)
         self._predicted: np.ndarray | None = None  # the model's undisturbed x after them, where already computed
+        self._estimator.notch = late_notch(self.disturbance_notch, self.notch_when_late, self.delay_periods)
         self._estimator.reset()
         self.stats = []
         self.smoothed_solves = 0
@@ -239,6 +242,13 @@ class CasadiNMPC:
         """The disturbance the next solve predicts with (None: off or not estimated yet)."""
         return self._estimator.value
 
+    def applied_input(self, u: np.ndarray) -> None:
+        """The input the plant sent in place of the last one planned (a robot's safety layer clipped it): the next
+        solve's u_{-1}, and the one its prediction and estimate start from."""
+        self._u_prev = np.array(u, dtype=np.float64)
+        if self._last is not None and not self.delay_periods:
+            self._last, self._predicted = (self._last[0], self._u_prev, self._last[2]), None
+
     def prediction_error(self, x_prev: np.ndarray, u_prev: np.ndarray, x: np.ndarray) -> np.ndarray:
         """x - F(x_prev, u_prev) of the model this controller predicts with (undisturbed): the model monitor's
         one-step miss, as the network NMPC's (metrics.json's model_monitor and model_fits)."""
@@ -312,7 +322,8 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
         cold_solver=cold_solver,
         disturbance_gain=float(d.gain),
         disturbance_max=d.max_abs,
-        disturbance_notch=bool(d.notch),  # null: off
+        disturbance_notch=bool(d.notch),  # null: off, on while the plant runs a period late
+        notch_when_late=d.notch is None,
         smooth_solver=smooth_solver,
         rti_limit_steps=cfg.rti_limit_steps,
         keep_unconverged=cfg.keep_unconverged,
