@@ -112,7 +112,7 @@ def system_reference(cfg: DictConfig, system: System, tau: float) -> Reference:
     needs it); refused when it leaves the system's joint limits, or its state box by more than the box's width."""
     box, limits = system.state_box, getattr(system, "joint_limits", None)
     steps, horizon = cfg.get("max_steps"), cfg.get("controller", {}).get("horizon")
-    needed = None if steps is None or horizon is None else int(steps) + int(horizon) + 1
+    needed = None if steps is None or horizon is None else int(steps) + int(horizon) + 2  # + 1: a plant a period late
     ref = load_reference(
         resolve_reference_path(cfg.reference.path, cfg.system.get("paper_reference")),
         tau,
