@@ -16,6 +16,8 @@ from pinnmpc.plant.franka_sim import SimServer, free_loopback
 from pinnmpc.plant.settings import FrankaPlantSettings
 from pinnmpc.systems.base import System
 
+LATE_TICKS = 2  # a command sent this many 1 ms ticks past plant.command_at counts as late
+
 
 class FrankaPlant:
     """The robot as a plant: step(x, u) sends u (made safe) as an asynchronous joint velocity motion that replaces
@@ -140,8 +142,6 @@ class FrankaPlant:
                 self._send(np.zeros(self.nq))
         self.period_began = self.period_start
         elapsed = t_send - self.period_start
-        if elapsed > self.tau:
-            self.late += 1
         if elapsed > self.settings.watchdog_periods * self.tau:
             self.safety.events["watchdog_stops"] += 1
             self.stop_arm()
@@ -154,6 +154,10 @@ class FrankaPlant:
             t_send, x_now = self._wait_until(self.period_start + self.settings.command_at)
         command = self.safety.command(np.asarray(u, dtype=float), x_now)  # made safe for the state it meets
         self.send_offsets.append(t_send - self.period_start)
+        if t_send - self.period_start > max(self.settings.command_at, 0.0) + LATE_TICKS * 1e-3 and (
+            self.settings.command_at > 0 or elapsed > self.tau
+        ):
+            self.late += 1  # past its period, or past plant.command_at by more than the state stream's ticks
         self._send(command)
         self.sent += 1
         target = self.period_start + self.tau

@@ -124,6 +124,11 @@ class _PlantWrapper:
         """The wrapped plant's stick-slip redos."""
         return self.inner.stick_slip_steps
 
+    @property
+    def delay_periods(self) -> int:
+        """The wrapped plant's: periods it holds each input late."""
+        return int(getattr(self.inner, "delay_periods", 0))
+
     def faults(self) -> list[dict[str, Any]]:
         """The inner plant's faults, if it is a wrapper too."""
         inner = getattr(self.inner, "faults", None)

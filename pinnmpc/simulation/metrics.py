@@ -283,5 +283,6 @@ def franka_trouble(report: dict[str, Any] | None) -> list[str]:
     safety = report.get("safety", {})
     said = [f"{len(report['errors'])} libfranka errors ({report['errors'][0]})"] if report.get("errors") else []
     said += [f"{v} {k.replace('_', ' ')}" for k, v in safety.items() if v]
-    said += [f"{report['late_commands']} commands after their period"] if report.get("late_commands") else []
+    said += [f"{report['late_commands']} commands sent late"] if report.get("late_commands") else []  # past the period
+    #   or past plant.command_at by more than two ticks: a dead time that was not the model's
     return said + ([] if report.get("at_rest") else ["the arm was not at rest at the end"])

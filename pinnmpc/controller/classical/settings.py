@@ -55,8 +55,8 @@ def _nlp_options() -> dict[str, Any]:
 
 def _estimator_off() -> DisturbanceSettings:
     """The classical NMPC's offset-free estimator: off unless asked (the configs: the arm's
-    system.control.casadi.disturbance_gain); null notch: off."""
-    return DisturbanceSettings(gain=0.0, notch=False)
+    system.control.casadi.disturbance_gain); null notch: off, on while the plant runs a period late."""
+    return DisturbanceSettings(gain=0.0, notch=None)
 
 
 @dataclass(kw_only=True)
@@ -67,7 +67,7 @@ class ClassicalSettings(ControllerSettings):
     kind: Any = setting("casadi", check=c.one_of("casadi"))
     """casadi: this kind (controller=casadi)."""
     disturbance: DisturbanceSettings = setting(factory=_estimator_off)
-    """The offset-free estimator: off by default here (gain 0, no notch)."""
+    """The offset-free estimator: off by default here (gain 0; the notch only while the plant runs late)."""
     solver: Any = setting("sqpmethod", check=c.one_of(*PLUGINS))
     """ipopt | sqpmethod | fatrop (CasADi nlpsol plugins); their options are solvers.<name>."""
     solvers: dict[str, Any] = setting(factory=_nlp_options, check=_options)
