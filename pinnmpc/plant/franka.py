@@ -154,10 +154,9 @@ class FrankaPlant:
             t_send, x_now = self._wait_until(self.period_start + self.settings.command_at)
         command = self.safety.command(np.asarray(u, dtype=float), x_now)  # made safe for the state it meets
         self.send_offsets.append(t_send - self.period_start)
-        if t_send - self.period_start > max(self.settings.command_at, 0.0) + LATE_TICKS * 1e-3 and (
-            self.settings.command_at > 0 or elapsed > self.tau
-        ):
-            self.late += 1  # past its period, or past plant.command_at by more than the state stream's ticks
+        due = self.settings.command_at + LATE_TICKS * 1e-3 if self.settings.command_at > 0 else self.tau
+        if t_send - self.period_start > due:
+            self.late += 1  # past plant.command_at by more than the state stream's ticks, or past its period
         self._send(command)
         self.sent += 1
         target = self.period_start + self.tau
@@ -223,11 +222,9 @@ class FrankaPlant:
             if t > last:
                 last, since = t, time.monotonic()
             elif time.monotonic() - since > self.settings.stall_timeout:
-                self.errors.append(f"{what}: the robot's clock stood still for {self.settings.stall_timeout} s")
-                raise PlantError(
-                    f"plant=franka: {what}: the robot's clock stood still for plant.stall_timeout="
-                    f"{self.settings.stall_timeout} s of wall time mid-motion (connection lost?)"
-                )
+                why = f"{what}: the robot's clock stood still for plant.stall_timeout={self.settings.stall_timeout} s"
+                self.errors.append(why)
+                raise PlantError(f"plant=franka: {why} of wall time mid-motion (connection lost?)")
 
     def stop_arm(self) -> None:
         """A joint velocity stop motion, waited for, then error recovery: the arm at rest."""

@@ -100,7 +100,6 @@ def run_loop(
         window = ref.x[k + 1 + delay : k + 1 + delay + horizon]  # a late plant: the plan starts a period on
         u = guard.safe_input(k, np.asarray(controller.make_step(measured, window)), u_applied)
         u_applied = np.asarray(u, dtype=np.float64)
-        last = (measured, running if delay else u_applied)  # what drives the plant over the coming period
         guard.applied(u_applied)
         try:
             x = plant.step(x, u)
@@ -110,9 +109,7 @@ def run_loop(
             us.append(u)
             break
         u = sent_instead(controller, plant, u)
-        if not delay:
-            last = (measured, u)
-        running = u
+        last, running = (measured, running if delay else u), u  # what drove the plant over the period, and next
         xs.append(x)
         us.append(u)
         far = diverged(x, state_box)

@@ -43,7 +43,6 @@ class CasadiNMPC:
         smooth_solver: NlpSolver | None = None,
         keep_unconverged: bool = True,
         rti_limit_steps: int = 2,
-        delay_periods: int = 0,
         notch_when_late: bool = False,
     ) -> None:
         self.ocp, self.solver, self.label = ocp, solver, label
@@ -57,7 +56,7 @@ class CasadiNMPC:
             raise ValueError(f"controller.rti_limit_steps={rti_limit_steps!r}; expected a whole number >= 0")
         self.rti_limit_steps = rti_limit_steps  # RTI: more steps per sample where a plan is at the joint limits
         self.disturbance_gain = float(disturbance_gain)
-        self.delay_periods = delay_periods  # 1: each input runs a period after its state; plan from F(x, u_prev)
+        self.delay_periods = 0  # 1: each input runs a period after its state (the closed loop sets it): plan ahead
         self._estimator = OffsetFree(self.nx, self.disturbance_gain, disturbance_max, disturbance_notch)
         self.disturbance_notch, self.notch_when_late = bool(disturbance_notch), bool(notch_when_late)
         self.stats: list[StepStats] = []
