@@ -105,6 +105,8 @@ def test_the_robot_loss_pulls_the_network_towards_the_logs(make_cfg, tmp_path, l
     [
         ("data.val_episodes=1.5", "data.val_episodes=1.5"),
         ("data.n_robot=-1", "data.n_robot=-1"),
+        ("module.robot_delta=-1", "module.robot_delta=-1"),
+        ("data.robot_max_input_step=0", "data.robot_max_input_step=0"),
         ("data.logs=[/nonexistent/log.npz]", "/nonexistent/log.npz"),
     ],
 )
@@ -266,3 +268,66 @@ def test_a_network_without_live_features_is_refused_for_fine_tuning(make_cfg, tm
     assert live_features(load_surrogate(dead).model, logged) == 0
     with pytest.raises(ValueError, match=r"init_from=.*dead.pt: no unit of its last hidden layer is alive"):
         build_model(make_cfg("train", [*TINY, f"init_from={dead}", f"data.logs=[{lab_log}]"]), load_system("planar3"))
+
+
+def test_a_zero_output_network_starts_as_its_prior_and_still_learns(make_cfg, tmp_path, lab_log):
+    """model.zero_output: a fresh network is exactly its prior (fine-tuning from an identified model's prior starts
+    at that model), and a training on the logs moves it away from there; without a prior it is refused."""
+    from pinnmpc.training.models import build_model
+
+    system = load_system("planar3")
+    net = build_model(make_cfg("train", [*TINY, "model.zero_output=true"]), system)
+    t, x0, u = torch.full((64, 1), system.tau), torch.zeros(64, 6), torch.linspace(-1, 1, 64)[:, None].repeat(1, 3)
+    with torch.no_grad():
+        assert torch.equal(net(t, x0, u), net.prior(t, x0, u)[0])
+    train(make_cfg("train", [*TINY, "model.zero_output=true", "trainer.max_epochs=2", f"data.logs=[{lab_log}]"]),
+          tmp_path)  # fmt: skip
+    trained = load_surrogate(tmp_path / "surrogate.pt").model
+    t, x0, u = (a.to(trained.out_scale.dtype) for a in (t, x0, u))
+    with torch.no_grad():
+        moved = (trained(t, x0, u) - trained.prior(t, x0, u)[0]).abs().max()
+    assert 0 < moved < 1 and torch.isfinite(moved)
+    with pytest.raises(ValueError, match="model.zero_output=true needs model.prior"):
+        build_model(make_cfg("train", [*TINY, "model.zero_output=true", "model.prior=null"]), system)
+
+
+def test_the_robot_loss_is_huber_beyond_robot_delta(make_cfg, lab_log):
+    """module.robot_delta: errors beyond it count linearly, so the robot loss drops below the squares; a delta above
+    every error leaves it the squares."""
+    from hydra.utils import instantiate
+
+    from pinnmpc.training.models import build_model
+    from pinnmpc.training.run import build_datamodule
+
+    system, losses = load_system("planar3"), {}
+    for delta in ("null", "1e9", "1e-3"):
+        cfg = make_cfg("train", [*TINY, f"data.logs=[{lab_log}]", f"module.robot_delta={delta}"])
+        torch.manual_seed(0)  # the same network each time
+        model = build_model(cfg, system)
+        module = instantiate(cfg.module, _partial_=True, _convert_="all")(system=system, model=model, tau=system.tau)
+        data = build_datamodule(cfg, system)
+        data.setup("fit")
+        with torch.no_grad():
+            losses[delta] = float(module.losses(next(iter(data.train_dataloader())))["robot"])
+    assert losses["1e9"] == pytest.approx(losses["null"], rel=1e-6)
+    assert 0 < losses["1e-3"] < 0.5 * losses["null"], losses
+
+
+def test_periods_whose_input_jumped_can_be_left_out(lab_log):
+    """data.robot_max_input_step: the transitions (and held-out steps) of periods whose input moved further than
+    that from the previous period's are left out; an episode's first period has no previous input and stays."""
+    from pinnmpc.robot_data.logs import input_steps, read_log, transitions
+
+    system = load_system("planar3")
+    log = read_log(lab_log, system)
+    steps = input_steps(log)
+    first = np.r_[True, log.episode[1:] != log.episode[:-1]]
+    assert np.all(steps[first] == 0)
+    assert np.allclose(steps[~first], np.abs(np.diff(log.u, axis=0)).max(axis=1)[~first[1:]])
+    limit = float(np.median(steps[~first]))
+    t_all = transitions([log], system.tau)[0]
+    t_calm = transitions([log], system.tau, limit)[0]
+    one_period = lambda t: int(((t[:, 0] - system.tau).abs() < 1e-9).sum())  # noqa: E731
+    periods = np.r_[log.episode[1:] == log.episode[:-1], False]  # rows that start a period
+    assert one_period(t_all) == int(periods.sum())
+    assert one_period(t_calm) == int((periods & (steps <= limit)).sum()) < one_period(t_all)

@@ -370,9 +370,19 @@ def _check_fine(log: RobotLog, meta: dict[str, Any], tau: float, nx: int, fail: 
 
 
 # -- using logs -----------------------------------------------------------------------------------------------
-def transitions(logs: Sequence[RobotLog], t_max: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def input_steps(log: RobotLog) -> np.ndarray:
+    """Per control-rate sample, the largest change of any input from the episode's previous period (0 for an
+    episode's first): how far the robot's command moved as the period began."""
+    step = np.r_[0.0, np.abs(np.diff(log.u, axis=0)).max(axis=1)] if len(log.u) else np.zeros(0)
+    return np.where(np.r_[False, log.episode[1:] == log.episode[:-1]], step, 0.0)
+
+
+def transitions(
+    logs: Sequence[RobotLog], t_max: float, max_input_step: float | None = None
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Every pair i < j of samples (fine where present) within one hold period of one episode with
-    t = t_j - t_i <= t_max: float64 tensors t (n, 1), x0 (n, nx), u (n, nu), x_t (n, nx)."""
+    t = t_j - t_i <= t_max: float64 tensors t (n, 1), x0 (n, nx), u (n, nu), x_t (n, nx); with max_input_step,
+    only periods whose input moved at most that far from the previous period's (input_steps)."""
     parts = []
     for log in logs:
         fine = log.fine
@@ -380,12 +390,15 @@ def transitions(logs: Sequence[RobotLog], t_max: float) -> tuple[Tensor, Tensor,
         first = _first_index(ee)
         start = np.flatnonzero(((np.arange(len(tt)) - first) % fine == 0) & _starts(ee))  # fine index of each period
         u = log.u[_starts(log.episode)]  # the same periods, in the same order
+        calm = np.ones(len(u), dtype=bool) if max_input_step is None else input_steps(log)[_starts(log.episode)]
+        if max_input_step is not None:
+            calm = calm <= max_input_step
         tol = TIME_TOL * log.tau / fine
         for a in range(fine):  # the pair's first sample within the period
             for b in range(a + 1, fine + 1):
                 i, j = start + a, start + b
                 dt = tt[j] - tt[i]
-                keep = dt <= t_max + tol
+                keep = (dt <= t_max + tol) & calm
                 if keep.any():
                     parts.append((dt[keep], xx[i[keep]], u[keep], xx[j[keep]]))
     if not parts:

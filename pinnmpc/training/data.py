@@ -88,6 +88,7 @@ class CollocationDataModule(L.LightningDataModule):
         logs: Sequence[str] = (),  # as resample_epochs
         n_robot: int = DataSettings.n_robot,
         val_episodes: float = DataSettings.val_episodes,
+        robot_max_input_step: float | None = DataSettings.robot_max_input_step,
         physics: System | None = None,  # the model anchors and the model's validation flow integrate (None: system)
     ) -> None:
         super().__init__()
@@ -123,6 +124,9 @@ class CollocationDataModule(L.LightningDataModule):
                 f"need data.n_robot >= 0 (0: every logged transition) and 0 < data.val_episodes < 1; "
                 f"got {n_robot}, {val_episodes}"
             )
+        if robot_max_input_step is not None and not 0 < robot_max_input_step < math.inf:
+            raise ValueError(f"data.robot_max_input_step={robot_max_input_step}; expected a positive number or null")
+        self.robot_max_input_step = None if robot_max_input_step is None else float(robot_max_input_step)
         self.robot: dict[str, Tensor] = {}  # the logs' training transitions (t, x0, u, dx), read once
         self.robot_meta: list[dict[str, Any]] = []  # each log's meta, for the network's provenance
         self.draws = 0
@@ -238,11 +242,11 @@ class CollocationDataModule(L.LightningDataModule):
 
         logs = read_logs(self.logs, self.system)  # checked as a set: shared episodes would leak into validation
         parts = [split_episodes(log, self.val_episodes, self.seed) for log in logs]
-        t, x0, u, xt = transitions([train for train, _ in parts], self.t_max)
+        t, x0, u, xt = transitions([train for train, _ in parts], self.t_max, self.robot_max_input_step)
         fine = min(log.fine for log in logs)
         check_enough(len(t), MIN_ROBOT_TRANSITIONS, "data.logs", tau=self.tau, fine=fine, t_max=self.t_max)
         self.robot = {"t": t, "x0": x0, "u": u, "dx": xt - x0}
-        vt, vx0, vu, vx1 = transitions([val for _, val in parts], self.tau)
+        vt, vx0, vu, vx1 = transitions([val for _, val in parts], self.tau, self.robot_max_input_step)
         at_tau = (vt[:, 0] - self.tau).abs() <= 1e-9 * self.tau  # one control period: what the controller asks for
         check_enough(int(at_tau.sum()), MIN_ROBOT_VALIDATION, "the held-out episodes of data.logs", tau=self.tau)
         self.val = {"x0": vx0[at_tau], "u": vu[at_tau], "x1": vx1[at_tau]}

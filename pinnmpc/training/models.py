@@ -65,7 +65,7 @@ def fresh_model(cfg: DictConfig, system: System, prior_arm: dict | None = None) 
         a = cfg.model.auto_scale
         start = None if prior is None else ArmPrior(prior_arm or system, prior["kind"])
         scale = flow_scale(system, cfg.t_max, a.samples, a.h, a.quantile, cfg.seed, start)
-    return PINN(
+    net = PINN(
         state_low=system.state_box.low,
         state_high=system.state_box.high,
         input_low=system.input_box.low,
@@ -81,6 +81,13 @@ def fresh_model(cfg: DictConfig, system: System, prior_arm: dict | None = None) 
         angle_sums=_angle_sums(cfg),
         prior=prior,
     )
+    if cfg.model.get("zero_output"):
+        if prior is None:
+            raise ValueError("model.zero_output=true needs model.prior (a network of zero output is x0, not a model)")
+        last = net.net.layers[-1]
+        last.weight.data.zero_()
+        last.bias.data.zero_()
+    return net
 
 
 def _angle_sums(cfg: DictConfig) -> list[list[int]]:

@@ -57,6 +57,7 @@ class PINNModule(L.LightningModule):
         weight_data: float = ModuleSettings.weight_data,
         weight_anchor: float = ModuleSettings.weight_anchor,
         weight_robot: float = ModuleSettings.weight_robot,
+        robot_delta: float | None = ModuleSettings.robot_delta,
         anchor_state_weight: Sequence[float] | None = ModuleSettings.anchor_state_weight,
         dtype: str = ModuleSettings.dtype,
         adam_epochs: int = ModuleSettings.adam_epochs,
@@ -170,10 +171,10 @@ class PINNModule(L.LightningModule):
         b = self._cast({"t": t, "x0": x0, "u": u})
         return self._scaled_residual(b).square().sum(dim=-1).double()
 
-    def _penalty(self, r: Tensor) -> Tensor:
-        """Squares, or Huber's penalty (linear beyond robust_delta) so that the few large residuals of the stiff
-        start of each step and of joint B's friction switch do not set the fit everywhere else."""
-        delta = self.hparams.robust_delta
+    def _penalty(self, r: Tensor, delta: float | None = None) -> Tensor:
+        """Squares, or Huber's penalty (linear beyond delta, default robust_delta) so that the few large residuals
+        of the stiff start of each step and of joint B's friction switch do not set the fit everywhere else."""
+        delta = self.hparams.robust_delta if delta is None else delta
         if delta is None:
             return r.square()
         a = r.abs()
@@ -202,7 +203,10 @@ class PINNModule(L.LightningModule):
             total = total + self.hparams.weight_anchor * out["anchor"]
         if "robot_t" in b and self.hparams.weight_robot > 0:  # the robot's logs: what the model misses
             dx = self.model(b["robot_t"], b["robot_x0"], b["robot_u"]) - b["robot_x0"]
-            out["robot"] = (((dx - b["robot_dx"]) / self.model.out_scale).square() * self.anchor_w).mean()
+            miss = (dx - b["robot_dx"]) / self.model.out_scale
+            delta = self.hparams.robot_delta  # null: squares, whatever robust_delta says for the physics
+            penalty = miss.square() if delta is None else self._penalty(miss, delta)
+            out["robot"] = (penalty * self.anchor_w).mean()
             total = total + self.hparams.weight_robot * out["robot"]
         out["total"] = total
         return out

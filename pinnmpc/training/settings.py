@@ -80,6 +80,10 @@ class ModuleSettings:
     weight_robot: float = 1000.0
     """Weight of the robot-data loss (data.logs): squared error of x(t) - x0 on logged transitions in output units,
     as the anchor loss; the physics loss (weight_physics) keeps the nominal model where the logs do not reach."""
+    robot_delta: float | None = None
+    """Huber's delta for the robot-data loss, in output units (null: squares): beyond it an error counts linearly,
+    so the few transitions no (t, x0, u) model can explain (a robot's command ramp, its memory) do not set the fit
+    where the closed loop runs (docs/franka.md)."""
     anchor_state_weight: list[float] | None = None
     """Per-state multiplier of the anchor and robot-data losses (nx numbers; null: all 1): more on a state whose
     target is the tightest in output units (docs/training.md)."""
@@ -134,6 +138,7 @@ MODULE_CHECKS: dict[str, Check] = {
     "weight_data": real(0.0),
     "weight_anchor": real(0.0),
     "weight_robot": real(0.0),
+    "robot_delta": optional(positive()),
     "anchor_state_weight": _weights,  # nx entries: checked where nx is known
     "dtype": one_of(*DTYPES),
     "adam_epochs": integer(0),
@@ -199,6 +204,11 @@ class DataSettings:
     val_episodes: float = 0.2
     """Fraction of each log's episodes held out for validation: with logs, the validation RMSE (and the best
     checkpoint) is the one-step error at tau on the robot, not on the model."""
+    robot_max_input_step: float | None = None
+    """Leave out of the robot-data loss and the validation the periods whose input moved further than this from the
+    previous period's (any input, input units; null: keep all): where a robot ramps its command (franky), those
+    periods depend on more than (t, x0, u), and fitting them spoils the fit where the closed loop runs
+    (docs/franka.md)."""
 
     def __post_init__(self) -> None:
         check_settings("data", self, DATA_CHECKS)
@@ -221,6 +231,7 @@ DATA_CHECKS: dict[str, Check] = {
     "logs": listof(text(), empty=True),
     "n_robot": integer(0),
     "val_episodes": _fraction,
+    "robot_max_input_step": optional(positive()),
 }
 
 SECTIONS: dict[str, dict[str, type]] = {"module": {"pinn": ModuleSettings}, "data": {"collocation": DataSettings}}
