@@ -84,7 +84,8 @@ def test_training_on_logs_fits_the_robot_and_records_them(make_cfg, tmp_path, la
 
 def test_the_robot_loss_pulls_the_network_towards_the_logs(make_cfg, tmp_path, lab_log):
     # the same tiny training with and without the logs: with them, the network predicts the robot's steps closer
-    from pinnmpc.robot_data.logs import read_log, transitions
+    from pinnmpc.robot_data.episodes import transitions
+    from pinnmpc.robot_data.logs import read_log
 
     system = load_system("planar3")
     t, x0, u, xt = transitions([read_log(lab_log, system)], system.tau)
@@ -316,7 +317,8 @@ def test_the_robot_loss_is_huber_beyond_robot_delta(make_cfg, lab_log):
 def test_periods_whose_input_jumped_can_be_left_out(lab_log):
     """data.robot_max_input_step: the transitions (and held-out steps) of periods whose input moved further than
     that from the previous period's are left out; an episode's first period has no previous input and stays."""
-    from pinnmpc.robot_data.logs import input_steps, read_log, transitions
+    from pinnmpc.robot_data.episodes import input_steps, transitions
+    from pinnmpc.robot_data.logs import read_log
 
     system = load_system("planar3")
     log = read_log(lab_log, system)

@@ -11,15 +11,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from pinnmpc.robot_data.logs import (
-    RobotLog,
-    check_enough,
-    read_log,
-    split_episodes,
-    transitions,
-    transitions_per_second,
-    write_log,
-)
+from pinnmpc.robot_data.episodes import check_enough, split_episodes, transitions, transitions_per_second
+from pinnmpc.robot_data.logs import RobotLog, read_log, write_log
 from pinnmpc.systems.base import Box
 
 TAU, FINE = 0.1, 4

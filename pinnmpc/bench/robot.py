@@ -154,7 +154,8 @@ def held_out_rmse(
     transition of the given logs (logs the fine-tuning did not see: another collect run): how well it predicts the
     robot, the model monitor's figure offline."""
     from pinnmpc.plant.integrators import rk4_fixed
-    from pinnmpc.robot_data.logs import read_logs, transitions
+    from pinnmpc.robot_data.episodes import transitions
+    from pinnmpc.robot_data.logs import read_logs
 
     t, x0, u, x1 = transitions(read_logs(logs, system), system.tau)
     at_tau = (t[:, 0] - system.tau).abs() <= 1e-9 * system.tau

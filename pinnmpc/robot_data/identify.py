@@ -31,7 +31,8 @@ import torch
 from scipy.optimize import least_squares, lsq_linear
 
 from pinnmpc.plant.integrators import rk4_fixed
-from pinnmpc.robot_data.logs import RobotLog, check_enough
+from pinnmpc.robot_data.episodes import check_enough
+from pinnmpc.robot_data.logs import RobotLog
 from pinnmpc.systems.urdf import Payload, RigidArm
 from pinnmpc.systems.urdf_files import payload_place
 

@@ -13,15 +13,12 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
-from torch import Tensor
 
 from pinnmpc.robot_data.checks import check_content, check_fine_promised, check_set, warn_cut_short
 from pinnmpc.util.io import atomic_create, atomic_write
@@ -65,24 +62,24 @@ class RobotLog:
     @property
     def robot_time(self) -> float:
         """Seconds of held input the log covers (periods that end inside their episode)."""
-        return float(np.count_nonzero(_starts(self.episode)) * self.tau)
+        return float(np.count_nonzero(period_starts(self.episode)) * self.tau)
 
     def u_fine(self) -> np.ndarray:
         """(M, nu) the input of each fine sample: that of the period it starts (an episode's last: the one before)."""
         if self.t_fine is None:
             raise ValueError("this log has no fine part")
-        first = _first_index(self.episode_fine)
+        first = first_index(self.episode_fine)
         period = (np.arange(len(self.t_fine)) - first) // self.fine
-        return self.u[_first_index(self.episode) + period]
+        return self.u[first_index(self.episode) + period]
 
 
-def _first_index(episode: np.ndarray) -> np.ndarray:
+def first_index(episode: np.ndarray) -> np.ndarray:
     """For each sample, the index of its episode's first sample (episodes are consecutive)."""
     change = np.r_[True, episode[1:] != episode[:-1]]
     return np.maximum.accumulate(np.where(change, np.arange(len(episode)), 0))
 
 
-def _starts(episode: np.ndarray) -> np.ndarray:
+def period_starts(episode: np.ndarray) -> np.ndarray:
     """Which samples start a period inside their episode (all but each episode's last)."""
     return np.r_[episode[1:] == episode[:-1], False]
 
@@ -360,94 +357,10 @@ def _check_fine(log: RobotLog, meta: dict[str, Any], tau: float, nx: int, fail: 
     if not np.array_equal(ids, fids) or not np.array_equal(fcounts, expect):
         fail(f"fine part holds {dict(zip(fids.tolist(), fcounts.tolist()))} samples per episode; expected "
              f"{dict(zip(ids.tolist(), expect.tolist()))} ({fine} per period)")  # fmt: skip
-    at = _first_index(ef)
+    at = first_index(ef)
     on = (np.arange(m) - at) % fine == 0
     tt, xt = tf[on], xf[on]
     scale = np.maximum(1.0, np.abs(log.x))
     if not (np.allclose(tt, log.t, rtol=0, atol=TIME_TOL * tau) and np.all(np.abs(xt - log.x) <= 1e-9 * scale)):
         fail("fine samples at the control times differ from the control-rate samples; expected them included")
     log.t_fine, log.x_fine, log.episode_fine = tf.astype(np.float64), xf.astype(np.float64), ef.astype(np.int64)
-
-
-# -- using logs -----------------------------------------------------------------------------------------------
-def input_steps(log: RobotLog) -> np.ndarray:
-    """Per control-rate sample, the largest change of any input from the episode's previous period (0 for an
-    episode's first): how far the robot's command moved as the period began."""
-    step = np.r_[0.0, np.abs(np.diff(log.u, axis=0)).max(axis=1)] if len(log.u) else np.zeros(0)
-    return np.where(np.r_[False, log.episode[1:] == log.episode[:-1]], step, 0.0)
-
-
-def transitions(
-    logs: Sequence[RobotLog], t_max: float, max_input_step: float | None = None
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Every pair i < j of samples (fine where present) within one hold period of one episode with
-    t = t_j - t_i <= t_max: float64 tensors t (n, 1), x0 (n, nx), u (n, nu), x_t (n, nx); with max_input_step,
-    only periods whose input moved at most that far from the previous period's (input_steps)."""
-    parts = []
-    for log in logs:
-        fine = log.fine
-        tt, xx, ee = (log.t_fine, log.x_fine, log.episode_fine) if fine > 1 else (log.t, log.x, log.episode)
-        first = _first_index(ee)
-        start = np.flatnonzero(((np.arange(len(tt)) - first) % fine == 0) & _starts(ee))  # fine index of each period
-        u = log.u[_starts(log.episode)]  # the same periods, in the same order
-        calm = np.ones(len(u), dtype=bool) if max_input_step is None else input_steps(log)[_starts(log.episode)]
-        if max_input_step is not None:
-            calm = calm <= max_input_step
-        tol = TIME_TOL * log.tau / fine
-        for a in range(fine):  # the pair's first sample within the period
-            for b in range(a + 1, fine + 1):
-                i, j = start + a, start + b
-                dt = tt[j] - tt[i]
-                keep = (dt <= t_max + tol) & calm
-                if keep.any():
-                    parts.append((dt[keep], xx[i[keep]], u[keep], xx[j[keep]]))
-    if not parts:
-        nx = len(logs[0].meta["state_names"]) if logs else 0
-        nu = len(logs[0].meta["input_names"]) if logs else 0
-        empty = [torch.zeros(0, k, dtype=torch.float64) for k in (1, nx, nu, nx)]
-        return empty[0], empty[1], empty[2], empty[3]
-    t, x0, u, xt = (np.concatenate(p) for p in zip(*parts))
-    return tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in (t[:, None], x0, u, xt))  # type: ignore[return-value]
-
-
-def transitions_per_second(tau: float, fine: int, t_max: float) -> float:
-    """How many transitions one second of robot time gives (pairs per period over tau)."""
-    h = tau / fine
-    d = min(fine, int(math.floor(t_max / h + TIME_TOL)))
-    return sum(fine + 1 - k for k in range(1, d + 1)) / tau
-
-
-def check_enough(
-    n_transitions: int, need: int, what: str, *, tau: float | None = None, fine: int = 1, t_max: float | None = None
-) -> None:
-    """Too little data is refused in one line saying how much is needed (in robot time, with tau and t_max)."""
-    if n_transitions >= need:
-        return
-    hint = ""
-    if tau is not None:
-        rate = transitions_per_second(tau, fine, tau if t_max is None else t_max)
-        if rate > 0:
-            hint = f" (about {need / rate:.3g} s of robot time at tau={tau:g} with fine={fine})"
-    raise ValueError(f"{what} hold {n_transitions} transitions; expected at least {need}{hint}")
-
-
-def select_episodes(log: RobotLog, ids: Sequence[int]) -> RobotLog:
-    """The log restricted to some episodes (meta kept)."""
-    ids = np.asarray(list(ids), dtype=np.int64)
-    keep = np.isin(log.episode, ids)
-    out = replace(log, t=log.t[keep], x=log.x[keep], u=log.u[keep], episode=log.episode[keep], meta=dict(log.meta))
-    if log.t_fine is not None:
-        kf = np.isin(log.episode_fine, ids)
-        out = replace(out, t_fine=log.t_fine[kf], x_fine=log.x_fine[kf], episode_fine=log.episode_fine[kf])
-    return out
-
-
-def split_episodes(log: RobotLog, fraction: float, seed: int = 0) -> tuple[RobotLog, RobotLog]:
-    """(train, validation): whole episodes held out, round(fraction * episodes) of them drawn at random (at least one
-    when fraction > 0 and the log has two or more), so no validation pair shares an episode with training."""
-    if not 0.0 <= fraction < 1.0:
-        raise ValueError(f"validation fraction={fraction!r}; expected a number in [0, 1)")
-    ids = log.episodes
-    k = 0 if fraction == 0 or len(ids) < 2 else min(len(ids) - 1, max(1, round(fraction * len(ids))))
-    held = np.random.default_rng(seed).choice(ids, size=k, replace=False) if k else np.zeros(0, dtype=np.int64)
-    return select_episodes(log, [i for i in ids if i not in set(held.tolist())]), select_episodes(log, held)

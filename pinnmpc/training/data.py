@@ -238,7 +238,8 @@ class CollocationDataModule(L.LightningDataModule):
     def _read_logs(self) -> None:
         """The robot's logs: whole episodes held out for validation (the one-step error at tau on the robot), every
         pair of samples within one hold period of the others for the robot-data loss."""
-        from pinnmpc.robot_data.logs import check_enough, read_logs, split_episodes, transitions
+        from pinnmpc.robot_data.episodes import check_enough, split_episodes, transitions
+        from pinnmpc.robot_data.logs import read_logs
 
         logs = read_logs(self.logs, self.system)  # checked as a set: shared episodes would leak into validation
         parts = [split_episodes(log, self.val_episodes, self.seed) for log in logs]

@@ -8,7 +8,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from pinnmpc.robot_data.logs import read_logs, transitions
+from pinnmpc.robot_data.episodes import transitions
+from pinnmpc.robot_data.logs import read_logs
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems.base import System
 
