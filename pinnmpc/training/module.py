@@ -171,10 +171,10 @@ class PINNModule(L.LightningModule):
         b = self._cast({"t": t, "x0": x0, "u": u})
         return self._scaled_residual(b).square().sum(dim=-1).double()
 
-    def _penalty(self, r: Tensor, delta: float | None = None) -> Tensor:
-        """Squares, or Huber's penalty (linear beyond delta, default robust_delta) so that the few large residuals
-        of the stiff start of each step and of joint B's friction switch do not set the fit everywhere else."""
-        delta = self.hparams.robust_delta if delta is None else delta
+    @staticmethod
+    def _penalty(r: Tensor, delta: float | None) -> Tensor:
+        """Squares (delta None), or Huber's penalty, linear beyond delta, so that a few large misses (the stiff start
+        of each step, joint B's friction switch, a robot's ramped command) do not set the fit everywhere else."""
         if delta is None:
             return r.square()
         a = r.abs()
@@ -184,7 +184,7 @@ class PINNModule(L.LightningModule):
         """Physics, data and total loss for one full batch."""
         b = self._cast(batch)
         if self.hparams.weight_physics > 0:
-            out = {"physics": self._penalty(self._scaled_residual(b)).mean()}
+            out = {"physics": self._penalty(self._scaled_residual(b), self.hparams.robust_delta).mean()}
         else:  # no physics loss (fine-tuning on logs alone): its residual, the dearest term, is not evaluated
             out = {"physics": torch.zeros((), dtype=self.res_scale.dtype, device=self.res_scale.device)}
         if "share" in b:  # a DDP shard: weighted so that the mean over the processes is the mean over all points
@@ -204,9 +204,7 @@ class PINNModule(L.LightningModule):
         if "robot_t" in b and self.hparams.weight_robot > 0:  # the robot's logs: what the model misses
             dx = self.model(b["robot_t"], b["robot_x0"], b["robot_u"]) - b["robot_x0"]
             miss = (dx - b["robot_dx"]) / self.model.out_scale
-            delta = self.hparams.robot_delta  # null: squares, whatever robust_delta says for the physics
-            penalty = miss.square() if delta is None else self._penalty(miss, delta)
-            out["robot"] = (penalty * self.anchor_w).mean()
+            out["robot"] = (self._penalty(miss, self.hparams.robot_delta) * self.anchor_w).mean()
             total = total + self.hparams.weight_robot * out["robot"]
         out["total"] = total
         return out
