@@ -49,6 +49,9 @@ TINY = [
     "scaling.step_warmup=1",
     "floor.horizons=[2,4]",
     f"floor.max_steps={MAX_STEPS}",
+    "floor.cold.horizon=6",
+    f"floor.cold.max_steps={MAX_STEPS}",
+    "floor.cold.repeats=2",
 ]
 SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "kinds", "floor")
 SECTIONS_OFF = [f"{s}.enabled=false" for s in SECTIONS]
@@ -509,6 +512,17 @@ def test_the_floor_section_times_the_network_beside_each_solve(bench: tuple[dict
     assert [r["horizon"] for r in rows] == [2, 4] and all(r["steps"] == MAX_STEPS for r in rows)
     assert all(0 < r["floor_median_s"] < r["ocp_median_s"] and r["ratio_median"] > 1 for r in rows)
     assert "## 9. The network controller against its floor" in (run_dir / "bench.md").read_text()
+
+
+def test_the_floor_section_times_a_cold_start_with_and_without_a_jump(bench: tuple[dict[str, Any], Path]) -> None:
+    """Section 9's cold start: a closed loop's first solve on the reference and on it with a jump inside the first
+    horizon, each against its loop's warm median; the jump costs the cold solve more iterations, never fewer."""
+    result, run_dir = bench
+    plain, jump = result["floor"]["cold"]
+    assert "+0.3 rad from sample 4" in jump["reference"] and plain["horizon"] == jump["horizon"] == 6
+    assert 1 <= plain["cold_iterations"] <= jump["cold_iterations"] <= 10
+    assert all(r["cold_s"] > 0 and r["warm_median_s"] > 0 and r["ratio"] > 0 for r in (plain, jump))
+    assert "| cold iterations |" in (run_dir / "bench.md").read_text()
 
 
 def test_a_zero_target_is_a_target_and_null_is_none() -> None:

@@ -19,17 +19,23 @@ from pinnmpc.systems import load_system
 from tests.conftest import CONF
 
 
-def first_solve(name: str, cold_states: str, start: int = 30, horizon: int = 40) -> tuple[int, bool, float]:
-    """Iterations, convergence and cost of the controller's first (cold) solve at a sample of the built-in
-    reference."""
+def first_solve(
+    name: str, cold_states: str, horizon: int = 40, jump: float = 0.0, ahead: float = 1.0, **lifted: object
+) -> tuple[int, bool, float]:
+    """Iterations, convergence and cost of the controller's first (cold) solve at sample 30 of the built-in
+    reference, its joint angles raised by jump from ahead s on (lifted: more lifted solver settings)."""
+    start = 30
     register_configs()
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("closed_loop", overrides=[f"system={name}", f"controller.horizon={horizon}"])
     system, net = load_system(name), load_surrogate(system=name)
     ref = system_reference(cfg, system, net.tau)
-    settings = OmegaConf.merge(cfg.controller, {"solvers": {"lifted_gauss_newton": {"cold_states": cold_states}}})
+    solver = {"cold_states": cold_states, **lifted}
+    settings = OmegaConf.merge(cfg.controller, {"solvers": {"lifted_gauss_newton": solver}})
     nmpc = build_nmpc(settings, net, system)
-    nmpc.make_step(ref.x[start], ref.x[start + 1 : start + 1 + horizon])
+    x_ref = ref.x[start + 1 : start + 1 + horizon].copy()
+    x_ref[round(ahead / net.tau) :, : system.nq] += jump
+    nmpc.make_step(ref.x[start], x_ref)
     stats = nmpc.stats[-1]
     return stats.iterations, stats.converged, stats.cost
 
@@ -37,9 +43,30 @@ def first_solve(name: str, cold_states: str, start: int = 30, horizon: int = 40)
 @pytest.mark.parametrize("name", ["powercube", "planar3"])
 def test_a_cold_start_at_h40_converges_in_a_few_lifted_steps(name: str) -> None:
     iterations, converged, cost = first_solve(name, "reference")
-    old_iterations, old_converged, old_cost = first_solve(name, "rollout")
+    old_iterations, old_converged, old_cost = first_solve(name, "rollout", cold_accept=False)
     assert converged and old_converged and iterations <= 5 < old_iterations
     assert cost <= old_cost * (1 + 1e-6) + 1e-12  # as good or better (PowerCube: rollout ends worse)
+
+
+@pytest.mark.parametrize(("name", "jump", "ahead"), [("powercube", 0.3, 1.0), ("planar3", 0.6, 2.0)])
+def test_a_cold_start_with_a_jump_it_cannot_make_stays_within_its_cap(name: str, jump: float, ahead: float) -> None:
+    """A horizon holding a jump in every joint: the bounded cold solve ends within cold_max_iter (10), where the
+    solve run on to convergence takes more, at a cost within 1% of that solve's."""
+    iterations, _, cost = first_solve(name, "reference", jump=jump, ahead=ahead)
+    full_iterations, full_converged, full_cost = first_solve(
+        name, "reference", jump=jump, ahead=ahead, cold_accept=False, cold_max_iter=60
+    )
+    assert iterations <= 10 < full_iterations and full_converged
+    assert full_cost * (1 - 1e-9) <= cost <= 1.01 * full_cost
+
+
+def test_a_cycling_lifted_iteration_is_damped_to_convergence() -> None:
+    """Full steps on planar3's jump 3 s ahead cycle between two points and never meet the stopping test in 60
+    lifted iterations; a half step where a step turns back on the last one (cycle_step) converges in a few."""
+    settings = {"jump": 0.3, "ahead": 3.0, "cold_accept": False, "cold_max_iter": 60}
+    cycling = first_solve("planar3", "reference", cycle_step=1.0, **settings)
+    damped = first_solve("planar3", "reference", **settings)
+    assert damped[0] <= 15 and damped[1] and cycling[0] > 60
 
 
 def test_node_inputs_land_each_step_nearer_its_reference() -> None:
@@ -65,3 +92,5 @@ def test_node_inputs_land_each_step_nearer_its_reference() -> None:
 def test_a_bad_cold_start_setting_is_one_line() -> None:
     with pytest.raises(ValueError, match=r"LiftedGaussNewtonSolver.cold_states='zeros'; expected reference or rollout"):
         LiftedGaussNewtonSolver(cold_states="zeros")
+    with pytest.raises(ValueError, match=r"LiftedGaussNewtonSolver.cycle_step=1.5; expected a fraction in \(0, 1\]"):
+        LiftedGaussNewtonSolver(cycle_step=1.5)

@@ -1,8 +1,8 @@
-"""Section 9: the network controller against its own floor. Per sample the controller cannot avoid evaluating the
-network's values and Jacobians at the horizon's nodes and the estimator's one step; everything else in its OCP time
-is its own overhead. The floor is timed right after each solve of a real closed loop, on that sample's nodes (the
-plan's predicted states and inputs), so both see the same machine at the same moment (the ratio a shared machine's
-drift cannot bias)."""
+"""Section 9: the network controller against its own floor, and its cold start at a long horizon. Per sample the
+controller cannot avoid evaluating the network's values and Jacobians at the horizon's nodes and the estimator's one
+step; everything else in its OCP time is its own overhead. The floor is timed right after each solve of a real
+closed loop, on that sample's nodes (the plan's predicted states and inputs), so both see the same machine at the
+same moment (the ratio a shared machine's drift cannot bias)."""
 
 from __future__ import annotations
 
@@ -79,7 +79,52 @@ def bench_floor(cfg: DictConfig, system: System, surrogate: Surrogate, ref: Refe
             }
         )
         log.info("floor: H=%d done, %.2fx the floor", horizon, rows[-1]["ratio_median"])
-    return {"solver": str(cfg.controller.solver), "reference": ref.name, "rows": rows}
+    section = {"solver": str(cfg.controller.solver), "reference": ref.name, "rows": rows}
+    if cfg.floor.get("cold") is not None and cfg.floor.cold.enabled:
+        section["cold"] = bench_cold(cfg, system, surrogate, ref)
+    return section
+
+
+def jumped(ref: Reference, nq: int, jump: float, at: int) -> Reference:
+    """The reference with every joint angle raised by jump from sample at on: a step no arm makes in one period."""
+    x = np.array(ref.x, dtype=np.float64)
+    x[at:, :nq] += jump
+    return Reference(t=ref.t, x=x, name=f"{ref.name}, +{jump:g} rad from sample {at}")
+
+
+def bench_cold(cfg: DictConfig, system: System, surrogate: Surrogate, ref: Reference) -> list[dict[str, Any]]:
+    """The cold start at floor.cold.horizon: the first solve of a closed loop (no plan to start from) on the
+    reference, and on it with a jump the arm cannot make inside the first horizon; its iterations, and its time (the
+    median of floor.cold.repeats such solves on fresh controllers) against the same loop's warm median."""
+    c = cfg.floor.cold
+    horizon = int(c.horizon)
+    run_cfg = OmegaConf.merge(cfg, {"closed_loop": {"max_steps": int(c.max_steps)}})
+    rows = []
+    settings = controller_cfg(cfg, horizon=horizon)
+    for case in (ref, jumped(ref, system.nq, float(c.jump), round(float(c.ahead) * horizon))):
+        controller = build_nmpc(settings, surrogate, system)
+        row = loop_row(run_cfg, system, controller, surrogate.domain, surrogate.tau, case)
+        warm = float(np.median([s.time_s for s in controller.stats[1:]]))
+        first = controller.stats[0]
+        cold = []  # the loop's first solve again on fresh controllers: one sample's time is noisy
+        for _ in range(int(c.repeats)):
+            fresh = build_nmpc(settings, surrogate, system)
+            fresh.make_step(np.asarray(case.x[0]), np.asarray(case.x[1 : 1 + horizon]))
+            cold.append(fresh.stats[0].time_s)
+        rows.append(
+            {
+                "reference": case.name,
+                "horizon": horizon,
+                "status": row["status"],
+                "cold_iterations": int(first.iterations),
+                "cold_s": float(np.median(cold)),
+                "warm_median_s": warm,
+                "ratio": float(np.median(cold) / warm),
+                "warm_iterations_max": int(max(s.iterations for s in controller.stats[1:])),
+            }
+        )
+        log.info("floor: cold start at H=%d, %d iterations", horizon, rows[-1]["cold_iterations"])
+    return rows
 
 
 def md_floor(section: dict[str, Any], names: Sequence[str]) -> str:
@@ -102,4 +147,19 @@ def md_floor(section: dict[str, Any], names: Sequence[str]) -> str:
             f"| {r['horizon']} | {ocp} | {floor} | {fmt(r['ratio_median'])} | {fmt(r['ratio_p95'])} | "
             f"{fmt(r['iterations_mean'])} | {fmt(worst)} | {r['status']} |"
         )
+    if section.get("cold"):
+        lines += [
+            "",
+            "Cold start: the first solve of a closed loop (no plan to start from; its time the median of repeated "
+            "such solves), against the same loop's warm median.",
+            "",
+            "| reference | H | cold iterations | cold (ms) | warm median (ms) | cold / warm | warm iterations (max) "
+            "| status |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for r in section["cold"]:
+            lines.append(
+                f"| {r['reference']} | {r['horizon']} | {r['cold_iterations']} | {fmt(1e3 * r['cold_s'])} | "
+                f"{fmt(1e3 * r['warm_median_s'])} | {fmt(r['ratio'])} | {r['warm_iterations_max']} | {r['status']} |"
+            )
     return "\n".join([*lines, ""])

@@ -79,10 +79,18 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     """Where a cold solve's lifted states start (the first sample, any after a fallback): reference (the reference's
     states, as multiple-shooting codes start: the horizon's nonlinearity spread over its nodes, so long horizons
     converge in a few lifted steps) | rollout (of U0 from x0)."""
-    cold_max_iter: int = 5
-    """Lifted iterations of a cold solve before single shooting takes over (lifted_max_iter for the others): from
-    the reference's states and node_inputs a horizon of 40 converges in 2-3; more only add to a solve that crawls
-    (a network fine-tuned on stick-slip at rest)."""
+    cold_max_iter: int = 10
+    """Lifted iterations of a cold solve (lifted_max_iter for the others): from the reference's states and
+    node_inputs a horizon of 40 converges in 2-3; one holding a jump the arm cannot make cycles, damped
+    (cycle_step), to within a millionth of its optimal cost in about 10."""
+    cold_accept: bool = True
+    """A real-time iteration's cold solve still unconverged after cold_max_iter hands on its plan where that ends
+    below its start's cost (the next samples' steps go on from it), so its cold start is bounded in iterations;
+    false, or a solver run to convergence (rti false): single shooting with max_iter more."""
+    cycle_step: float = 0.5
+    """A problem whose model cost at a new linearisation rose above the last one's (full steps cycling between
+    two points, as where an infeasible jump in the reference keeps inputs on and off their bounds) takes this
+    fraction of each step from then on, which damps the cycle out (1: full steps always)."""
     tol_promise_inexact: float = 1e-3
     """controller.model=exact_values: relative slack of the check that a stop's cost keeps the model's promise
     (the Jacobians are the PINN's, not the derivatives of the values, so promises are inexact)."""
@@ -93,6 +101,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         super().__post_init__()
         if self.cold_states not in ("reference", "rollout"):
             raise ValueError(f"LiftedGaussNewtonSolver.cold_states={self.cold_states!r}; expected reference or rollout")
+        if not 0 < self.cycle_step <= 1:
+            raise ValueError(f"LiftedGaussNewtonSolver.cycle_step={self.cycle_step!r}; expected a fraction in (0, 1]")
         for name in ("rti_steps", "lifted_max_iter", "lifted_max_iter_inexact", "cold_max_iter"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -160,6 +170,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         promised = np.full(batch, np.inf)  # the model's cost of the point each problem stops at (after its step)
         inexact = getattr(ocp.flow, "approximate_jacobians", False)
         cap = self.cold_max_iter if prior is None else self.lifted_max_iter
+        last_step = np.zeros_like(U)  # each problem's last step, against which a reversal shows a cycle
         for _ in range(self.lifted_max_iter_inexact if inexact else cap):
             # the whole batch every time (no row gathering: batch-1 solves are dominated by per-op overhead);
             # problems that stopped take no further steps, their states only settle onto the prediction
@@ -178,11 +189,18 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             was_cut = cut
             iterations += go
             step = np.where(go[:, None], np.clip(U + delta, lo, hi) - U, 0.0)
+            # a step that turns back on the last one (cosine below -1/2) is the cycle: it goes cycle_step of the way
+            turn = (step * last_step).sum(-1)
+            back = turn < -0.5 * np.linalg.norm(step, axis=-1) * np.linalg.norm(last_step, axis=-1)
+            fraction = np.where(back, self.cycle_step, 1.0)
+            step *= fraction[:, None]
+            last_step = step
             U += step
             # the states move to the linearised prediction (within the defect tolerance for those that stop)
             nodes[:, 1:] = _moved(pred, sens, step)[:, :-1]
             stops = running & ~(go & ~last)
-            promised[stops] = (f - np.where(go, predicted, 0.0))[stops]
+            # a fraction s of a Gauss-Newton step keeps s (2 - s) of the model's predicted decrease
+            promised[stops] = (f - np.where(go, predicted * fraction * (2 - fraction), 0.0))[stops]
             running &= ~stops
             if not running.any():
                 break
@@ -194,7 +212,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         # predicted decreases the stopping tests extrapolated from
         slack = self.tol_promise_inexact if inexact else self.tol_gap
         broken = cost > promised + slack * np.abs(promised)
-        failed = running | broken | ~np.isfinite(cost) | (cost > start_cost)
+        kept = running & bool(self.rti and self.cold_accept and prior is None)  # a real-time cold plan, improved
+        failed = (running & ~kept) | broken | ~np.isfinite(cost) | (cost > start_cost)
         if failed.any():  # rare: redo those problems by single shooting from the better of start and end
             rows = np.flatnonzero(failed)
             start = np.where(
