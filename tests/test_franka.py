@@ -163,6 +163,37 @@ def test_a_target_outside_the_limits_is_refused_before_the_arm_moves(sim_host: s
         plant.close()
 
 
+def test_a_velocity_limit_above_the_robots_is_refused_at_connect(sim_host: str) -> None:
+    from pinnmpc.plant.base import PlantError
+    from pinnmpc.plant.franka import FrankaPlant
+    from pinnmpc.plant.settings import FrankaPlantSettings
+    from pinnmpc.systems import load_system
+
+    fr3 = load_system("fr3")
+    settings = FrankaPlantSettings(simulator="none", host=sim_host, velocity_limit=[2.62] * 7)
+    with pytest.raises(PlantError, match=r"plant.velocity_limit=\[2.62, .*above the robot's joint velocity limits"):
+        FrankaPlant(fr3, fr3.tau, settings)
+
+
+def test_every_controller_box_is_narrowed_to_the_robots_velocity_limits(make_cfg) -> None:
+    """The FR3 URDF's velocity limits (2.62-5.26 rad/s) lie above franky's (2.175, 2.61): no plan may count on a
+    command the safety layer would clip; a limit of the wrong length is one line."""
+    from pinnmpc.simulation.settings import within_plant_limits
+    from pinnmpc.systems import load_system
+    from pinnmpc.util.checks import SettingError
+
+    fr3 = load_system("fr3")
+    cfg = make_cfg("closed_loop", ["system=fr3", "plant=franka", "controller=casadi"])
+    within_plant_limits(cfg, fr3)
+    assert list(cfg.controller.u_high) == [2.175] * 4 + [2.61] * 3 == [-v for v in cfg.controller.u_low]
+    cfg = make_cfg("closed_loop", ["system=fr3", "plant=franka", "controller.u_high=[1,1,1,1,1,1,1]"])
+    within_plant_limits(cfg, fr3)
+    assert list(cfg.controller.u_high) == [1.0] * 7  # tighter bounds of the user's stay
+    cfg = make_cfg("closed_loop", ["system=fr3", "plant=franka", "plant.velocity_limit=[2.0,2.0]"])
+    with pytest.raises(SettingError, match=r"plant.velocity_limit=\[2.0, 2.0\]: expected 7 positive speeds"):
+        within_plant_limits(cfg, fr3)
+
+
 def test_bad_franka_settings_are_one_line_each() -> None:
     from pinnmpc.plant.settings import plant_settings
 

@@ -25,6 +25,7 @@ from pinnmpc.bench.step import bench_step
 from pinnmpc.bench.targets import check_targets
 from pinnmpc.bench.timing import machine_info
 from pinnmpc.references.files import Reference
+from pinnmpc.simulation.settings import within_plant_limits
 from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.systems.registry import build_system
@@ -66,6 +67,7 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         )
     system: System = build_system(cfg.system)
     validate_bench(cfg, system)
+    within_plant_limits(cfg, system)
     names = tuple(system.state_names)
     pinn64 = load_pinn(cfg, system)
     kinds = cfg.get("kinds") is not None and cfg.kinds.enabled

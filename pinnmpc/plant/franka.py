@@ -64,7 +64,13 @@ class FrankaPlant:
             realtime = franky.RealtimeConfig.Enforce if settings.realtime_kernel else franky.RealtimeConfig.Ignore
             self.robot = franky.Robot(host, realtime_config=realtime)
             self.robot.relative_dynamics_factor = settings.relative_dynamics_factor
-            self.safety.cap_velocity(np.asarray(self.robot.joint_velocity_limit.max, dtype=float)[: self.nq])
+            reported = np.asarray(self.robot.joint_velocity_limit.max, dtype=float)[: self.nq]
+            if settings.velocity_limit is not None and np.any(np.asarray(settings.velocity_limit) > reported + 1e-9):
+                raise PlantError(
+                    f"plant.velocity_limit={list(settings.velocity_limit)}: above the robot's joint velocity limits "
+                    f"{reported.tolist()} rad/s (franky's); expected each at most the robot's"
+                )
+            self.safety.cap_velocity(reported)
             limit = np.asarray(self.robot.joint_acceleration_limit.max, dtype=float)[: self.nq]
             self.command_acceleration = limit * settings.relative_dynamics_factor  # rad/s^2: franky's ramp
             if self.robot.has_errors:

@@ -118,6 +118,9 @@ FRANKA_CHECKS: dict[str, Check] = {
     "rest_speed": positive(),
     "poll_s": positive(),
     "command_at": real(0.0),
+    "velocity_limit": lambda v, _d: None
+    if v is None or (isinstance(v, (list, tuple)) and all(isinstance(x, (int, float)) and x > 0 for x in v))
+    else "null or one positive speed per joint, rad/s",
 }
 
 
@@ -171,6 +174,11 @@ class FrankaPlantSettings(MismatchSettings):
     same dead time in every period, whatever the controller's wall time and franky-sim's speed; 0: sent at once;
     at most the control period, where each command goes out as the next period begins and the closed loop plans from
     the model's prediction of that period's start (delay compensation, docs/franka.md)."""
+
+    velocity_limit: list[float] | None = None
+    """rad/s per joint: the robot interface's joint velocity limits (franky refuses faster commands); every
+    controller's input box is narrowed to them, and a robot that reports lower ones is refused at connect; null:
+    franky's reported limits cap the safety layer alone."""
 
     def __post_init__(self) -> None:
         super().__post_init__()

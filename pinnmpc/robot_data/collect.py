@@ -30,6 +30,7 @@ from pinnmpc.plant.settings import plant_settings, robot_name
 from pinnmpc.robot_data.logs import RobotLog, log_files, write_log
 from pinnmpc.robot_data.settings import validate_collect
 from pinnmpc.simulation.loop import run_loop
+from pinnmpc.simulation.settings import within_plant_limits
 from pinnmpc.simulation.setup import build_controller, system_reference
 from pinnmpc.systems.base import System
 from pinnmpc.systems.settings import job_system
@@ -314,6 +315,7 @@ def run_collect(cfg: DictConfig, run_dir: Path, stop: StopSignal | None = None) 
     """Check the settings, build the robot first (a bad robot fails before the controller loads), collect, write."""
     start = time.perf_counter()
     system = job_system(cfg, validate_collect)
+    within_plant_limits(cfg, system)
     refuse_existing(run_dir / str(cfg.out), str(cfg.out))
     if cfg.plant.get("kind") == "franka":  # a robot's settings alone: it is connected (or started) once, to collect
         plant_settings(OmegaConf.to_container(cfg.plant, resolve=True)).make_consistent()

@@ -20,7 +20,7 @@ from pinnmpc.simulation.fault_setup import plan_faults
 from pinnmpc.simulation.loop import LoopResult, divergence_box, model_step, run_loop
 from pinnmpc.simulation.metrics import faults_metrics, limits_and_saturation, metrics, robot_outcome, verdict
 from pinnmpc.simulation.model_fit import model_fit
-from pinnmpc.simulation.settings import validate_closed_loop
+from pinnmpc.simulation.settings import validate_closed_loop, within_plant_limits
 from pinnmpc.simulation.setup import (
     arm_differences,
     bounds_outside,
@@ -54,6 +54,7 @@ def run_closed_loop(
     to stop), write trajectory.npz and plots, announce the result (the caller's log line), and metrics.json last:
     its status is "ok" only when everything before it was written; a write that fails raises OutputError."""
     system: System = job_system(cfg, validate_closed_loop)
+    within_plant_limits(cfg, system)
     start = checked_start(cfg, system)
     warn_long_horizon(cfg)
     controller, domain, tau = build_controller(cfg, system)

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+import numpy as np
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pinnmpc.plant.settings import plant_settings
 from pinnmpc.systems.settings import system_dims
 from pinnmpc.util import checks as c
 from pinnmpc.util.checks import SEED, Check, SettingError
+
+log = logging.getLogger(__name__)
 
 CLOSED_LOOP: dict[str, Check] = {
     "checkpoint": c.optional(c.text()),
@@ -82,3 +86,24 @@ def validate_robustness(cfg: DictConfig, system: Any) -> None:
 def validate_self_loop(cfg: DictConfig, system: Any) -> None:
     """self_loop settings."""
     c.validate(cfg, SELF_LOOP, system_dims(system))
+
+
+def within_plant_limits(cfg: DictConfig, system: Any) -> None:
+    """controller.u_low/u_high narrowed to the plant's velocity limits where it has them (plant=franka: franky's,
+    beyond which the safety layer clips each command), so that no plan counts on a command the robot never runs."""
+    limit = OmegaConf.select(cfg, "plant.velocity_limit", default=None)
+    if limit is None or "controller" not in cfg:
+        return
+    v = np.asarray(OmegaConf.to_container(limit) if OmegaConf.is_config(limit) else limit, dtype=float)
+    nu = len(system.input_names)
+    if v.shape != (nu,) or not np.all(v > 0):
+        raise SettingError(f"plant.velocity_limit={v.tolist()}: expected {nu} positive speeds, rad/s")
+    box = system.input_box
+    low = np.asarray(box.low if cfg.controller.get("u_low") is None else cfg.controller.u_low, dtype=float)
+    high = np.asarray(box.high if cfg.controller.get("u_high") is None else cfg.controller.u_high, dtype=float)
+    low2, high2 = np.maximum(low, -v), np.minimum(high, v)
+    if np.array_equal(low2, low) and np.array_equal(high2, high):
+        return
+    log.info("controller input box narrowed to plant.velocity_limit: u_high %s", np.round(high2, 4).tolist())
+    with open_dict(cfg.controller):
+        cfg.controller.u_low, cfg.controller.u_high = low2.tolist(), high2.tolist()
