@@ -118,9 +118,11 @@ FRANKA_CHECKS: dict[str, Check] = {
     "rest_speed": positive(),
     "poll_s": positive(),
     "command_at": real(0.0),
-    "velocity_limit": lambda v, _d: None
-    if v is None or (isinstance(v, (list, tuple)) and all(isinstance(x, (int, float)) and x > 0 for x in v))
-    else "null or one positive speed per joint, rad/s",
+    "velocity_limit": lambda v, _d: (
+        None
+        if v is None or (isinstance(v, (list, tuple)) and all(isinstance(x, (int, float)) and x > 0 for x in v))
+        else "null or one positive speed per joint, rad/s"
+    ),
 }
 
 
