@@ -36,7 +36,10 @@ class LBFGSSolver:
 
         def closure() -> Tensor:
             opt.zero_grad()
-            cost = ocp.cost(x0, U, x_ref, u_prev).sum()
+            # the cost at U held inside the box: a line search's trial far outside it drove the arm's states (and its
+            # mass matrix) to non-finite values; a bound's input gets no gradient past it, the round's projection
+            # brings it back
+            cost = ocp.cost(x0, torch.maximum(torch.minimum(U, high), low), x_ref, u_prev).sum()
             cost.backward()
             evals[0] += 1
             return cost
