@@ -95,16 +95,20 @@ class MujocoPlantSettings(MismatchSettings):
         check_settings("plant", self, MUJOCO_CHECKS)
 
 
-def _gains(v: Any, _d: Any) -> str | None:
-    """null or one positive gain per joint."""
-    ok = v is None or (isinstance(v, (list, tuple)) and all(isinstance(g, (int, float)) and g > 0 for g in v))
-    return None if ok else "null or a list of positive gains, N m s/rad"
+def _per_joint(expected: str) -> Check:
+    """A check of null or a list of positive numbers, one per joint, saying `expected` otherwise."""
+
+    def check(v: Any, _d: Any) -> str | None:
+        ok = v is None or (isinstance(v, (list, tuple)) and all(isinstance(g, (int, float)) and g > 0 for g in v))
+        return None if ok else expected
+
+    return check
 
 
 FRANKA_CHECKS: dict[str, Check] = {
     "simulator": one_of("mujoco", "none"),
     "host": lambda v, _d: None if v is None or (isinstance(v, str) and v) else "null or a robot's address",
-    "servo_gain": _gains,
+    "servo_gain": _per_joint("null or a list of positive gains, N m s/rad"),
     "initial_q": lambda v, _d: None if v is None or isinstance(v, (list, tuple)) else "null or joint angles, rad",
     "relative_dynamics_factor": positive(),
     "start_dynamics_factor": positive(),
@@ -118,11 +122,7 @@ FRANKA_CHECKS: dict[str, Check] = {
     "rest_speed": positive(),
     "poll_s": positive(),
     "command_at": real(0.0),
-    "velocity_limit": lambda v, _d: (
-        None
-        if v is None or (isinstance(v, (list, tuple)) and all(isinstance(x, (int, float)) and x > 0 for x in v))
-        else "null or one positive speed per joint, rad/s"
-    ),
+    "velocity_limit": _per_joint("null or one positive speed per joint, rad/s"),
 }
 
 

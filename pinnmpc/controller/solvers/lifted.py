@@ -88,9 +88,9 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     below its start's cost (the next samples' steps go on from it), so its cold start is bounded in iterations;
     false, or a solver run to convergence (rti false): single shooting with max_iter more."""
     cycle_step: float = 0.5
-    """A problem whose model cost at a new linearisation rose above the last one's (full steps cycling between
-    two points, as where an infeasible jump in the reference keeps inputs on and off their bounds) takes this
-    fraction of each step from then on, which damps the cycle out (1: full steps always)."""
+    """A lifted step that turns back on the last one (cosine below -1/2: full steps cycling between two points, as
+    where an infeasible jump in the reference keeps inputs on and off their bounds) goes this fraction of the way,
+    which damps the cycle out; other steps stay full (1: full steps always)."""
     tol_promise_inexact: float = 1e-3
     """controller.model=exact_values: relative slack of the check that a stop's cost keeps the model's promise
     (the Jacobians are the PINN's, not the derivatives of the values, so promises are inexact)."""
