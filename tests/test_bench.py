@@ -52,8 +52,10 @@ TINY = [
     "floor.cold.horizon=6",
     f"floor.cold.max_steps={MAX_STEPS}",
     "floor.cold.repeats=2",
+    "peers.horizons=[3]",
+    f"peers.max_steps={MAX_STEPS}",
 ]
-SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "kinds", "floor")
+SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "kinds", "floor", "peers")
 SECTIONS_OFF = [f"{s}.enabled=false" for s in SECTIONS]
 
 
@@ -433,6 +435,7 @@ P3_TINY = [
     "closed_loop.paper_controller=false",
     "optimality.enabled=false",
     "scaling.enabled=false",
+    "peers.enabled=false",
 ]
 
 
@@ -523,6 +526,23 @@ def test_the_floor_section_times_a_cold_start_with_and_without_a_jump(bench: tup
     assert 1 <= plain["cold_iterations"] <= jump["cold_iterations"] <= 10
     assert all(r["cold_s"] > 0 and r["warm_median_s"] > 0 and r["ratio"] > 0 for r in (plain, jump))
     assert "| cold iterations |" in (run_dir / "bench.md").read_text()
+
+
+def test_the_peers_section_runs_casadi_on_the_same_network_interleaved(bench: tuple[dict[str, Any], Path]) -> None:
+    """Section 10: ours and CasADi's real-time iteration on the exported flow map (qrqp, HPIPM) track the reference
+    with their samples interleaved: the same network, OCP and estimator track alike; absent peers get a line each."""
+    result, run_dir = bench
+    section = result["peers"]
+    (row,) = section["rows"]
+    assert row["horizon"] == 3 and row["samples"] == MAX_STEPS and row["status"] == "ok"
+    assert list(row["ocp_median_s"]) == ["pinn", "casadi_rti_qrqp", "casadi_rti_hpipm"]
+    assert row["ratio_median"]["pinn"] == 1.0 and all(v > 0 for v in row["ratio_median"].values())
+    mae = list(row["worst_mae"].values())
+    assert min(mae) > 0 and max(mae) <= 1.05 * min(mae)
+    assert set(section["missing"]) <= {"acados", "l4casadi"}
+    assert all(why.startswith("skipped: ") for why in section["missing"].values())
+    md = (run_dir / "bench.md").read_text()
+    assert "## 10. Peers on the same network" in md and "| 3 | casadi_rti_hpipm |" in md
 
 
 def test_a_zero_target_is_a_target_and_null_is_none() -> None:

@@ -137,6 +137,7 @@ def test_the_bench_lists_every_kind_and_runs_the_new_one(joint_pd: str, tmp_path
     register_configs()
     off = [f"{s}.enabled=false" for s in ("step", "closed_loop", "optimality", "scaling", "classical")]
     overrides = ["system=planar3", "progress=false", "plots=false", "closed_loop.max_steps=30", *off]
+    overrides.append("peers.enabled=false")
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("bench", overrides=[*overrides, "+kinds.settings.joint_pd.kd=6.0"])
     result = run_bench(cfg, tmp_path)

@@ -295,6 +295,7 @@ def test_the_bench_robot_section_runs_on_the_franka_plant(sim_host: str, tmp_pat
     cmd += [f"plant.host={sim_host}", "robot.enabled=true", "robot.references=[default]", "closed_loop.max_steps=5"]
     cmd += ["step.enabled=false", "closed_loop.enabled=false", "optimality.enabled=false", "scaling.enabled=false"]
     cmd += ["robot.paired_ocp=false", "robot.classical_variants=false", "progress=false", f"hydra.run.dir={run_dir}"]
+    cmd += ["peers.enabled=false"]
     r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-2000:]
     rows = json.loads((run_dir / "bench.json").read_text())["robot"]["rows"]

@@ -19,16 +19,22 @@ from pinnmpc.references import Reference
 
 
 def paired_ocp(
-    controllers: dict[str, Controller], plant: Callable[[], Plant], ref: Reference, max_steps: int | None = None
+    controllers: dict[str, Controller],
+    plant: Callable[[], Plant],
+    ref: Reference,
+    max_steps: int | None = None,
+    nq: int | None = None,
 ) -> dict[str, Any]:
     """Each controller on a plant of its own tracks ref from its first sample (at most max_steps samples), the
     loops' samples interleaved;
     OCP median and p95 per controller (as the closed loop's `ocp_time_s`: make_step, estimator included) and each
-    one's per-sample ratio to the first controller's. Stops at the first plant failure, saying so in `status`."""
+    one's per-sample ratio to the first controller's; with nq, each loop's worst joint-angle MAE over the samples all
+    ran (`worst_mae`). Stops at the first plant failure, saying so in `status`."""
     keys = list(controllers)
     horizon = controllers[keys[0]].horizon
     loops = {k: (c, plant(), np.array(ref.x[0], dtype=np.float64)) for k, c in controllers.items()}
     times: dict[str, list[float]] = {k: [] for k in keys}
+    errors: dict[str, list[np.ndarray]] = {k: [] for k in keys}  # |x_k+1 - ref_k+1| of each loop's joint angles
     status = "ok"
     for c, _, _ in loops.values():
         c.reset()
@@ -40,6 +46,7 @@ def paired_ocp(
             times[key].append(c.stats[-1].time_s)
             try:
                 loops[key] = (c, p, p.step(x, u))
+                errors[key].append(np.abs(loops[key][2][:nq] - ref.x[k + 1][:nq]) if nq else np.zeros(0))
             except PlantError as e:
                 status = f"plant_failure ({key}, step {k}): {e}"
                 break
@@ -48,7 +55,7 @@ def paired_ocp(
     n = min(len(t) for t in times.values())
     t = {key: np.array(v[:n]) for key, v in times.items()}
     base = t[keys[0]]
-    return {
+    out = {
         "reference": ref.name,
         "samples": n,
         "status": status,
@@ -57,3 +64,6 @@ def paired_ocp(
         "ocp_p95_s": {key: float(np.percentile(v, 95)) for key, v in t.items()},
         "ratio_median": {key: float(np.median(v / base)) for key, v in t.items()},
     }
+    if nq:
+        out["worst_mae"] = {key: float(np.mean(errors[key][:n], axis=0).max()) if n else float("nan") for key in keys}
+    return out

@@ -10,6 +10,7 @@ from pinnmpc.bench.common import status_suffix
 from pinnmpc.bench.floor import md_floor
 from pinnmpc.bench.kinds import md_kinds
 from pinnmpc.bench.loops import mode
+from pinnmpc.bench.peers import md_peers
 from pinnmpc.bench.robot import md_robot
 from pinnmpc.util.tables import fmt, md_table
 
@@ -412,6 +413,8 @@ def render_markdown(result: dict[str, Any]) -> str:
         parts.append(md_kinds(result["kinds"], names))
     if "floor" in result:
         parts.append(md_floor(result["floor"], names))
+    if "peers" in result:
+        parts.append(md_peers(result["peers"]))
     elapsed = ", ".join(f"{k} {v:.1f} s" for k, v in result["elapsed_s"].items())
     parts += [f"Wall time per section: {elapsed}.", ""]
     return "\n".join(parts)

@@ -17,6 +17,7 @@ from pinnmpc.bench.floor import bench_floor
 from pinnmpc.bench.kinds import bench_kinds
 from pinnmpc.bench.loops import OCPProblem, bench_closed_loop, run_controller
 from pinnmpc.bench.optimality import bench_optimality
+from pinnmpc.bench.peers import bench_peers
 from pinnmpc.bench.report import render_markdown
 from pinnmpc.bench.robot import bench_robot
 from pinnmpc.bench.scaling import bench_scaling
@@ -72,7 +73,8 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     pinn64 = load_pinn(cfg, system)
     kinds = cfg.get("kinds") is not None and cfg.kinds.enabled
     floor = cfg.get("floor") is not None and cfg.floor.enabled
-    need_ref = cfg.closed_loop.enabled or cfg.optimality.enabled or cfg.classical.enabled or kinds or floor
+    peers = cfg.get("peers") is not None and cfg.peers.enabled and available(cfg)
+    need_ref = cfg.closed_loop.enabled or cfg.optimality.enabled or cfg.classical.enabled or kinds or floor or peers
     ref = bench_reference(cfg, system, pinn64.tau) if need_ref else None
     result: dict[str, Any] = {
         "machine": machine_info(),
@@ -114,6 +116,8 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         result["kinds"] = timed("kinds", lambda: bench_kinds(cfg, system, ref, ran))
     if floor:
         result["floor"] = timed("floor", lambda: bench_floor(cfg, system, pinn64, ref))
+    if peers:
+        result["peers"] = timed("peers", lambda: bench_peers(cfg, system, pinn64, ref))
     result["targets"] = check_targets(cfg, result, names)
     result["elapsed_s"] = {k: float(v) for k, v in elapsed.items()}
     save_json(run_dir / "bench.json", result)

@@ -35,6 +35,10 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
     "floor.cold.ahead": c.real(0.0, 1.0, lo_open=True),
     "floor.cold.max_steps": c.integer(2),
     "floor.cold.repeats": c.integer(1),
+    "peers.horizons": c.listof(c.integer(1)),
+    "peers.max_steps": c.optional(c.integer(1)),
+    "peers.qpsols": c.listof(c.one_of("qrqp", "hpipm", "osqp"), empty=True),
+    "peers.shared": c.listof(c.text(), empty=True),
     "optimality.n_states": c.integer(1),
     "optimality.random_starts": c.integer(0),
     "scaling.horizons": c.listof(c.integer(1)),
@@ -49,7 +53,7 @@ BENCH: dict[str, Check] = {  # the sizes of its sections (a zero or empty one fa
 }
 
 
-BENCH_SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "robot", "kinds", "floor")
+BENCH_SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "robot", "kinds", "floor", "peers")
 
 
 def validate_bench(cfg: DictConfig, system: Any) -> None:

@@ -218,7 +218,7 @@ class PINN(nn.Module):
         n_trig = len(periodic) + 2 * len(angle_sums)  # cosines of the periodic states, then sin and cos of the sums
         self.net = TangentMLP(n_lin + n_trig, self.n_head * self.n_gates, hidden, activation)
         # no parameters, no state; the arm from its description (older networks: by its system name)
-        self.prior = None if prior is None else ArmPrior(prior.get("dynamics") or prior["system"], prior["kind"])
+        self.prior = None if prior is None else ArmPrior(prior.get("dynamics") or prior["system"], prior["kind"], t_max)
 
     @property
     def sum_columns(self) -> tuple[slice, slice]:

@@ -22,7 +22,8 @@ on larger arms: the frozen arm's Jacobian stands in, docs/design.md), for the co
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -83,7 +84,7 @@ class ArmPrior(nn.Module):
     arm frozen at q0, with its friction or moving torques, or re-linearised at midpoints): a System, its `dynamics`
     description (what a network's config stores) or the name of a shipped system."""
 
-    def __init__(self, system: Any, kind: str = "frozen_arm") -> None:
+    def __init__(self, system: Any, kind: str = "frozen_arm", t_max: float | None = None) -> None:
         super().__init__()
         from pinnmpc.systems import RigidArm, build_system, load_system
 
@@ -117,6 +118,8 @@ class ArmPrior(nn.Module):
         self._memo: dict[tuple[Any, ...], tuple[tuple[Tensor, ...], Tensor, Tensor]] = {}
         self._compiled: dict[float, CompiledPrior] = {}  # per tau: every numpy flow of this network shares one
         self._terms_c: Callable[[np.ndarray, np.ndarray], list[np.ndarray]] | None = None  # M, c0 in C (no graph)
+        self.t_max = t_max  # s: the longest t asked for (the network's); fixes the sub-steps while traced
+        self._traced = False  # within traceable(): torch operations only
 
     def moving_torque(self, q0: Any) -> Callable[[Any], Any]:
         """w -> the torques each sub-step holds at the moving velocity w: the dry friction, and for frozen_arm_moving
@@ -139,11 +142,28 @@ class ArmPrior(nn.Module):
         """Shared, not copied: it has no state to diverge (its robot model holds modules that do not copy)."""
         return self
 
+    @contextmanager
+    def traceable(self) -> Iterator[None]:
+        """Within: torch operations only (adam's torch model, no memo, as many sub-steps as t_max asks), so that a
+        tracer (torch.fx's make_fx, which l4casadi uses; torch.jit.trace) records the whole flow, nothing baked in."""
+        if self.steps and self.t_max is None:
+            raise ValueError(f"a traced {self.kind} prior needs t_max (the longest t) to fix its sub-steps")
+        before, self._traced = self._traced, True
+        try:
+            yield
+        finally:
+            self._traced = before
+
+    def _count(self, t: Tensor) -> int:
+        """Sub-steps of h on the grid up to the batch's longest t (traced: up to t_max, read from no tensor)."""
+        top = self.t_max if self._traced else float(t.max()) if t.numel() else 0.0  # an empty batch has no t
+        return max(self.steps, math.floor(top / (self.arm.tau / self.steps)) + 1)  # t_max is a little beyond tau
+
     def _terms(self, q: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """M, A = M^-1 kv and v_ss (float64, flat batch): through adam in torch where a graph is wanted, else the
         same adam model's CasADi form compiled to C (adam's per-call cost in torch dominates small batches, such as
         a surrogate stepping one state)."""
-        if q.requires_grad or u.requires_grad:  # adam's model lives on the CPU; the copies are differentiable
+        if self._traced or q.requires_grad or u.requires_grad:  # adam's model lives on the CPU; copies differentiate
             m, c0 = (a.to(q.device) for a in self.arm.frozen_terms(q.cpu(), u.cpu(), settled=not self.steps))
         else:
             rows = self._compiled_terms()(q.cpu().numpy(), u.cpu().numpy())
@@ -194,8 +214,7 @@ class ArmPrior(nn.Module):
         (sub-steps of t / steps instead, as the formula reads at tau, would not: the held torques would change
         with t); at t = tau both are the same flow."""
         kv, h = self.kv.to(vss.device), self.arm.tau / self.steps
-        top = float(t.max()) if t.numel() else 0.0  # an empty batch has no t
-        count = max(self.steps, math.floor(top / h) + 1)  # t_max is a little beyond tau
+        count = self._count(t)
 
         def relax_by(e: Tensor) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
             """d -> (kv^-1 M (I - E) d, E d) for this E."""
@@ -218,8 +237,8 @@ class ArmPrior(nn.Module):
         (its mid configuration and held torques are predicted over the whole sub-step, so they do not move with t:
         within it x_p is an exact flow and dq_p/dt = v_p)."""
         kv, h = self.kv.to(u.device), self.arm.tau / self.steps
-        top = float(t.max()) if t.numel() else 0.0  # an empty batch has no t
-        active = sum((t[:, 0] >= k * h).long() for k in range(1, max(self.steps, math.floor(top / h) + 1)))
+        count = self._count(t)
+        active = sum((t[:, 0] >= k * h).long() for k in range(1, count))
 
         def terms(q: Tensor) -> tuple[Tensor, Callable]:
             """v_ss and the relaxation over h of the arm held at q."""
@@ -227,7 +246,8 @@ class ArmPrior(nn.Module):
             return vss, relaxation(m, torch.linalg.matrix_exp(-a * h), kv)
 
         trail: list = []  # each sub-step's start, the configuration its predictor holds the arm at, its lagged torques
-        midpoint_substeps(x0, terms, self.moving_torque, kv, h, int(active.max()) if t.numel() else 0, trail)
+        last = count - 1 if self._traced else int(active.max()) if t.numel() else 0  # the last sub-step any t is in
+        midpoint_substeps(x0, terms, self.moving_torque, kv, h, last, trail)
         rows = torch.arange(t.shape[0], device=t.device)
         pick = lambda rows_k: torch.stack(rows_k)[active, rows]  # noqa: E731  each one's own sub-step
         start = tuple(pick([x[i] for x, _, _ in trail]) for i in (0, 1))
@@ -248,7 +268,7 @@ class ArmPrior(nn.Module):
         """x_p(t) and dx_p/dt for t (..., 1), x0 (..., nx), u (..., nu), in x0's dtype; x_p(0) = x0."""
         t, x0, u = torch.broadcast_tensors(t, x0[..., :1], u[..., :1])[0], x0, u
         lead, nx = x0.shape[:-1], x0.shape[-1]
-        if t.requires_grad or x0.requires_grad or u.requires_grad:  # a graph is wanted: no memo
+        if self._traced or t.requires_grad or x0.requires_grad or u.requires_grad:  # a graph is wanted: no memo
             x, dx = self._solve(*(a.reshape(-1, a.shape[-1]).double() for a in (t, x0, u)))
             return x.to(x0.dtype).reshape(*lead, nx), dx.to(x0.dtype).reshape(*lead, nx)
         key = tensor_key(t, x0, u)

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from pinnmpc.controller.base import StepStats, checked_settings
+from pinnmpc.controller.classical.network_ocp import NetworkOCP
 from pinnmpc.controller.classical.ocp import CasadiOCP, NlpSolver, Solution, merged
 from pinnmpc.controller.classical.rti import RTI_STATUS, RtiSolver, rti_function, rti_solver
 from pinnmpc.controller.classical.settings import ClassicalSettings
@@ -283,9 +284,23 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
     low = system.input_box.low if cfg.u_low is None else cfg.u_low
     high = system.input_box.high if cfg.u_high is None else cfg.u_high
 
+    surrogate = None
+    if transcription == "network":  # the network's flow map: loaded once, the smoothed repeat has no use for it
+        from pinnmpc.surrogate.checkpoint import load_surrogate
+
+        surrogate = load_surrogate(cfg.network, system=system.name if cfg.network is None else None)
+        dims = (len(system.state_names), len(system.input_names))
+        if (surrogate.nx, surrogate.nu) != dims:
+            raise ValueError(
+                f"controller.network={cfg.network!r} maps {surrogate.nx} states and {surrogate.nu} inputs; the arm "
+                f"{system.name} has {dims[0]} and {dims[1]}"
+            )
+
     def make_ocp(coulomb_width: float | None = None) -> CasadiOCP:
         """The OCP of these settings, on the exact model or with its sign(v) friction smoothed."""
         problem = (system, cfg.horizon, cfg.Q, cfg.R, cfg.R_rate, low, high)
+        if transcription == "network":
+            return NetworkOCP(surrogate, str(cfg.network or "shipped"), *problem, joint_limits=cfg.joint_limits)
         if transcription == "radau":
             from pinnmpc.controller.classical.collocation import RadauOCP
 
@@ -302,7 +317,8 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
     extra = [rti_function(ocp)] if rti else []  # compiled with the solver's functions: their code is shared
     solver = ocp.solver(plugin, options, hessian, codegen, level, extra)
     smooth_solver, width = None, cfg.coulomb_width
-    if width is not None and coulomb_joints(system):  # RK4: its own sub-steps, the smoothed model is stiffer
+    # RK4: its own sub-steps, the smoothed model is stiffer; a network has no sign(v) to smooth
+    if width is not None and coulomb_joints(system) and transcription != "network":
         smooth_solver = make_ocp(float(width)).solver(plugin, options, hessian, codegen, level)
     cold_solver = None
     if rti:  # one Gauss-Newton step from the shifted solution; the first step (and any after a fallback) solves fully

@@ -11,7 +11,8 @@ from pinnmpc.controller.base import ControllerSettings, DisturbanceSettings
 from pinnmpc.util import checks as c
 from pinnmpc.util.checks import SettingError, setting
 
-TRANSCRIPTIONS = ("rk4", "radau")  # controller.transcription: RK4 shooting or Radau IIA collocation
+TRANSCRIPTIONS = ("rk4", "radau", "network")  # controller.transcription: RK4 shooting, Radau IIA collocation or
+#   a trained network's exported flow map
 PLUGINS = ("ipopt", "sqpmethod", "fatrop")  # controller.solver: CasADi nlpsol plugins
 QP_SOLVERS = ("qrqp", "hpipm", "osqp")  # controller.qpsol: CasADi conic plugins
 OPT_LEVELS = ("-O0", "-O1", "-O2", "-O3", "-Os")  # controller.codegen_opt
@@ -74,7 +75,10 @@ class ClassicalSettings(ControllerSettings):
     """Options passed to casadi.nlpsol per plugin (controller.solvers.sqpmethod.max_iter=30)."""
     transcription: Any = setting("rk4", check=c.one_of(*TRANSCRIPTIONS))
     """rk4: multiple shooting over RK4 sub-steps (rk4_steps) | radau: Radau IIA collocation, the stage accelerations
-    unknowns of the residual M(q) a + h(q, v) - tau(q, v, u) = 0 (no M^-1)."""
+    unknowns of the residual M(q) a + h(q, v) - tau(q, v, u) = 0 (no M^-1) | network: multiple shooting on a trained
+    network's exported flow map (`network`), the way a CasADi user runs it."""
+    network: Any = setting(None, check=c.optional(c.text()))
+    """transcription=network: the surrogate (.pt or training .ckpt); null: the network shipped for the arm."""
     collocation_stages: Any = setting(3, check=c.whole(1))
     """radau: points per interval (order 2 * stages - 1)."""
     collocation_intervals: Any = setting(1, check=c.whole(1))
