@@ -79,6 +79,9 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
         options["rti"] = real_time_default(surrogate, options["rti_trust"]) if cfg.rti is None else cfg.rti
     solver = make_solver(cfg.solver, **options)
     ocp = HorizonOCP(prediction_model(cfg, surrogate, system), cfg.horizon, cfg.Q, cfg.R, cfg.R_rate, cfg.joint_limits)
+    prepare = getattr(solver, "prepare", None)
+    if prepare is not None:  # what the solver compiles for this OCP, built before the first sample
+        prepare(ocp)
     low = surrogate.input_box.low if cfg.u_low is None else cfg.u_low
     high = surrogate.input_box.high if cfg.u_high is None else cfg.u_high
     d = cfg.disturbance

@@ -326,6 +326,10 @@ class HorizonOCP:
             jac[:, end:] = self.limit_jacobian(X, sens)
         return r, jac
 
+    def input_jacobian(self) -> np.ndarray:
+        """d(input residuals)/dU in numpy: constant, the input and input-rate residuals being linear in U."""
+        return self._input_jacobian(np)
+
     def _input_jacobian(self, xp: ModuleType) -> Array:
         """d(input residuals)/dU, computed once per namespace."""
         if xp not in self._jac_u:

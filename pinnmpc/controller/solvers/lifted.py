@@ -13,10 +13,13 @@ import numpy as np
 
 from pinnmpc.controller.array_backend import Array, Nd
 from pinnmpc.controller.box_step import newton_step
+from pinnmpc.controller.compiled_rti import CompiledRti, compiled_step, step_flops
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.controller.shooting import linearise, reached
 from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, SolveResult, project, result
 from pinnmpc.controller.solvers.gauss_newton import GaussNewtonSolver
+
+COMPILED_STEPS: dict[tuple, CompiledRti] = {}  # per (horizon, sizes, damping, weights): the compiled real-time step
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,6 +99,13 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     (the Jacobians are the PINN's, not the derivatives of the values, so promises are inexact)."""
     lifted_max_iter_inexact: int = 20
     """controller.model=exact_values: lifted_max_iter for it (inexact Jacobians converge linearly)."""
+    compiled_step: bool = True
+    """A real-time step of one problem runs its work after the network call (the chain, the Gauss-Newton model, the
+    box step) as one compiled function (pinnmpc.controller.compiled_rti, CasADi-generated C, built once per horizon
+    and weights) where that is small (compiled_max_flops); false: in numpy. The same arithmetic, to rounding."""
+    compiled_max_flops: float = 3.0e5
+    """The largest step (multiply-adds, compiled_rti.step_flops) compiled: beyond it numpy's BLAS is the faster
+    (docs/results.md, section 6)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -249,7 +259,12 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         steps (one by default) from the last plan's states, no convergence test and no further network call. Returns
         the inputs, the last step's linearised prediction of the states and its model cost (the problem counts as
         unconverged). Without a last plan, or with one at the joint limits, _solve solves fully."""
+        compiled = self._compiled(ocp) if U.shape[0] == 1 and self._compiles(ocp) else None
         for _ in range(self.rti_steps):
+            if compiled is not None:
+                U, states, cost = compiled_step(compiled, ocp, nodes, U, refb, upb, lo, hi, self.damping)
+                nodes[:, 1:] = states[:, :-1]
+                continue
             pred, sens, _, _ = linearise(ocp, nodes, U)
             f, jtj, grad = ocp.gauss_newton_model(pred, sens, U, refb, upb)
             delta, _, predicted, _ = newton_step(jtj, grad, U, lo, hi, self.damping)
@@ -257,7 +272,26 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             U = U + step
             states = _moved(pred, sens, step)
             nodes[:, 1:] = states[:, :-1]
-        return U, states, f - predicted
+            cost = f - predicted
+        return U, states, cost
+
+    def prepare(self, ocp: HorizonOCP) -> None:
+        """Build what a real-time iteration on this OCP will call (its compiled step) now, not in a warm sample."""
+        if self.rti and ocp.flow is not None and self._compiles(ocp):
+            self._compiled(ocp)
+
+    def _compiles(self, ocp: HorizonOCP) -> bool:
+        """Whether this OCP's real-time step runs compiled: asked for, and small enough to gain by it."""
+        flops = step_flops(ocp.horizon, ocp.nx, ocp.nu, ocp.weights[np][0])
+        return bool(self.compiled_step) and flops <= self.compiled_max_flops
+
+    def _compiled(self, ocp: HorizonOCP) -> CompiledRti:
+        """The compiled real-time step of this OCP's horizon, weights and damping: built on first use, kept."""
+        weights = ocp.weights[np]
+        key = (ocp.horizon, ocp.nx, ocp.nu, self.damping, *(None if w is None else w.tobytes() for w in weights))
+        if key not in COMPILED_STEPS:  # pure functions of their arguments: shared by every solver in the process
+            COMPILED_STEPS[key] = CompiledRti(ocp.horizon, ocp.nx, ocp.nu, weights, ocp.input_jacobian(), self.damping)
+        return COMPILED_STEPS[key]
 
     def _uses_warm(self, ocp: HorizonOCP) -> bool:
         """Whether a warm start can help here: the states warm start needs the numpy surrogate."""

@@ -1,0 +1,106 @@
+"""The network controller's real-time step after its network call as one compiled function
+(pinnmpc.controller.compiled_rti): the numpy path's arithmetic to rounding, including the steps it hands back to
+numpy (a bound cutting the step short, a joint-limit penalty acting), and on a real closed loop."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from pinnmpc import load_surrogate, load_system
+from pinnmpc.controller.box_step import newton_step
+from pinnmpc.controller.build import build_nmpc
+from pinnmpc.controller.compiled_rti import compiled_step
+from pinnmpc.controller.shooting import linearise
+from pinnmpc.plant.build import make_plant, simulated_arm
+from pinnmpc.simulation.setup import system_reference
+
+TIGHT = 1e-9  # relative: the same arithmetic in another order
+STIFF = 1e-8  # absolute, rad/s: the Panda's Gauss-Newton matrix with an acting penalty (weight 1e5 against inputs
+#   weighted 1e-6) carries rounding in the predictions into the step some 1e8 times larger
+
+
+def controller(make_cfg: Any, name: str, compiled: bool, *overrides: str) -> tuple[Any, Any]:
+    """The arm's configured network NMPC (a real-time iteration), its step compiled or not, and its config."""
+    cfg = make_cfg("closed_loop", [f"system={name}", *overrides])
+    solver = {"solvers": {"lifted_gauss_newton": {"compiled_step": compiled}}}
+    return build_nmpc(OmegaConf.merge(cfg.controller, solver), load_surrogate(system=name), load_system(name)), cfg
+
+
+def numpy_step(ocp: Any, nodes: np.ndarray, U: np.ndarray, *rest: Any) -> tuple[np.ndarray, ...]:
+    """The lifted solver's numpy real-time step (LiftedGaussNewtonSolver._rti_steps, compiled_step false)."""
+    ref, up, lo, hi, damping = rest
+    pred, sens, _, _ = linearise(ocp, nodes, U)
+    f, jtj, grad = ocp.gauss_newton_model(pred, sens, U, ref, up)
+    delta, _, predicted, _ = newton_step(jtj, grad, U, lo, hi, damping)
+    step = np.clip(U + delta, lo, hi) - U
+    return U + step, pred + (sens @ step[..., None])[..., 0].reshape(pred.shape), f - predicted
+
+
+def problem(nmpc: Any, name: str, seed: int, spread: float = 0.3) -> tuple[np.ndarray, ...]:
+    """One real-time step's problem: nodes near a state drawn in the box, inputs drawn over the whole input box."""
+    h, nx = nmpc.ocp.horizon, nmpc.ocp.nx
+    rng, box = np.random.default_rng(seed), load_system(name).state_box
+    centre = (np.asarray(box.low) + np.asarray(box.high)) / 2
+    x = centre + spread * rng.uniform(np.asarray(box.low) - centre, np.asarray(box.high) - centre)
+    nodes = x + np.cumsum(rng.normal(0, 0.01, (1, h, nx)), axis=1)
+    lo, hi = np.tile(nmpc.u_low, h)[None], np.tile(nmpc.u_high, h)[None]
+    u_prev = rng.uniform(nmpc.u_low, nmpc.u_high)[None]
+    return nodes, rng.uniform(lo, hi), nodes + rng.normal(0, 0.05, nodes.shape), u_prev, lo, hi
+
+
+def check(nmpc: Any, name: str, seeds: range, spread: float = 0.3, atol: float = 1e-12) -> set[bool]:
+    """The compiled step against the numpy step on problems of these seeds; whether bounds cut the Newton steps."""
+    solver, ocp = nmpc.solver, nmpc.ocp
+    compiled, cuts = solver._compiled(ocp), set()
+    for seed in seeds:
+        nodes, U, *rest = problem(nmpc, name, seed, spread)
+        net = ocp.step_with_jacobian(nodes, U.reshape(1, ocp.horizon, ocp.nu))
+        cuts.add(compiled(net, nodes, U, *rest).cut)
+        got = compiled_step(compiled, ocp, nodes.copy(), U, *rest, solver.damping)
+        for g, w in zip(got, numpy_step(ocp, nodes.copy(), U, *rest, solver.damping)):
+            np.testing.assert_allclose(g, w, rtol=TIGHT, atol=atol)
+    return cuts
+
+
+def test_the_compiled_step_is_the_numpy_step_and_hands_cut_steps_back(make_cfg: Any) -> None:
+    """PowerCube: inputs drawn over the whole box, so the Newton step leaves it on some problems (the active-set
+    path finishes them in numpy) and not on others; every result the numpy path's."""
+    assert check(controller(make_cfg, "powercube", True)[0], "powercube", range(8)) == {True, False}
+
+
+def test_an_acting_joint_limit_penalty_joins_the_model_as_in_numpy(make_cfg: Any) -> None:
+    """The Panda with its soft joint limits, the nodes spread over the whole box and a little past it: the penalty acts at some nodes
+    (the numpy Gauss-Newton model takes the compiled chain's predictions), the results the numpy path's."""
+    nmpc, _ = controller(make_cfg, "panda", True)
+    nodes = problem(nmpc, "panda", 0, spread=1.1)[0]
+    assert nmpc.ocp.limit_residuals(nodes).any()
+    check(nmpc, "panda", range(3), spread=1.1, atol=STIFF)
+
+
+def test_a_closed_loop_tracks_alike_compiled_or_not(make_cfg: Any) -> None:
+    """planar3 on its plant, 40 samples: the compiled and the numpy controller apply the same inputs to rounding."""
+    loops = []
+    for compiled in (True, False):
+        nmpc, cfg = controller(make_cfg, "planar3", compiled)
+        system = load_system("planar3")
+        plant = make_plant(simulated_arm(system, cfg.system), cfg.plant, system.tau, cfg.system.get("robots"))
+        ref = system_reference(cfg, system, system.tau)
+        x, inputs = np.array(ref.x[0]), []
+        for k in range(40):
+            inputs.append(nmpc.make_step(x, ref.x[k + 1 : k + 1 + nmpc.horizon]))
+            x = plant.step(x, inputs[-1])
+        loops.append(np.array(inputs))
+    assert np.abs(loops[0]).max() > 0
+    np.testing.assert_allclose(loops[0], loops[1], rtol=1e-7, atol=1e-9)
+
+
+@pytest.mark.parametrize(("name", "horizon", "compiles"), [("powercube", 5, True), ("panda", 20, False)])
+def test_only_small_steps_are_compiled(make_cfg: Any, name: str, horizon: int, compiles: bool) -> None:
+    """compiled_max_flops: numpy's BLAS does a large step (the Panda at H = 20) faster than C without it."""
+    nmpc, _ = controller(make_cfg, name, True, f"controller.horizon={horizon}")
+    assert nmpc.solver._compiles(nmpc.ocp) is compiles
+    assert not controller(make_cfg, name, False, f"controller.horizon={horizon}")[0].solver._compiles(nmpc.ocp)
