@@ -73,8 +73,9 @@ def test_the_compiled_step_is_the_numpy_step_and_hands_cut_steps_back(make_cfg: 
 
 
 def test_an_acting_joint_limit_penalty_joins_the_model_as_in_numpy(make_cfg: Any) -> None:
-    """The Panda with its soft joint limits, the nodes spread over the whole box and a little past it: the penalty acts at some nodes
-    (the numpy Gauss-Newton model takes the compiled chain's predictions), the results the numpy path's."""
+    """The Panda with its soft joint limits, the nodes spread over the whole box and a little past it: the penalty
+    acts at some nodes (the numpy Gauss-Newton model takes the compiled chain's predictions), the results the numpy
+    path's."""
     nmpc, _ = controller(make_cfg, "panda", True)
     nodes = problem(nmpc, "panda", 0, spread=1.1)[0]
     assert nmpc.ocp.limit_residuals(nodes).any()
