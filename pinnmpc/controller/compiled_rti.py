@@ -12,7 +12,6 @@ path, box_step.active_set_path) and a plan whose joint-limit penalty acts (Horiz
 from __future__ import annotations
 
 import hashlib
-from typing import NamedTuple
 
 import casadi as ca
 import numpy as np
@@ -21,23 +20,71 @@ from pinnmpc.controller.box_step import BOUND_TOL, active_set_path, newton_step
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.systems.compiled import compile_functions
 
-OUTPUTS = ("U", "states", "cost", "cut", "pred", "sens", "jtj", "hess", "grad", "fixed", "f")
+OUTPUTS = ("inputs", "states", "cost", "cut", "pred", "sens", "jtj", "hess", "grad", "fixed", "f")
 
 
-class RtiStep(NamedTuple):
-    """One compiled real-time step at batch 1 (rows of one): the step's result and what a numpy finish needs."""
+class RtiStep:
+    """One compiled real-time step at batch 1 (rows of one): the step's result and, read only where a numpy finish
+    needs them, its intermediates (each a view of the one result vector, shaped when asked for)."""
 
-    U: np.ndarray  # (1, n) the inputs after the step
-    states: np.ndarray  # (1, H, nx) the linearised states they reach
-    cost: np.ndarray  # (1,) the model's cost after the step
-    cut: bool  # a bound cut the Newton step short: the active-set path must finish it
-    pred: np.ndarray  # (1, H, nx) the linearised predictions at the current inputs
-    sens: np.ndarray  # (1, H nx, n) their sensitivities to the inputs
-    jtj: np.ndarray  # (1, n, n) J^T J of the Gauss-Newton model
-    hess: np.ndarray  # (1, n, n) the same, damped
-    grad: np.ndarray  # (1, n) the cost's gradient
-    fixed: np.ndarray  # (1, n) bool: the inputs held at a bound
-    f: np.ndarray  # (1,) the model's cost at the current inputs
+    def __init__(self, out: np.ndarray, cuts: np.ndarray, horizon: int, nx: int, nu: int) -> None:
+        self._out, self._cuts, self._dims = out, cuts, (horizon, nx, horizon * nu)
+        self.cut = bool(out[cuts[3]] > 0.5)  # a bound cut the Newton step short: the active-set path must finish it
+
+    def _part(self, k: int) -> np.ndarray:
+        """The k-th result (OUTPUTS' order), flat."""
+        return self._out[self._cuts[k] : self._cuts[k + 1]]
+
+    @property
+    def inputs(self) -> np.ndarray:
+        """(1, n) the inputs after the step."""
+        return self._part(0)[None]
+
+    @property
+    def states(self) -> np.ndarray:
+        """(1, H, nx) the linearised states they reach."""
+        return self._part(1).reshape(1, *self._dims[:2])
+
+    @property
+    def cost(self) -> np.ndarray:
+        """(1,) the model's cost after the step."""
+        return self._part(2)
+
+    @property
+    def pred(self) -> np.ndarray:
+        """(1, H, nx) the linearised predictions at the current inputs."""
+        return self._part(4).reshape(1, *self._dims[:2])
+
+    @property
+    def sens(self) -> np.ndarray:
+        """(1, H nx, n) their sensitivities to the inputs."""
+        h, nx, n = self._dims
+        return self._part(5).reshape(1, h * nx, n)
+
+    @property
+    def jtj(self) -> np.ndarray:
+        """(1, n, n) J^T J of the Gauss-Newton model."""
+        return self._part(6).reshape(1, self._dims[2], self._dims[2])
+
+    @property
+    def hess(self) -> np.ndarray:
+        """(1, n, n) the same, damped."""
+        return self._part(7).reshape(1, self._dims[2], self._dims[2])
+
+    @property
+    def grad(self) -> np.ndarray:
+        """(1, n) the cost's gradient."""
+        return self._part(8)[None]
+
+    @property
+    def fixed(self) -> np.ndarray:
+        """(1, n) bool: the inputs held at a bound."""
+        return self._part(9)[None] > 0.5
+
+    @property
+    def f(self) -> np.ndarray:
+        """(1,) the model's cost at the current inputs."""
+        return self._part(10)
 
 
 def step_flops(horizon: int, nx: int, nu: int, w_q: np.ndarray) -> int:
@@ -141,28 +188,11 @@ class CompiledRti:
     ) -> RtiStep:
         """One step for one problem: the network's (y, A, B) at the nodes (1, H, ...), the rest as the lifted solver
         holds them (rows of one)."""
-        h, nx, n = self.horizon, self.nx, self.horizon * self.nu
         cuts = self.cuts_in
         for i, v in enumerate((*ynet, nodes, U, ref, u_prev, lo, hi)):
             self._in[cuts[i] : cuts[i + 1]] = v.reshape(-1)
         self._evaluate()
-        out = self._out.copy()
-        u, states, cost, cut, pred, sens, jtj, hess, grad, fixed, f = (
-            out[a:b] for a, b in zip(self.cuts_out[:-1], self.cuts_out[1:])
-        )
-        return RtiStep(
-            u[None],
-            states.reshape(1, h, nx),
-            cost,
-            bool(cut[0] > 0.5),
-            pred.reshape(1, h, nx),
-            sens.reshape(1, h * nx, n),
-            jtj.reshape(1, n, n),
-            hess.reshape(1, n, n),
-            grad[None],
-            fixed[None] > 0.5,
-            f,
-        )
+        return RtiStep(self._out.copy(), self.cuts_out, self.horizon, self.nx, self.nu)
 
 
 def _packed(f: ca.Function) -> ca.Function:
@@ -193,7 +223,7 @@ def compiled_step(
     step = compiled(ocp.step_with_jacobian(nodes, U.reshape(1, ocp.horizon, ocp.nu)), nodes, U, refb, upb, lo, hi)
     limits = ocp.joint_limits is not None and bool(ocp.limit_residuals(step.pred).any())
     if not step.cut and not limits:
-        return step.U, step.states, step.cost
+        return step.inputs, step.states, step.cost
     f, jtj, grad, hess, fixed = step.f, step.jtj, step.grad, step.hess, step.fixed
     if limits:  # the penalty's rows join the model (the numpy path's own)
         f, jtj, grad = ocp.gauss_newton_model(step.pred, step.sens, U, refb, upb)

@@ -160,7 +160,7 @@ class NMPC:
             args = tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in args)
         x0b, U0, refb, u_prev, low, high = args
         U, info, next_warm = self.solver.solve(Problem(self.ocp, x0b, refb, u_prev, low, high), U0, self._warm)
-        return np.clip(np.asarray(U, dtype=np.float64)[0], self._low, self._high), info, next_warm
+        return np.minimum(np.maximum(np.asarray(U, dtype=np.float64)[0], self._low), self._high), info, next_warm
 
     def make_step(self, x: np.ndarray | Tensor, x_ref: np.ndarray | Tensor) -> np.ndarray:
         """Input to apply now, given the measured state and the next H reference states."""

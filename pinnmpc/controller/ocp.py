@@ -133,7 +133,7 @@ class HorizonOCP:
             self._disturbance = {np: None, torch: None}
             return
         d = np.array(d, dtype=np.float64)
-        if d.shape != (self.nx,) or not np.all(np.isfinite(d)):
+        if d.shape != (self.nx,) or not np.isfinite(d).all():
             raise ValueError(f"disturbance must be {self.nx} finite numbers (one per state), got {d.tolist()}")
         self._disturbance = {np: d, torch: torch.from_numpy(d)}
 

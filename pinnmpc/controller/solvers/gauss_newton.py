@@ -158,8 +158,8 @@ class GaussNewtonSolver:
         n = shape[-1] * shape[-2]
         x0b, refb = x0.reshape(-1, x0.shape[-1]), x_ref.reshape(-1, *x_ref.shape[-2:])
         upb = u_prev.reshape(-1, shape[-1])
-        U = np.clip(U0, low, high).reshape(-1, n)
-        lo, hi = np.broadcast_to(low, shape).reshape(-1, n), np.broadcast_to(high, shape).reshape(-1, n)
+        U = np.minimum(np.maximum(U0, low), high).reshape(-1, n)  # np.clip's values, without its Python wrapper
+        lo, hi = (np.zeros(shape) + low).reshape(-1, n), (np.zeros(shape) + high).reshape(-1, n)
         batch = U.shape[0]
         r, jac, sens = self._jacobian(ocp, x0b, U, refb, upb, prior)
         cost = np.einsum("bm,bm->b", r, r)

@@ -6,6 +6,7 @@ within the box pinnmpc.controller.box_step's.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -20,6 +21,7 @@ from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo,
 from pinnmpc.controller.solvers.gauss_newton import GaussNewtonSolver
 
 COMPILED_STEPS: dict[tuple, CompiledRti] = {}  # per (horizon, sizes, damping, weights): the compiled real-time step
+STEP_OF: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # per OCP and solver choice: its step (None: numpy)
 
 
 @dataclass(frozen=True, eq=False)
@@ -145,12 +147,12 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         n = horizon * nu
         x0b, refb = x0.reshape(-1, nx), x_ref.reshape(-1, horizon, nx)
         upb = u_prev.reshape(-1, nu)
-        U = np.clip(U0, low, high).reshape(-1, n)
-        lo, hi = np.broadcast_to(low, shape).reshape(-1, n), np.broadcast_to(high, shape).reshape(-1, n)
+        U = np.minimum(np.maximum(U0, low), high).reshape(-1, n)  # np.clip's values, without its Python wrapper
+        lo, hi = (np.zeros(shape) + low).reshape(-1, n), (np.zeros(shape) + high).reshape(-1, n)
         batch = U.shape[0]
         nodes = np.empty((batch, horizon, nx))  # s_0 = x0 (fixed), s_1..s_{H-1} lifted
         nodes[:, 0] = x0b
-        done = np.zeros(batch, dtype=np.int64)  # steps already taken (a real-time iteration's)
+        done = 0  # steps already taken (a real-time iteration's)
         if prior is not None:  # the last plan's states x_2..x_H are this plan's s_1..s_{H-1}
             nodes[:, 1:] = prior[:, 1:]
             if self.rti:
@@ -158,7 +160,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
                 U, states, cost = self._rti_steps(ocp, nodes, U, refb, upb, lo, hi)
                 limits = ocp.joint_limits
                 trust = np.inf if self.rti_trust is None else self.rti_trust
-                wild = bool((np.abs(U - before) > trust * (hi - lo)).any())  # the step left its model's reach
+                # the step left its model's reach (no step does where every one is trusted)
+                wild = trust != np.inf and bool((np.abs(U - before) > trust * (hi - lo)).any())
                 if not wild and (limits is None or not (limits.reached(prior) | limits.reached(states)).any()):
                     unconverged = np.zeros(batch, dtype=bool)
                     return result(shape, U, np.full(batch, self.rti_steps, dtype=np.int64), cost, unconverged, states)
@@ -174,7 +177,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             nodes[:, 1:] = ocp.rollout(x0b, U.reshape(-1, horizon, nu))[:, :-1]
         start_cost = None  # the model's cost of U0 at the first linearisation
         running = np.ones(batch, dtype=bool)
-        iterations = done.copy()
+        iterations = np.full(batch, done, dtype=np.int64)
         predictions = np.full((batch, 2), np.nan)  # the two previous predicted decreases, latest first
         was_cut = np.ones(batch, dtype=bool)  # whether a bound cut the previous step short (none taken yet)
         promised = np.full(batch, np.inf)  # the model's cost of the point each problem stops at (after its step)
@@ -259,7 +262,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         steps (one by default) from the last plan's states, no convergence test and no further network call. Returns
         the inputs, the last step's linearised prediction of the states and its model cost (the problem counts as
         unconverged). Without a last plan, or with one at the joint limits, _solve solves fully."""
-        compiled = self._compiled(ocp) if U.shape[0] == 1 and self._compiles(ocp) else None
+        compiled = self._compiled(ocp) if U.shape[0] == 1 else None
         for _ in range(self.rti_steps):
             if compiled is not None:
                 U, states, cost = compiled_step(compiled, ocp, nodes, U, refb, upb, lo, hi, self.damping)
@@ -277,7 +280,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
 
     def prepare(self, ocp: HorizonOCP) -> None:
         """Build what a real-time iteration on this OCP will call (its compiled step) now, not in a warm sample."""
-        if self.rti and ocp.flow is not None and self._compiles(ocp):
+        if self.rti and ocp.flow is not None:
             self._compiled(ocp)
 
     def _compiles(self, ocp: HorizonOCP) -> bool:
@@ -285,13 +288,21 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         flops = step_flops(ocp.horizon, ocp.nx, ocp.nu, ocp.weights[np][0])
         return bool(self.compiled_step) and flops <= self.compiled_max_flops
 
-    def _compiled(self, ocp: HorizonOCP) -> CompiledRti:
-        """The compiled real-time step of this OCP's horizon, weights and damping: built on first use, kept."""
-        weights = ocp.weights[np]
-        key = (ocp.horizon, ocp.nx, ocp.nu, self.damping, *(None if w is None else w.tobytes() for w in weights))
-        if key not in COMPILED_STEPS:  # pure functions of their arguments: shared by every solver in the process
-            COMPILED_STEPS[key] = CompiledRti(ocp.horizon, ocp.nx, ocp.nu, weights, ocp.input_jacobian(), self.damping)
-        return COMPILED_STEPS[key]
+    def _compiled(self, ocp: HorizonOCP) -> CompiledRti | None:
+        """The compiled real-time step of this OCP's horizon, weights and damping (None: numpy's), decided and built
+        on first use and kept with the OCP."""
+        mine = STEP_OF.setdefault(ocp, {})
+        choice = (bool(self.compiled_step), float(self.compiled_max_flops), float(self.damping))
+        if choice not in mine:
+            mine[choice] = None
+            if self._compiles(ocp):
+                weights = ocp.weights[np]
+                key = (ocp.horizon, ocp.nx, ocp.nu, self.damping, *(w if w is None else w.tobytes() for w in weights))
+                if key not in COMPILED_STEPS:  # pure functions of their arguments: shared by every solver
+                    jac_u = ocp.input_jacobian()
+                    COMPILED_STEPS[key] = CompiledRti(ocp.horizon, ocp.nx, ocp.nu, weights, jac_u, self.damping)
+                mine[choice] = COMPILED_STEPS[key]
+        return mine[choice]
 
     def _uses_warm(self, ocp: HorizonOCP) -> bool:
         """Whether a warm start can help here: the states warm start needs the numpy surrogate."""
