@@ -60,7 +60,7 @@ def check(nmpc: Any, name: str, seeds: range, spread: float = 0.3, atol: float =
         nodes, U, *rest = problem(nmpc, name, seed, spread)
         net = ocp.step_with_jacobian(nodes, U.reshape(1, ocp.horizon, ocp.nu))
         cuts.add(compiled(net, nodes, U, *rest).cut)
-        got = compiled_step(compiled, ocp, nodes.copy(), U, *rest, solver.damping)
+        got = compiled_step(compiled, ocp, nodes.copy(), U, tuple(rest), solver.damping)
         for g, w in zip(got, numpy_step(ocp, nodes.copy(), U, *rest, solver.damping)):
             np.testing.assert_allclose(g, w, rtol=TIGHT, atol=atol)
     return cuts

@@ -207,19 +207,12 @@ def _packed(f: ca.Function) -> ca.Function:
 
 
 def compiled_step(
-    compiled: CompiledRti,
-    ocp: HorizonOCP,
-    nodes: np.ndarray,
-    U: np.ndarray,
-    refb: np.ndarray,
-    upb: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    damping: float,
+    compiled: CompiledRti, ocp: HorizonOCP, nodes: np.ndarray, U: np.ndarray, data: tuple, damping: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One real-time lifted step of one problem as LiftedGaussNewtonSolver._rti_steps takes it (inputs, the states
     they reach, the model's cost after the step): the network at the nodes, then the compiled step, finished in
-    numpy where a bound cuts it short or a joint-limit penalty acts."""
+    numpy where a bound cuts it short or a joint-limit penalty acts. data: (reference, u_prev, low, high) rows."""
+    refb, upb, lo, hi = data
     step = compiled(ocp.step_with_jacobian(nodes, U.reshape(1, ocp.horizon, ocp.nu)), nodes, U, refb, upb, lo, hi)
     limits = ocp.joint_limits is not None and bool(ocp.limit_residuals(step.pred).any())
     if not step.cut and not limits:

@@ -265,7 +265,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         compiled = self._compiled(ocp) if U.shape[0] == 1 else None
         for _ in range(self.rti_steps):
             if compiled is not None:
-                U, states, cost = compiled_step(compiled, ocp, nodes, U, refb, upb, lo, hi, self.damping)
+                U, states, cost = compiled_step(compiled, ocp, nodes, U, (refb, upb, lo, hi), self.damping)
                 nodes[:, 1:] = states[:, :-1]
                 continue
             pred, sens, _, _ = linearise(ocp, nodes, U)
