@@ -105,3 +105,18 @@ def test_only_small_steps_are_compiled(make_cfg: Any, name: str, horizon: int, c
     nmpc, _ = controller(make_cfg, name, True, f"controller.horizon={horizon}")
     assert (nmpc.solver._compiled(nmpc.ocp) is not None) is compiles
     assert not controller(make_cfg, name, False, f"controller.horizon={horizon}")[0].solver._compiles(nmpc.ocp)
+
+
+def test_one_problems_box_step_solves_its_free_variables_alone_as_the_batch_does() -> None:
+    """masked_solve at batch 1 solves the free variables' own system; in a batch the masked whole: the same step."""
+    from pinnmpc.controller.box_step import masked_solve
+
+    rng = np.random.default_rng(0)
+    jac = rng.normal(size=(2, 60, 30))
+    hess, grad = jac.swapaxes(-1, -2) @ jac, rng.normal(size=(2, 30))
+    fixed = rng.uniform(size=(2, 30)) < 0.4
+    batch = masked_solve(hess, grad, fixed)
+    for k in range(2):
+        alone = masked_solve(hess[k : k + 1], grad[k : k + 1], fixed[k : k + 1])
+        np.testing.assert_allclose(alone, batch[k : k + 1], rtol=1e-10, atol=1e-14)
+        assert np.all(alone[fixed[k : k + 1]] == 0.0)

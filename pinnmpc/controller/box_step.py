@@ -84,6 +84,10 @@ def masked_solve(hess: np.ndarray, grad: np.ndarray, fixed: np.ndarray) -> np.nd
     in one solve whatever each problem's active set."""
     if not fixed.any():
         return np.linalg.solve(hess, -0.5 * grad[..., None])[..., 0]
+    if hess.shape[0] == 1:  # one problem: the free variables' own system, smaller than the masked whole
+        free, out = np.flatnonzero(~fixed[0]), np.zeros_like(grad)
+        out[0, free] = np.linalg.solve(hess[0][np.ix_(free, free)], -0.5 * grad[0, free])
+        return out
     free = ~fixed
     m = hess * (free[:, :, None] & free[:, None, :])
     np.einsum("bii->bi", m)[...] += fixed
