@@ -294,6 +294,7 @@ def test_targets_verdict_says_what_was_missed_and_by_how_much() -> None:
 def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
     result = bench[0]
     cl = result["classical"]
+    assert not any("offset-free" in r["label"] for r in cl["rows"].values())  # the table adds the mode, once
     mismatch = ["pinn_lifted_gauss_newton_friction_0.8", "classical_friction_0.8"]
     mismatch += ["pinn_lifted_gauss_newton_friction_1.2", "classical_friction_1.2"]
     exact_rows = ["pinn_lifted_gauss_newton_exact_values", "pinn_lifted_gauss_newton_exact_values_rti"]

@@ -9,7 +9,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.bench.loops import loop_row, mode, run_controller
+from pinnmpc.bench.loops import loop_row, run_controller
 from pinnmpc.controller.settings import GAUSS_NEWTON
 from pinnmpc.references.files import Reference
 from pinnmpc.surrogate.checkpoint import Surrogate
@@ -155,7 +155,7 @@ def bench_classical(
     for name, settings in variants:
         controller = build_casadi_nmpc(settings, system)  # compiled here, outside the timed loop
         row = loop_row(cfg, system, controller, None, system.tau, ref)
-        label = f"classical NMPC, {row['solver']}" + mode(row)  # offset-free where the arm's default runs it
+        label = f"classical NMPC, {row['solver']}"  # the table adds the mode (offset-free where the arm runs it)
         rows[f"classical_{name}"] = {**row, "label": label, "model": "classical"}
         log.info("classical: %s done in %.1f s", row["solver"], row["wall_s"])
     for scale in (float(f) for f in cfg.classical.friction_scales):
