@@ -577,3 +577,11 @@ def test_the_robot_section_runs_every_controller_on_the_robot(tmp_path: Path) ->
     assert "Best classical per reference" in report
     with pytest.raises(ValueError, match="expected plant=mujoco plant.robot=<name>"):
         run_bench(_cfg(["system=planar3", *off, "robot.enabled=true", "progress=false"]), tmp_path / "b")
+
+
+def test_the_peers_are_skipped_in_one_line_without_the_classical_config(tmp_path: Path) -> None:
+    """The peers are the classical NMPC on the network: without its config the section says so, nothing runs."""
+    off = [o for o in SECTIONS_OFF if o != "peers.enabled=false"]
+    result = run_bench(_cfg([*TINY, *off, "~controller@classical.controller"]), tmp_path)
+    assert result["peers"] == {"skipped": "conf/controller/casadi.yaml is absent"}
+    assert "Skipped: conf/controller/casadi.yaml is absent." in (tmp_path / "bench.md").read_text()

@@ -69,6 +69,8 @@ def bench_peers(cfg: DictConfig, system: System, surrogate: Surrogate, ref: Refe
 
 def md_peers(section: dict[str, Any]) -> str:
     """Section 10's table: OCP time of ours and of each peer on the same network, interleaved."""
+    if "skipped" in section:
+        return f"## 10. Peers on the same network\n\nSkipped: {section['skipped']}.\n"
     lines = [
         f"## 10. Peers on the same network ({section['solver']} against CasADi's real-time iteration on the exported "
         f"flow map, {section['reference']})",
