@@ -4,6 +4,7 @@ process, on the same reference, plant and protocol: one table per system."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -20,10 +21,11 @@ log = logging.getLogger(__name__)
 CASADI_CONFIG = "conf/controller/casadi.yaml"  # where the classical controller's settings come from
 
 
-def classical_cfg(cfg: DictConfig, solver: str) -> DictConfig:
-    """The classical controller's config with `solver`, and the settings listed in classical.shared (horizon,
-    weights, bounds, offset-free estimator) taken from the PINN controller, so both solve the same problem."""
-    shared = {k: cfg.controller[k] for k in cfg.classical.shared if k in cfg.controller}
+def classical_cfg(cfg: DictConfig, solver: str, keys: Sequence[str] | None = None) -> DictConfig:
+    """The classical controller's config with `solver`, and the settings listed in keys (null: classical.shared:
+    horizon, weights, bounds, offset-free estimator) taken from the PINN controller, so both solve the same problem."""
+    keys = cfg.classical.shared if keys is None else keys
+    shared = {k: cfg.controller[k] for k in keys if k in cfg.controller}
     return OmegaConf.merge(cfg.classical.controller, shared, {"solver": solver})
 
 

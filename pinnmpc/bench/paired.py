@@ -46,7 +46,8 @@ def paired_ocp(
             times[key].append(c.stats[-1].time_s)
             try:
                 loops[key] = (c, p, p.step(x, u))
-                errors[key].append(np.abs(loops[key][2][:nq] - ref.x[k + 1][:nq]) if nq else np.zeros(0))
+                if nq:
+                    errors[key].append(np.abs(loops[key][2][:nq] - ref.x[k + 1][:nq]))
             except PlantError as e:
                 status = f"plant_failure ({key}, step {k}): {e}"
                 break

@@ -12,6 +12,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from pinnmpc.bench.classical import classical_cfg
 from pinnmpc.bench.common import controller_cfg, make_plant
 from pinnmpc.bench.paired import paired_ocp
 from pinnmpc.controller.build import build_nmpc
@@ -33,9 +34,8 @@ UNINSTALLABLE = {  # peers that need a package pip cannot install here: (module,
 def peer_cfg(cfg: DictConfig, horizon: int, qpsol: str) -> DictConfig:
     """The classical NMPC on the bench's network (checkpoint) as a real-time iteration with qpsol, sharing
     peers.shared (weights, bounds, limits, estimator) with the network controller at this horizon."""
-    shared = {k: cfg.controller[k] for k in cfg.peers.shared if k in cfg.controller}
     own = {"transcription": "network", "network": cfg.checkpoint, "rti": True, "qpsol": qpsol, "horizon": horizon}
-    return OmegaConf.merge(cfg.classical.controller, shared, own)
+    return OmegaConf.merge(classical_cfg(cfg, "sqpmethod", cfg.peers.shared), own)
 
 
 def missing_peers() -> dict[str, str]:

@@ -11,8 +11,6 @@ path, box_step.active_set_path) and a plan whose joint-limit penalty acts (Horiz
 
 from __future__ import annotations
 
-import hashlib
-
 import casadi as ca
 import numpy as np
 
@@ -21,6 +19,7 @@ from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.systems.compiled import compile_functions
 
 OUTPUTS = ("inputs", "states", "cost", "cut", "pred", "sens", "jtj", "hess", "grad", "fixed", "f")
+POSITION = {name: k for k, name in enumerate(OUTPUTS)}  # each result's place in the result vector
 
 
 class RtiStep:
@@ -29,62 +28,65 @@ class RtiStep:
 
     def __init__(self, out: np.ndarray, cuts: np.ndarray, horizon: int, nx: int, nu: int) -> None:
         self._out, self._cuts, self._dims = out, cuts, (horizon, nx, horizon * nu)
-        self.cut = bool(out[cuts[3]] > 0.5)  # a bound cut the Newton step short: the active-set path must finish it
+        self.cut = bool(
+            out[cuts[POSITION["cut"]]] > 0.5
+        )  # a bound cut the Newton step short: the active-set path must finish it
 
-    def _part(self, k: int) -> np.ndarray:
-        """The k-th result (OUTPUTS' order), flat."""
+    def _part(self, name: str) -> np.ndarray:
+        """The result of that name (OUTPUTS), flat."""
+        k = POSITION[name]
         return self._out[self._cuts[k] : self._cuts[k + 1]]
 
     @property
     def inputs(self) -> np.ndarray:
         """(1, n) the inputs after the step."""
-        return self._part(0)[None]
+        return self._part("inputs")[None]
 
     @property
     def states(self) -> np.ndarray:
         """(1, H, nx) the linearised states they reach."""
-        return self._part(1).reshape(1, *self._dims[:2])
+        return self._part("states").reshape(1, *self._dims[:2])
 
     @property
     def cost(self) -> np.ndarray:
         """(1,) the model's cost after the step."""
-        return self._part(2)
+        return self._part("cost")
 
     @property
     def pred(self) -> np.ndarray:
         """(1, H, nx) the linearised predictions at the current inputs."""
-        return self._part(4).reshape(1, *self._dims[:2])
+        return self._part("pred").reshape(1, *self._dims[:2])
 
     @property
     def sens(self) -> np.ndarray:
         """(1, H nx, n) their sensitivities to the inputs."""
         h, nx, n = self._dims
-        return self._part(5).reshape(1, h * nx, n)
+        return self._part("sens").reshape(1, h * nx, n)
 
     @property
     def jtj(self) -> np.ndarray:
         """(1, n, n) J^T J of the Gauss-Newton model."""
-        return self._part(6).reshape(1, self._dims[2], self._dims[2])
+        return self._part("jtj").reshape(1, self._dims[2], self._dims[2])
 
     @property
     def hess(self) -> np.ndarray:
         """(1, n, n) the same, damped."""
-        return self._part(7).reshape(1, self._dims[2], self._dims[2])
+        return self._part("hess").reshape(1, self._dims[2], self._dims[2])
 
     @property
     def grad(self) -> np.ndarray:
         """(1, n) the cost's gradient."""
-        return self._part(8)[None]
+        return self._part("grad")[None]
 
     @property
     def fixed(self) -> np.ndarray:
         """(1, n) bool: the inputs held at a bound."""
-        return self._part(9)[None] > 0.5
+        return self._part("fixed")[None] > 0.5
 
     @property
     def f(self) -> np.ndarray:
         """(1,) the model's cost at the current inputs."""
-        return self._part(10)
+        return self._part("f")
 
 
 def step_flops(horizon: int, nx: int, nu: int, w_q: np.ndarray) -> int:
@@ -165,10 +167,8 @@ class CompiledRti:
         w_q, _, w_d = weights
         self.horizon, self.nx, self.nu = horizon, nx, nu
         f = rti_function(horizon, nx, nu, np.asarray(w_q), np.asarray(jac_u), w_d, float(damping))
-        packed = _packed(f)
-        digest = hashlib.sha1(packed.serialize().encode()).hexdigest()[:10]
-        name = f"rti_step_{horizon}x{nx}x{nu}_{digest}"
-        self.f = compile_functions(name, [packed], opt="-O3")["rti_packed"]
+        name = f"rti_step_{horizon}x{nx}x{nu}"  # the compiled cache tells weights apart by the C's hash
+        self.f = compile_functions(name, [_packed(f)], opt="-O3")["rti_packed"]
         self.cuts_in = np.cumsum([0, *(f.numel_in(i) for i in range(f.n_in()))])
         self.cuts_out = np.cumsum([0, *(f.numel_out(j) for j in range(f.n_out()))])
         self._in, self._out = np.empty(self.cuts_in[-1]), np.empty(self.cuts_out[-1])
