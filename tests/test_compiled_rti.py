@@ -120,3 +120,40 @@ def test_one_problems_box_step_solves_its_free_variables_alone_as_the_batch_does
         alone = masked_solve(hess[k : k + 1], grad[k : k + 1], fixed[k : k + 1])
         np.testing.assert_allclose(alone, batch[k : k + 1], rtol=1e-10, atol=1e-14)
         assert np.all(alone[fixed[k : k + 1]] == 0.0)
+
+
+def test_one_problems_active_set_path_downdates_its_inverse_to_the_batchs_path() -> None:
+    """At batch 1 the active-set path downdates one inverse as bounds are met (many here); the batch factors anew
+    per segment: the same path, every step inside the box, and the model lower than the clipped Newton step's."""
+    from pinnmpc.controller.box_step import active_set_path
+
+    rng = np.random.default_rng(3)
+    jac = rng.normal(size=(2, 120, 60))
+    hess, grad = jac.swapaxes(-1, -2) @ jac + 1e-3 * np.eye(60), 400.0 * rng.normal(size=(2, 60))
+    u, lo, hi = rng.uniform(-1, 1, (2, 60)), -np.ones((2, 60)), np.ones((2, 60))
+    fixed = np.zeros((2, 60), dtype=bool)
+    batch = active_set_path(hess, grad, fixed, u, lo, hi)
+    for k in range(2):
+        alone = active_set_path(hess[k : k + 1], grad[k : k + 1], fixed[k : k + 1], u[k : k + 1], lo[k], hi[k])
+        np.testing.assert_allclose(alone, batch[k : k + 1], rtol=1e-9, atol=1e-12)
+        moved = u[k] + alone[0]
+        assert np.all((moved >= lo[k] - 1e-12) & (moved <= hi[k] + 1e-12))
+        assert np.sum(np.isclose(np.abs(moved), 1.0)) >= 10  # a long path: many bounds met on the way
+
+        def model(d: np.ndarray, k: int = k) -> float:
+            """The Gauss-Newton model of the step d."""
+            return float(grad[k] @ d + d @ hess[k] @ d)
+
+        clipped = np.clip(u[k] - 0.5 * np.linalg.solve(hess[k], grad[k]), lo[k], hi[k]) - u[k]
+        assert model(alone[0]) < model(clipped)
+    steps = newton_step(hess / 2, grad, u, lo, hi, 0.0)  # the same model: the step's own damping is 0
+    assert steps.cut.all()
+    for k in range(2):
+        alone = newton_step(hess[k : k + 1] / 2, grad[k : k + 1], u[k : k + 1], lo[k], hi[k], 0.0)
+        np.testing.assert_allclose(alone.delta, steps.delta[k : k + 1], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(alone.predicted, steps.predicted[k : k + 1], rtol=1e-9)
+        assert alone.cut[0] == steps.cut[k]
+    singular = np.zeros((1, 4, 4))  # no Cholesky factor: the batched path's solves
+    singular[0, :2, :2] = np.eye(2)
+    with pytest.raises(np.linalg.LinAlgError):
+        active_set_path(singular, np.ones((1, 4)), np.zeros((1, 4), dtype=bool), np.zeros((1, 4)), -1.0, 1.0)

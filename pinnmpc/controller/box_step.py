@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf, dpotrs
 
 BOUND_TOL = 1e-12  # relative to the box width: closer than this to a bound counts as on it
 
@@ -47,11 +48,15 @@ def newton_step(
     hess = jtj.copy()
     diagonal = np.einsum("bii->bi", hess)  # a writable view
     diagonal += damping * np.maximum(diagonal.mean(-1, keepdims=True), 1e-30)
-    delta = masked_solve(hess, grad, fixed)
-    moved = u + delta
-    cut = (~fixed & ((moved > hi) | (moved < lo))).any(-1)
-    if cut.any():
-        delta = active_set_path(hess, grad, fixed, u, lo, hi)
+    one = _path_one(hess[0], grad[0], fixed[0], u[0], *_rows(lo, hi, u)) if u.shape[0] == 1 else None
+    if one is not None:  # one problem: its Newton step and, where a bound cuts it, the path, on one factor
+        delta, cut = one[0][None], np.array([one[1]])
+    else:
+        delta = masked_solve(hess, grad, fixed)
+        moved = u + delta
+        cut = (~fixed & ((moved > hi) | (moved < lo))).any(-1)
+        if cut.any():
+            delta = active_set_path(hess, grad, fixed, u, lo, hi)
     # ||r||^2 - ||r + J delta||^2 = -(grad . delta + delta^T J^T J delta)
     predicted = -np.einsum("bi,bi->b", delta, grad + np.matmul(jtj, delta[..., None])[..., 0])
     return BoxStep(delta, pgrad_max, predicted, cut)
@@ -62,6 +67,9 @@ def active_set_path(
 ) -> np.ndarray:
     """Piecewise-linear path of the primal active-set method: Newton direction on the free variables,
     cut at the first bound it meets, which joins the fixed ones; for steps a bound cuts short."""
+    one = _path_one(hess[0], grad[0], fixed[0], u[0], *_rows(lo, hi, u)) if u.shape[0] == 1 else None
+    if one is not None:
+        return one[0][None]
     delta, fixed, done = np.zeros_like(u), fixed.copy(), np.zeros(u.shape[0], dtype=bool)
     for _ in range(u.shape[-1] + 1):
         model_grad = grad + 2.0 * np.matmul(hess, delta[..., None])[..., 0]
@@ -77,6 +85,58 @@ def active_set_path(
         if done.all():
             break
     return delta
+
+
+def _rows(lo: np.ndarray | float, hi: np.ndarray | float, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first problem's bounds, however lo and hi broadcast against u (B, n)."""
+    return np.broadcast_to(lo, u.shape)[0], np.broadcast_to(hi, u.shape)[0]
+
+
+def _path_one(
+    hess: np.ndarray, grad: np.ndarray, fixed: np.ndarray, u: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> tuple[np.ndarray, bool] | None:
+    """The Newton step of one problem on its free variables and, where a bound cuts it short, active_set_path's
+    path on the same Cholesky factor of their block: a bound met on the way joins as a constraint of the bordered
+    system (through its Schur complement, as small as the bounds met), so a segment costs triangular solves where the
+    batched path factors again. The step and whether a bound cut it; None where that block is not positive
+    definite."""
+    free = np.flatnonzero(~fixed)
+    if not free.size:
+        return np.zeros_like(u), False
+    sub = hess[np.ix_(free, free)]
+    factor, info = dpotrf(sub, lower=0, clean=0)
+    if info != 0:
+        return None
+    room_hi, room_lo = (hi - u)[free], (lo - u)[free]
+    step, model_grad = np.zeros(len(free)), grad[free]  # on the free variables: the path so far, grad + 2 H step
+    active = np.ones(len(free), dtype=bool)
+    held = np.empty(0, dtype=np.intp)  # positions in free of the variables fixed on the way
+    columns = np.empty((len(free), 0))  # K^-1 E: the factor's solves of their unit vectors
+    cut = False
+    for _ in range(len(free) + 1):
+        direction = dpotrs(factor, -0.5 * model_grad)[0]
+        if held.size:  # the bordered system's solution: E^T d = 0 on the held variables
+            direction -= columns @ np.linalg.solve(columns[held], direction[held])
+            direction[held] = 0.0
+        room = np.where(direction > 0, room_hi - step, room_lo - step)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(active & (direction != 0), np.maximum(room / direction, 0.0), np.inf)
+        first = ratio.min()
+        length = min(first, 1.0)
+        step += length * direction
+        model_grad = model_grad + 2.0 * length * (sub @ direction)
+        if not first < 1.0:  # the whole step fits (or NaNs came in: no bound to meet)
+            break
+        cut = True
+        met = np.flatnonzero(ratio <= first)
+        active[met] = False
+        held = np.concatenate((held, met))
+        units = np.zeros((len(free), len(met)))
+        units[met, np.arange(len(met))] = 1.0
+        columns = np.hstack((columns, dpotrs(factor, units)[0]))
+    delta = np.zeros_like(u)
+    delta[free] = step
+    return delta, cut
 
 
 def masked_solve(hess: np.ndarray, grad: np.ndarray, fixed: np.ndarray) -> np.ndarray:

@@ -169,9 +169,9 @@ class CompiledRti:
         f = rti_function(horizon, nx, nu, np.asarray(w_q), np.asarray(jac_u), w_d, float(damping))
         name = f"rti_step_{horizon}x{nx}x{nu}"  # the compiled cache tells weights apart by the C's hash
         self.f = compile_functions(name, [_packed(f)], opt="-O3")["rti_packed"]
-        self.cuts_in = np.cumsum([0, *(f.numel_in(i) for i in range(f.n_in()))])
         self.cuts_out = np.cumsum([0, *(f.numel_out(j) for j in range(f.n_out()))])
-        self._in, self._out = np.empty(self.cuts_in[-1]), np.empty(self.cuts_out[-1])
+        self._in = np.empty(sum(f.numel_in(i) for i in range(f.n_in())))
+        self._out = np.empty(self.cuts_out[-1])
         self._buffer, self._evaluate = self.f.buffer()
         self._buffer.set_arg(0, memoryview(self._in))
         self._buffer.set_res(0, memoryview(self._out))
@@ -188,9 +188,7 @@ class CompiledRti:
     ) -> RtiStep:
         """One step for one problem: the network's (y, A, B) at the nodes (1, H, ...), the rest as the lifted solver
         holds them (rows of one)."""
-        cuts = self.cuts_in
-        for i, v in enumerate((*ynet, nodes, U, ref, u_prev, lo, hi)):
-            self._in[cuts[i] : cuts[i + 1]] = v.reshape(-1)
+        np.concatenate([v.reshape(-1) for v in (*ynet, nodes, U, ref, u_prev, lo, hi)], out=self._in)
         self._evaluate()
         return RtiStep(self._out.copy(), self.cuts_out, self.horizon, self.nx, self.nu)
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -79,16 +80,22 @@ class JointLimits:
             raise ValueError(f"joint_limits has {len(cfg.low)} entries in low and high; this arm has {nq} joints")
         return cfg
 
-    @property
+    @cached_property
     def joints(self) -> np.ndarray:
-        """Indices of the joints with a finite limit on at least one side."""
-        return np.flatnonzero(np.isfinite(self.low) | np.isfinite(self.high))
+        """Indices of the joints with a finite limit on at least one side (read-only; kept: a controller checks
+        its plans against them every sample)."""
+        return _frozen(np.flatnonzero(np.isfinite(self.low) | np.isfinite(self.high)))
 
-    @property
+    @cached_property
     def inner(self) -> tuple[np.ndarray, np.ndarray]:
-        """Where the penalty starts, (low + margin, high - margin), for the limited joints."""
+        """Where the penalty starts, (low + margin, high - margin), for the limited joints (read-only, kept)."""
         j = self.joints
-        return np.asarray(self.low)[j] + self.margin, np.asarray(self.high)[j] - self.margin
+        return _frozen(np.asarray(self.low)[j] + self.margin), _frozen(np.asarray(self.high)[j] - self.margin)
+
+    @cached_property
+    def _velocities(self) -> np.ndarray:
+        """Where the limited joints' velocities sit in a state (positions first)."""
+        return _frozen(len(self.low) + self.joints)
 
     def governed(self, x_ref: np.ndarray) -> np.ndarray:
         """Reference states (..., nx; positions first) with every limited position past (limit - margin) moved onto
@@ -120,8 +127,16 @@ class JointLimits:
         q = states[..., self.joints]
         if not self.lookahead:
             return q, q
-        v = states[..., len(self.low) + self.joints]
+        v = states[..., self._velocities]
+        if isinstance(v, np.ndarray):  # numpy's ufuncs: ndarray.clip's Python wrapper costs more than the arithmetic
+            return q + self.lookahead * np.minimum(v, 0.0), q + self.lookahead * np.maximum(v, 0.0)
         return q + self.lookahead * v.clip(max=0.0), q + self.lookahead * v.clip(min=0.0)
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    """a, read-only: a kept property must not change under its users."""
+    a.setflags(write=False)
+    return a
 
 
 def as_float(mask: Array, scale: float) -> Array:

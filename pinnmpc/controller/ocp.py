@@ -70,14 +70,17 @@ class HorizonOCP:
             w_d = None
         self.weights = {torch: (psd_sqrt(Q, nx, "Q"), psd_sqrt(R, nu, "R"), w_d)}
         self.weights[np] = tuple(None if w is None else w.numpy() for w in self.weights[torch])
+        w_q = self.weights[np][0]
+        self._state_rows = w_q[np.abs(w_q).sum(-1) > 0]  # sqrt(Q)'s nonzero rows: the residuals the Gauss-Newton
+        #   model forms (a zero row, such as an unweighted velocity's, adds nothing to the cost, J^T J or the gradient)
         self.joint_limits = JointLimits.from_config(joint_limits, nx // 2)
         self._limits: dict[ModuleType, tuple] | None = None  # per namespace: joints, where penalties start, sqrt(w)
         if self.joint_limits is not None and self.joint_limits.joints.size:
             joints, (lo, hi) = self.joint_limits.joints, self.joint_limits.inner
             scale = math.sqrt(self.joint_limits.weight)
-            self._limits = {
+            self._limits = {  # torch's copies: the limits' arrays are read-only
                 np: (joints, lo, hi, scale),
-                torch: (torch.from_numpy(joints), torch.from_numpy(lo), torch.from_numpy(hi), scale),
+                torch: (torch.tensor(joints), torch.tensor(lo), torch.tensor(hi), scale),
             }
         self._jac_u: dict[ModuleType, Array] = {}
         self._normal_u: tuple[np.ndarray, np.ndarray] | None = None
@@ -200,10 +203,9 @@ class HorizonOCP:
         """The joint-limit residuals (..., H, n_limits) of predicted states X (..., H, nx): sqrt(w) times how far
         each limited position lies beyond [low + margin, high - margin] (see JointLimits)."""
         joints, lo, hi, scale = self._limits[xp_of(X)]
-        if not self.joint_limits.lookahead:
-            q = X[..., joints]
-            return scale * (q - q.clip(lo, hi))
-        ahead_low, ahead_high = self.joint_limits.ahead(X)
+        ahead_low, ahead_high = self.joint_limits.ahead(X)  # the positions themselves without a lookahead
+        if isinstance(X, np.ndarray):  # ufuncs: ndarray.clip's Python wrapper costs more than the arithmetic here
+            return scale * (np.maximum(ahead_high - hi, 0.0) + np.minimum(ahead_low - lo, 0.0))
         return scale * ((ahead_high - hi).clip(min=0.0) + (ahead_low - lo).clip(max=0.0))
 
     def limit_jacobian(self, X: Array, sens: Array) -> Array:
@@ -237,11 +239,11 @@ class HorizonOCP:
         """Cost (B,), J^T J (B, n, n) and gradient (B, n) at predicted states X (B, H, nx) with sensitivities
         d X / d U (B, H*nx, n), numpy, without forming J: its input part is constant, so is its J^T J."""
         batch, (horizon, nx, nu) = X.shape[0], (self.horizon, self.nx, self.nu)
-        w_q = self.weights[np][0]
+        w_q = self._state_rows
         U3 = U.reshape(batch, horizon, nu)
         rx = ((X.reshape(batch, horizon, nx) - x_ref) @ w_q.T).reshape(batch, -1)
         ru = self.input_residuals(U3, u_prev.reshape(batch, nu))
-        sq = (w_q @ sens.reshape(batch, horizon, nx, -1)).reshape(batch, horizon * nx, -1)
+        sq = (w_q @ sens.reshape(batch, horizon, nx, -1)).reshape(batch, horizon * len(w_q), -1)
         st = sq.swapaxes(-1, -2)
         jac_u, jtj_u = self._input_normal()
         jtj = st @ sq
