@@ -124,13 +124,20 @@ class JointLimits:
     def ahead(self, states: Array) -> tuple[Array, Array]:
         """The positions the penalty checks against the lower and the upper limits (..., limited joints): each limited
         joint's position plus lookahead times its velocity where it moves towards that limit."""
-        q = states[..., self.joints]
+        numpy = isinstance(states, np.ndarray)
+        joints, velocities = (self.joints, self._velocities) if numpy else self._torch_indices
+        q = states[..., joints]
         if not self.lookahead:
             return q, q
-        v = states[..., self._velocities]
-        if isinstance(v, np.ndarray):  # numpy's ufuncs: ndarray.clip's Python wrapper costs more than the arithmetic
+        v = states[..., velocities]
+        if numpy:  # numpy's ufuncs: ndarray.clip's Python wrapper costs more than the arithmetic
             return q + self.lookahead * np.minimum(v, 0.0), q + self.lookahead * np.maximum(v, 0.0)
         return q + self.lookahead * v.clip(max=0.0), q + self.lookahead * v.clip(min=0.0)
+
+    @cached_property
+    def _torch_indices(self) -> tuple[Tensor, Tensor]:
+        """joints and their velocities' places as torch indices (a read-only numpy index would be shared)."""
+        return torch.tensor(self.joints), torch.tensor(self._velocities)
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
