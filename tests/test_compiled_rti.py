@@ -99,6 +99,32 @@ def test_a_closed_loop_tracks_alike_compiled_or_not(make_cfg: Any) -> None:
     np.testing.assert_allclose(loops[0], loops[1], rtol=1e-7, atol=1e-9)
 
 
+@pytest.mark.parametrize("push", [0.0, 1.9])
+def test_the_warm_step_is_solve_on_one_problem_bit_for_bit(make_cfg: Any, push: float) -> None:
+    """The Panda on its plant, 25 samples, the controller's warm_step against solve() (the solver without it): the
+    same inputs to the last bit; with joint 4's reference pushed past its limit every warm plan meets the penalty,
+    so warm_step hands its step on to the full solve."""
+    loops = []
+    for direct in (True, False):
+        nmpc, cfg = controller(make_cfg, "panda", True)
+        if not direct:
+            nmpc.solver.warm_step = None  # the batch path of solve()
+        system = load_system("panda")
+        plant = make_plant(simulated_arm(system, cfg.system), cfg.plant, system.tau, cfg.system.get("robots"))
+        ref = np.array(system_reference(cfg, system, system.tau).x)
+        ref[:, 3] += push
+        x, inputs = np.array(ref[0]), []
+        for k in range(25):
+            inputs.append(nmpc.make_step(x, ref[k + 1 : k + 1 + nmpc.horizon]))
+            x = plant.step(x, inputs[-1])
+        loops.append((np.array(inputs), [s.iterations for s in nmpc.stats]))
+        if direct:  # the direct path ran: the next sample's warm step is there to take
+            args = (x, nmpc._U, ref[26 : 26 + nmpc.horizon], nmpc._u_prev, nmpc._low, nmpc._high, nmpc.warm)
+            assert nmpc.solver.warm_step(nmpc.ocp, *args) is not None
+    assert np.array_equal(loops[0][0], loops[1][0]) and loops[0][1] == loops[1][1]
+    assert (min(loops[0][1][1:]) > 1) == (push > 0)  # solved on past the real-time step exactly where pushed
+
+
 @pytest.mark.parametrize(("name", "horizon", "compiles"), [("powercube", 5, True), ("panda", 20, False)])
 def test_only_small_steps_are_compiled(make_cfg: Any, name: str, horizon: int, compiles: bool) -> None:
     """compiled_max_flops: numpy's BLAS does a large step (the Panda at H = 20) faster than C without it."""

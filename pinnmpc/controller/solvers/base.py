@@ -98,7 +98,10 @@ class Solver(Protocol):
 
     array_api names the array library the solver works in ("torch" or "numpy"): NMPC.make_step hands it
     arrays of that kind, so batch-1 solves pay no conversions. warm is NO_WARM or a warm state this
-    solver returned for the previous receding-horizon problem, whose plan shifted by one step is U0.
+    solver returned for the previous receding-horizon problem, whose plan shifted by one step is U0. A solver may
+    also offer warm_step(ocp, x0, U0, x_ref, u_prev, low, high, warm) for the controller's one problem (numpy, no
+    batch axis): solve()'s result for it without the batch handling, or None where solve() must run
+    (LiftedGaussNewtonSolver's compiled real-time iteration).
     """
 
     array_api: str

@@ -138,9 +138,19 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         return (NO_WARM if out is None else LiftedWarm(out)), out
 
     def _solve(
-        self, ocp: HorizonOCP, x0: Nd, U0: Nd, x_ref: Nd, u_prev: Nd, low: Nd, high: Nd, prior: Nd | None
+        self,
+        ocp: HorizonOCP,
+        x0: Nd,
+        U0: Nd,
+        x_ref: Nd,
+        u_prev: Nd,
+        low: Nd,
+        high: Nd,
+        prior: Nd | None,
+        stepped: tuple[Nd, Nd, Nd] | None = None,
     ) -> SolveResult:
-        """Lifted iterations on the numpy surrogate; single shooting when there is none or they fail."""
+        """Lifted iterations on the numpy surrogate; single shooting when there is none or they fail. stepped: the
+        real-time step already taken from prior (warm_step's inputs, states and cost), not taken again."""
         if ocp.flow is None:
             return (*super()._solve(ocp, x0, U0, x_ref, u_prev, low, high, None)[:4], None)
         shape, (horizon, nx, nu) = U0.shape, (ocp.horizon, ocp.nx, ocp.nu)
@@ -157,12 +167,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             nodes[:, 1:] = prior[:, 1:]
             if self.rti:
                 before = U
-                U, states, cost = self._rti_steps(ocp, nodes, U, refb, upb, lo, hi)
-                limits = ocp.joint_limits
-                trust = np.inf if self.rti_trust is None else self.rti_trust
-                # the step left its model's reach (no step does where every one is trusted)
-                wild = trust != np.inf and bool((np.abs(U - before) > trust * (hi - lo)).any())
-                if not wild and (limits is None or not (limits.reached(prior) | limits.reached(states)).any()):
+                U, states, cost = self._rti_steps(ocp, nodes, U, refb, upb, lo, hi) if stepped is None else stepped
+                if self._keeps(ocp, prior, before, U, states, hi - lo):
                     unconverged = np.zeros(batch, dtype=bool)
                     return result(shape, U, np.full(batch, self.rti_steps, dtype=np.int64), cost, unconverged, states)
                 # a step beyond rti_trust, or a plan at the soft joint limits (their penalty switches on and off
@@ -247,6 +253,44 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             running[rows] = ~sub[3]
             X[rows] = ocp.rollout(x0b[rows], U[rows].reshape(-1, horizon, nu))
         return result(shape, project(U, lo, hi), iterations, cost, ~running, X)
+
+    def _keeps(self, ocp: HorizonOCP, prior: Nd, before: Nd, U: Nd, states: Nd, width: Nd) -> bool:
+        """Whether a real-time step's plan stands: no step beyond rti_trust of the box's width (none is where every
+        one is trusted) and neither the last plan nor this one at the joint limits' penalty."""
+        limits, trust = ocp.joint_limits, self.rti_trust
+        if trust is not None and trust != np.inf and bool((np.abs(U - before) > trust * width).any()):
+            return False
+        return limits is None or not (limits.reached(prior) | limits.reached(states)).any()
+
+    def warm_step(
+        self, ocp: HorizonOCP, x0: Nd, U0: Nd, x_ref: Nd, u_prev: Nd, low: Nd, high: Nd, warm: object
+    ) -> tuple[Nd, SolveInfo, LiftedWarm | NoWarm] | None:
+        """The controller's warm sample as solve() returns it for one problem (x0 (nx,), U0 (H, nu), x_ref (H, nx),
+        u_prev (nu,), bounds (nu,)), without its batch handling: one compiled real-time step from the last plan's
+        states. A plan that does not stand (_keeps) is solved on from that step as solve() would; None where solve()
+        must run: no plan to start from, not a compiled real-time iteration."""
+        if not (self.rti and self.rti_steps == 1 and isinstance(warm, LiftedWarm) and ocp.flow is not None):
+            return None
+        compiled = self._compiled(ocp)
+        horizon, nx = ocp.horizon, ocp.nx
+        if compiled is None or warm.states.shape != (1, horizon, nx):
+            return None
+        prior = warm.states
+        nodes = np.empty((1, horizon, nx))
+        nodes[0, 0], nodes[0, 1:] = x0, prior[0, 1:]
+        before = np.minimum(np.maximum(U0, low), high).reshape(1, -1)
+        lo, hi = (np.zeros(U0.shape) + low).reshape(1, -1), (np.zeros(U0.shape) + high).reshape(1, -1)
+        data = (x_ref[None], u_prev[None], lo, hi)
+        U, states, cost = compiled_step(compiled, ocp, nodes, before, data, self.damping)
+        if self._keeps(ocp, prior, before, U, states, hi - lo):
+            info = SolveInfo(np.ones(1, dtype=np.int64), cost, np.zeros(1, dtype=bool), states)
+            return U.reshape(U0.shape), info, LiftedWarm(states)
+        with np.errstate(divide="ignore", invalid="ignore"):  # as solve(): ratios of decreases not formed yet
+            out = self._solve(
+                ocp, x0[None], U0[None], *(a[None] for a in (x_ref, u_prev)), low, high, prior, (U, states, cost)
+            )
+        U, iterations, cost, converged, states = out
+        return U[0], SolveInfo(iterations, cost, converged, states), LiftedWarm(states)
 
     def _rti_steps(
         self,
