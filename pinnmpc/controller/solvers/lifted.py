@@ -137,20 +137,11 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         """The states the solution reaches: the next solve's warm start, and the plan's prediction for NMPC."""
         return (NO_WARM if out is None else LiftedWarm(out)), out
 
-    def _solve(
-        self,
-        ocp: HorizonOCP,
-        x0: Nd,
-        U0: Nd,
-        x_ref: Nd,
-        u_prev: Nd,
-        low: Nd,
-        high: Nd,
-        prior: Nd | None,
-        stepped: tuple[Nd, Nd, Nd] | None = None,
-    ) -> SolveResult:
-        """Lifted iterations on the numpy surrogate; single shooting when there is none or they fail. stepped: the
-        real-time step already taken from prior (warm_step's inputs, states and cost), not taken again."""
+    def _solve(self, ocp: HorizonOCP, *problem: Nd | None, stepped: tuple[Nd, Nd, Nd] | None = None) -> SolveResult:
+        """Lifted iterations on the numpy surrogate; single shooting when there is none or they fail. problem: x0,
+        U0, x_ref, u_prev, low, high and prior as GaussNewtonSolver._solve takes them; stepped: the real-time step
+        already taken from prior (warm_step's inputs, states and cost), not taken again."""
+        x0, U0, x_ref, u_prev, low, high, prior = problem
         if ocp.flow is None:
             return (*super()._solve(ocp, x0, U0, x_ref, u_prev, low, high, None)[:4], None)
         shape, (horizon, nx, nu) = U0.shape, (ocp.horizon, ocp.nx, ocp.nu)
@@ -287,7 +278,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             return U.reshape(U0.shape), info, LiftedWarm(states)
         with np.errstate(divide="ignore", invalid="ignore"):  # as solve(): ratios of decreases not formed yet
             out = self._solve(
-                ocp, x0[None], U0[None], *(a[None] for a in (x_ref, u_prev)), low, high, prior, (U, states, cost)
+                ocp, x0[None], U0[None], x_ref[None], u_prev[None], low, high, prior, stepped=(U, states, cost)
             )
         U, iterations, cost, converged, states = out
         return U[0], SolveInfo(iterations, cost, converged, states), LiftedWarm(states)
