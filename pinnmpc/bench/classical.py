@@ -10,7 +10,10 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from pinnmpc.bench.common import controller_cfg, make_plant
 from pinnmpc.bench.loops import loop_row, run_controller
+from pinnmpc.bench.paired import paired_ocp
+from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.settings import GAUSS_NEWTON
 from pinnmpc.references.files import Reference
 from pinnmpc.surrogate.checkpoint import Surrogate
@@ -162,9 +165,16 @@ def bench_classical(
         log.info("classical: %s done in %.1f s", row["solver"], row["wall_s"])
     for scale in (float(f) for f in cfg.classical.friction_scales):
         rows.update(mismatch_rows(cfg, system, surrogate, ref, scale))
+    paired = None
+    if cfg.classical.get("paired", False):  # loops one after the other see the machine's drift; interleaved ones not
+        ours = build_nmpc(controller_cfg(cfg), surrogate, system)
+        controllers = {f"pinn_{solver}": ours, f"classical_{variants[0][0]}": build_casadi_nmpc(variants[0][1], system)}
+        plant = lambda: make_plant(cfg, system, surrogate.tau)  # noqa: E731
+        paired = paired_ocp(controllers, plant, ref, cfg.closed_loop.max_steps, system.nq)
     return {
         "reference": ref.name,
         "horizon": int(cfg.controller.horizon),
         "shared": [str(k) for k in cfg.classical.shared],
         "rows": rows,
+        "paired": paired,
     }

@@ -372,8 +372,23 @@ def md_classical(cl: dict[str, Any], system: dict[str, Any], plant: str) -> str:
             "",
             md_table(headers, rows),
             "",
+            *md_paired_classical(cl.get("paired")),
         ]
     )
+
+
+def md_paired_classical(paired: dict[str, Any] | None) -> list[str]:
+    """Section 6's interleaved line: the classical default's OCP time over the PINN controller's, sample by sample."""
+    if not paired:
+        return []
+    ours, (theirs,) = paired["base"], [k for k in paired["ocp_median_s"] if k != paired["base"]]
+    median, mae = paired["ocp_median_s"], paired["worst_mae"]
+    return [
+        f"Interleaved ({paired['samples']} samples each, bench/paired.py; {paired['status']}): {theirs} / {ours} OCP "
+        f"time {fmt(paired['ratio_median'][theirs])} (median of per-sample ratios; medians {fmt(1e3 * median[theirs])} "
+        f"and {fmt(1e3 * median[ours])} ms), worst joint MAE {fmt(mae[theirs])} and {fmt(mae[ours])} rad.",
+        "",
+    ]
 
 
 def plant_label(plant: dict[str, Any]) -> str:
