@@ -334,10 +334,10 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
     assert cl["shared"] == ["horizon", "Q", "R", "R_rate", "u_low", "u_high"]
     paired = cl["paired"]  # the PINN controller and the classical default again, their samples interleaved
     assert paired["base"] == "pinn_lifted_gauss_newton" and paired["status"] == "ok"
-    assert set(paired["ocp_median_s"]) == {"pinn_lifted_gauss_newton", "classical_sqpmethod"}
-    assert paired["samples"] == MAX_STEPS and paired["ratio_median"]["classical_sqpmethod"] > 0
-    assert paired["worst_mae"]["pinn_lifted_gauss_newton"] > paired["worst_mae"]["classical_sqpmethod"] > 0
-    assert "Interleaved (" in md and "classical_sqpmethod / pinn_lifted_gauss_newton OCP time" in md
+    assert set(paired["ocp_median_s"]) == {"pinn_lifted_gauss_newton", "casadi-sqpmethod-rti"}
+    assert paired["samples"] == MAX_STEPS and paired["ratio_median"]["casadi-sqpmethod-rti"] > 0
+    assert paired["worst_mae"]["pinn_lifted_gauss_newton"] > paired["worst_mae"]["casadi-sqpmethod-rti"] > 0
+    assert "Interleaved (" in md and "casadi-sqpmethod-rti / pinn_lifted_gauss_newton OCP time" in md
     for scale in ("0.8", "1.2"):  # a plant off the model: the classical NMPC estimates the offset, as the PINN one
         off = cl["rows"][f"classical_friction_{scale}"]
         assert off["status"] == "ok" and off["disturbance_gain"] == pinn["disturbance_gain"] > 0

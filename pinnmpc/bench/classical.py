@@ -168,7 +168,8 @@ def bench_classical(
     paired = None
     if cfg.classical.get("paired", False):  # loops one after the other see the machine's drift; interleaved ones not
         ours = build_nmpc(controller_cfg(cfg), surrogate, system)
-        controllers = {f"pinn_{solver}": ours, f"classical_{variants[0][0]}": build_casadi_nmpc(variants[0][1], system)}
+        default = rows[f"classical_{variants[0][0]}"]["solver"]  # e.g. casadi-sqpmethod-rti
+        controllers = {f"pinn_{solver}": ours, default: build_casadi_nmpc(variants[0][1], system)}
         plant = lambda: make_plant(cfg, system, surrogate.tau)  # noqa: E731
         paired = paired_ocp(controllers, plant, ref, cfg.closed_loop.max_steps, system.nq)
     return {
