@@ -30,10 +30,8 @@ def disturbance_bound(d_max: Sequence[float] | None, nx: int, gain: float) -> np
 def filtered_disturbance(
     d: np.ndarray | None, error: np.ndarray, gain: float, bound: np.ndarray | None
 ) -> np.ndarray | None:
-    """Offset-free MPC's estimate after one more prediction error: filtered by the gain, bounded per state; a
-    non-finite error (a model fault) keeps the last estimate."""
-    if not np.isfinite(error).all():
-        return d
+    """Offset-free MPC's estimate after one more (finite: OffsetFree.update skips the others) prediction error:
+    filtered by the gain, bounded per state."""
     d = np.zeros_like(error) if d is None else d
     d = d + gain * (error - d)
     return d if bound is None else np.minimum(np.maximum(d, -bound), bound)  # np.clip's values, less overhead

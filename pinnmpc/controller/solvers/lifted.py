@@ -149,7 +149,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         x0b, refb = x0.reshape(-1, nx), x_ref.reshape(-1, horizon, nx)
         upb = u_prev.reshape(-1, nu)
         U = np.minimum(np.maximum(U0, low), high).reshape(-1, n)  # np.clip's values, without its Python wrapper
-        lo, hi = (np.zeros(shape) + low).reshape(-1, n), (np.zeros(shape) + high).reshape(-1, n)
+        lo, hi = _box_rows(shape, low, high)
         batch = U.shape[0]
         nodes = np.empty((batch, horizon, nx))  # s_0 = x0 (fixed), s_1..s_{H-1} lifted
         nodes[:, 0] = x0b
@@ -270,7 +270,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         nodes = np.empty((1, horizon, nx))
         nodes[0, 0], nodes[0, 1:] = x0, prior[0, 1:]
         before = np.minimum(np.maximum(U0, low), high).reshape(1, -1)
-        lo, hi = (np.zeros(U0.shape) + low).reshape(1, -1), (np.zeros(U0.shape) + high).reshape(1, -1)
+        lo, hi = _box_rows((1, *U0.shape), low, high)
         data = (x_ref[None], u_prev[None], lo, hi)
         U, states, cost = compiled_step(compiled, ocp, nodes, before, data, self.damping)
         if self._keeps(ocp, prior, before, U, states, hi - lo):
@@ -377,6 +377,12 @@ def node_inputs(
 def valid_trust(value: object) -> bool:
     """Whether a trust bound (rti_trust, system.control.rti_trust) is a number > 0 (inf included)."""
     return not isinstance(value, bool) and isinstance(value, int | float) and value > 0
+
+
+def _box_rows(shape: tuple[int, ...], low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The bounds of every input of problems shaped (B, H, nu), as (B, H nu) rows."""
+    rows = (-1, shape[-2] * shape[-1])
+    return (np.zeros(shape) + low).reshape(rows), (np.zeros(shape) + high).reshape(rows)
 
 
 def _moved(pred: np.ndarray, sens: np.ndarray, step: np.ndarray) -> np.ndarray:
