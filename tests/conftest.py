@@ -133,3 +133,19 @@ def check_compiled_prior(prior: Any, x0: torch.Tensor, u: torch.Tensor) -> tuple
     numeric = central_jacobian(lambda a, b: prior(t, a, b)[0], x0, u)
     np.testing.assert_allclose(jac.numpy(), numeric.numpy(), atol=1e-6)
     return x, jac
+
+
+def write_test_log(stem: Path, system: Any, robot: str, fine: int, coarse: list, fine_rows: list) -> str:
+    """A log as `pinnmpc.collect` writes it from rows (t, x, u, episode) at the control rate and (t, x, episode) at
+    `fine` samples per period; returns the .npz path."""
+    from pinnmpc.robot_data.logs import RobotLog, write_log
+
+    meta = {
+        "system": system.name, "tau": system.tau, "robot": robot, "seed": 0, "noise_sigma": 0.0, "fine": fine,
+        "state_names": list(system.state_names), "input_names": list(system.input_names),
+        "robot_time_s": system.tau * sum(a[3] == b[3] for a, b in zip(coarse[:-1], coarse[1:])),  # its periods
+    }  # fmt: skip
+    columns = [np.array([row[i] for row in coarse]) for i in range(4)]
+    log = RobotLog(*columns, *(np.array([row[i] for row in fine_rows]) for i in range(3)), meta)
+    write_log(stem, log)
+    return str(stem) + ".npz"

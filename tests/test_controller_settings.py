@@ -67,7 +67,8 @@ def test_the_cli_composes_each_kind_on_its_dataclass(config: str) -> None:
     settings = controller_settings(cfg.controller, load_system("planar3"))
     cls = settings_class(settings.kind)
     assert type(settings) is cls and list(cfg.system.control.Q) == settings.Q
-    arm = {"Q", "R", "R_rate", "joint_limits", "disturbance", "rti_trust", "coulomb_width", "model", "solvers"}
+    arm = {"Q", "R", "R_rate", "R_rate_previous_input", "joint_limits", "disturbance", "rti_trust", "coulomb_width"}
+    arm |= {"model", "solvers"}
     arm |= set(_fallbacks(yaml.safe_load((CONF / "controller" / f"{config}.yaml").read_text())))
     for f in dataclasses.fields(cls):
         if f.name not in arm:

@@ -11,12 +11,11 @@ from pinnmpc import load_surrogate, load_system
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.plant.mujoco_robot import make_mujoco_plant
 from pinnmpc.references import Reference
-from pinnmpc.robot_data.logs import RobotLog, write_log
 from pinnmpc.robot_data.residual_model import physics_model
 from pinnmpc.surrogate.prior import ArmPrior
 from pinnmpc.systems import system_config
 from pinnmpc.training.run import train
-from tests.conftest import TINY_TRAIN
+from tests.conftest import TINY_TRAIN, write_test_log
 
 FINE = 5  # samples per control period in the test log
 TINY = [*TINY_TRAIN, "system=planar3", "model.auto_scale.h=1e-3", "progress=false", "data.n_anchor=0"]
@@ -55,18 +54,7 @@ def lab_log(tmp_path_factory) -> str:
         c, f = _episode(system, controller, plant, ref, 10.0 * ep, ep)
         coarse += c
         fine += f
-    meta = {
-        "system": "planar3", "tau": system.tau, "robot": "lab", "seed": 0, "noise_sigma": 0.0, "fine": FINE,
-        "state_names": list(system.state_names), "input_names": list(system.input_names), "robot_time_s": 32.0,
-    }  # fmt: skip
-    log = RobotLog(
-        np.array([c[0] for c in coarse]), np.array([c[1] for c in coarse]), np.array([c[2] for c in coarse]),
-        np.array([c[3] for c in coarse]), np.array([f[0] for f in fine]), np.array([f[1] for f in fine]),
-        np.array([f[2] for f in fine]), meta,
-    )  # fmt: skip
-    stem = tmp_path_factory.mktemp("logs") / "lab"
-    write_log(stem, log)
-    return str(stem) + ".npz"
+    return write_test_log(tmp_path_factory.mktemp("logs") / "lab", system, "lab", FINE, coarse, fine)
 
 
 def test_training_on_logs_fits_the_robot_and_records_them(make_cfg, tmp_path, lab_log):

@@ -144,6 +144,7 @@ def test_the_shipped_shop_network_knows_its_robot_and_tracks_closer_there(make_c
     net = load_surrogate(CHECKPOINTS / "planar3-shop.pt")
     assert [log["robot"] for log in net.meta["robot_logs"]] == ["shop"]
     assert "experiment=planar3-shop" in net.meta["provenance"][-1]["command"]
+    assert net.meta["previous_input"] and net.input_names[3:] == ("u_joint1_prev", "u_joint2_prev", "u_joint3_prev")
     common = ["system=planar3", "plant=mujoco", "plant.robot=shop", "max_steps=80", "progress=false", "plots=false"]
     worst = {}
     for name in ("planar3-shop", "planar3"):

@@ -19,6 +19,7 @@ from pinnmpc.controller.build import build_nmpc
 from pinnmpc.plant.settings import ScipyPlantSettings, robot_name
 from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
+from pinnmpc.systems.previous_input import takes_previous_input
 from pinnmpc.systems.registry import load_system
 from pinnmpc.util.tables import fmt, md_table
 
@@ -157,10 +158,14 @@ def held_out_rmse(
     from pinnmpc.robot_data.episodes import transitions
     from pinnmpc.robot_data.logs import read_logs
 
-    t, x0, u, x1 = transitions(read_logs(logs, system), system.tau)
+    t, x0, both, x1 = transitions(read_logs(logs, system), system.tau, previous_input=True)  # (u, u_prev)
     at_tau = (t[:, 0] - system.tau).abs() <= 1e-9 * system.tau
-    x0, u, x1 = x0[at_tau], u[at_tau], x1[at_tau]
+    x0, both, x1 = x0[at_tau], both[at_tau], x1[at_tau]
+    u = both[:, : len(system.input_names)]
     steps = {k: net.step for k, net in networks.items()}
+    for k, net in networks.items():
+        if takes_previous_input(net):  # it gets the previous input too
+            steps[k] = lambda a, b, n=net: n.step(a, both)
     for key, model in (models or {}).items():
         steps[key] = lambda a, b, m=model: rk4_fixed(m.rhs, a, b, system.tau / rk4_steps, rk4_steps)
     out = {}

@@ -7,12 +7,14 @@ from typing import Any
 from pinnmpc.controller.base import checked_settings
 from pinnmpc.controller.nmpc import NMPC
 from pinnmpc.controller.ocp import HorizonOCP
+from pinnmpc.controller.previous_input import PreviousInputNMPC, padded_weight
 from pinnmpc.controller.settings import NetworkSettings
 from pinnmpc.controller.solvers import make_solver
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.surrogate.flowmap import CompiledRK4, ExactValues, FlowMap, PriorOnly
+from pinnmpc.surrogate.previous_input import PreviousInputFlow
 from pinnmpc.systems.base import System
-from pinnmpc.systems.settings import system_dims
+from pinnmpc.systems.previous_input import takes_previous_input
 
 
 def prediction_model(cfg: NetworkSettings, surrogate: Surrogate, system: System | None) -> FlowMap:
@@ -70,29 +72,40 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
     """NMPC from its settings (NetworkSettings, or a config node or dict of them: conf/controller/nmpc.yaml), each
     checked; what a Python caller leaves out takes NetworkSettings' default, as the commands do. Input bounds null:
     the surrogate's input box; model=exact_values needs the system."""
-    cfg = checked_settings(NetworkSettings, cfg, system_dims(surrogate))
+    previous = takes_previous_input(surrogate)  # its inputs are (u, u_prev): the OCP's states carry u_prev
+    flow = PreviousInputFlow(surrogate) if previous else surrogate
+    cfg = checked_settings(NetworkSettings, cfg, {"nx": len(surrogate.state_names), "nu": len(flow.input_names)})
     assert isinstance(cfg, NetworkSettings)
+    if previous and cfg.model != "surrogate":
+        raise ValueError(
+            f"controller.model={cfg.model} with a network that takes the previous input: expected surrogate (the true "
+            "model and the prior take the arm's inputs alone)"
+        )
     options = dict((cfg.solvers or {}).get(cfg.solver) or {})
     if cfg.solver == "lifted_gauss_newton":
         if options.get("rti_trust") is None:
             options["rti_trust"] = trust_default(surrogate, cfg.rti_trust)
         options["rti"] = real_time_default(surrogate, options["rti_trust"]) if cfg.rti is None else cfg.rti
     solver = make_solver(cfg.solver, **options)
-    ocp = HorizonOCP(prediction_model(cfg, surrogate, system), cfg.horizon, cfg.Q, cfg.R, cfg.R_rate, cfg.joint_limits)
+    extra = flow.nu if previous else 0  # u_prev's states: untracked, never disturbed
+    Q = padded_weight(cfg.Q, extra) if previous else cfg.Q
+    rate = cfg.R_rate_previous_input if previous and cfg.R_rate is None else cfg.R_rate
+    ocp = HorizonOCP(prediction_model(cfg, flow, system), cfg.horizon, Q, cfg.R, rate, cfg.joint_limits)
     prepare = getattr(solver, "prepare", None)
     if prepare is not None:  # what the solver compiles for this OCP, built before the first sample
         prepare(ocp)
-    low = surrogate.input_box.low if cfg.u_low is None else cfg.u_low
-    high = surrogate.input_box.high if cfg.u_high is None else cfg.u_high
+    low = flow.input_box.low if cfg.u_low is None else cfg.u_low
+    high = flow.input_box.high if cfg.u_high is None else cfg.u_high
     d = cfg.disturbance
-    return NMPC(
+    bound = d.max_abs if d.max_abs is None or not previous else [*d.max_abs, *[0.0] * extra]
+    return (PreviousInputNMPC if previous else NMPC)(
         ocp,
         solver,
         low,
         high,
         warm_start=cfg.warm_start,
         disturbance_gain=float(d.gain),
-        disturbance_max=d.max_abs,
+        disturbance_max=bound,
         disturbance_notch=notch_default(surrogate) if d.notch is None else d.notch,
         notch_when_late=d.notch is None,
     )

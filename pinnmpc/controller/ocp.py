@@ -73,7 +73,9 @@ class HorizonOCP:
         w_q = self.weights[np][0]
         self._state_rows = w_q[np.abs(w_q).sum(-1) > 0]  # sqrt(Q)'s nonzero rows: the residuals the Gauss-Newton
         #   model forms (a zero row, such as an unweighted velocity's, adds nothing to the cost, J^T J or the gradient)
-        self.joint_limits = JointLimits.from_config(joint_limits, nx // 2)
+        self.nq = int(getattr(model, "nq", nx // 2))  # joints: the first 2 nq states are (q, v); more follow on a
+        #   model that carries the previous input (pinnmpc.surrogate.previous_input)
+        self.joint_limits = JointLimits.from_config(joint_limits, self.nq)
         self._limits: dict[ModuleType, tuple] | None = None  # per namespace: joints, where penalties start, sqrt(w)
         if self.joint_limits is not None and self.joint_limits.joints.size:
             joints, (lo, hi) = self.joint_limits.joints, self.joint_limits.inner
@@ -216,7 +218,7 @@ class HorizonOCP:
         below, above = ahead_low < lo, ahead_high > hi
         rows = as_float(below | above, scale)[..., None] * sens[..., joints, :]
         if self.joint_limits.lookahead:  # the velocity counts where the joint moves towards the limit it is past
-            velocities = self.nx // 2 + joints
+            velocities = self.nq + joints
             v = X[..., velocities]
             moving = (below & (v < 0)) | (above & (v > 0))
             gain = as_float(moving, scale * self.joint_limits.lookahead)

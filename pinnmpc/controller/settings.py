@@ -57,6 +57,11 @@ class NetworkSettings(ControllerSettings):
     rti_trust: Any = setting(None, check=_trust)
     """The real-time iteration's trust bound for a network fine-tuned on robot logs: a step moving an input by more
     than this fraction of its box width is solved fully; null: none (the configs: system.control.rti_trust)."""
+    R_rate_previous_input: Any = setting(None, check=c.optional(c.weight("nu")))
+    """The input-rate weight for a network that takes the previous input (model.previous_input) where R_rate is
+    null: with an actuator's lag in the model the horizon's last inputs barely move the tracked states, so without
+    one the real-time steps swing them past the trust bound and half the samples are solved fully; null: none (the
+    configs: system.control.R_rate_previous_input)."""
 
     def make_consistent(self) -> None:
         """A numpy prediction model needs a Gauss-Newton solver (its values are not differentiable by torch)."""

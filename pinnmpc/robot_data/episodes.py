@@ -20,12 +20,21 @@ def input_steps(log: RobotLog) -> np.ndarray:
     return np.where(np.r_[False, log.episode[1:] == log.episode[:-1]], step, 0.0)
 
 
+def previous_inputs(log: RobotLog) -> np.ndarray:
+    """Per control-rate sample, the input of the episode's period before (an episode's first: its own, as a lag that
+    starts settled)."""
+    before = np.r_[False, log.episode[1:] == log.episode[:-1]] if len(log.u) else np.zeros(0, dtype=bool)
+    return np.where(before[:, None], np.roll(log.u, 1, axis=0), log.u)
+
+
 def transitions(
-    logs: Sequence[RobotLog], t_max: float, max_input_step: float | None = None
+    logs: Sequence[RobotLog], t_max: float, max_input_step: float | None = None, previous_input: bool = False
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Every pair i < j of samples (fine where present) within one hold period of one episode with
     t = t_j - t_i <= t_max: float64 tensors t (n, 1), x0 (n, nx), u (n, nu), x_t (n, nx); with max_input_step,
-    only periods whose input moved at most that far from the previous period's (input_steps)."""
+    only periods whose input moved at most that far from the previous period's (input_steps). previous_input: u is
+    (u, u_prev) (n, 2 nu) and only pairs from a period's start count (within it, what the actuator still carries of
+    u_prev is unknown)."""
     parts = []
     for log in logs:
         fine = log.fine
@@ -34,9 +43,11 @@ def transitions(
         start = np.flatnonzero(((np.arange(len(tt)) - first) % fine == 0) & period_starts(ee))  # fine index per period
         periods = period_starts(log.episode)
         u = log.u[periods]  # the same periods, in the same order
+        if previous_input:
+            u = np.concatenate((u, previous_inputs(log)[periods]), axis=1)
         calm = np.ones(len(u), dtype=bool) if max_input_step is None else input_steps(log)[periods] <= max_input_step
         tol = TIME_TOL * log.tau / fine
-        for a in range(fine):  # the pair's first sample within the period
+        for a in range(1 if previous_input else fine):  # the pair's first sample within the period
             for b in range(a + 1, fine + 1):
                 i, j = start + a, start + b
                 dt = tt[j] - tt[i]
@@ -45,29 +56,37 @@ def transitions(
                     parts.append((dt[keep], xx[i[keep]], u[keep], xx[j[keep]]))
     if not parts:
         nx = len(logs[0].meta["state_names"]) if logs else 0
-        nu = len(logs[0].meta["input_names"]) if logs else 0
+        nu = len(logs[0].meta["input_names"]) * (2 if previous_input else 1) if logs else 0
         empty = [torch.zeros(0, k, dtype=torch.float64) for k in (1, nx, nu, nx)]
         return empty[0], empty[1], empty[2], empty[3]
     t, x0, u, xt = (np.concatenate(p) for p in zip(*parts))
     return tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in (t[:, None], x0, u, xt))  # type: ignore[return-value]
 
 
-def transitions_per_second(tau: float, fine: int, t_max: float) -> float:
-    """How many transitions one second of robot time gives (pairs per period over tau)."""
+def transitions_per_second(tau: float, fine: int, t_max: float, from_start: bool = False) -> float:
+    """How many transitions one second of robot time gives (pairs per period over tau; from_start: only those from
+    the period's start, as with the previous input)."""
     h = tau / fine
     d = min(fine, int(math.floor(t_max / h + TIME_TOL)))
-    return sum(fine + 1 - k for k in range(1, d + 1)) / tau
+    return (d if from_start else sum(fine + 1 - k for k in range(1, d + 1))) / tau
 
 
 def check_enough(
-    n_transitions: int, need: int, what: str, *, tau: float | None = None, fine: int = 1, t_max: float | None = None
+    n_transitions: int,
+    need: int,
+    what: str,
+    *,
+    tau: float | None = None,
+    fine: int = 1,
+    t_max: float | None = None,
+    from_start: bool = False,
 ) -> None:
     """Too little data is refused in one line saying how much is needed (in robot time, with tau and t_max)."""
     if n_transitions >= need:
         return
     hint = ""
     if tau is not None:
-        rate = transitions_per_second(tau, fine, tau if t_max is None else t_max)
+        rate = transitions_per_second(tau, fine, tau if t_max is None else t_max, from_start)
         if rate > 0:
             hint = f" (about {need / rate:.3g} s of robot time at tau={tau:g} with fine={fine})"
     raise ValueError(f"{what} hold {n_transitions} transitions; expected at least {need}{hint}")

@@ -137,7 +137,7 @@ def flow_expression(surrogate: Surrogate, x0: ca.MX, u: ca.MX) -> ca.MX:
         q = x0[:nq] + tau * x0[nq:] + scale * _gated(big_g, n, *heads)
         v = x0[nq:] + scale * (_gated(g, n, *heads) + _gated(big_g, dn, *heads))
         return ca.vertcat(q, v)
-    start = x0 if model.prior is None else prior_function(model.prior, tau)(x0, u)
+    start = x0 if model.prior is None else prior_function(model.prior, tau)(x0, u[: model.prior_nu])  # its inputs
     n = _network(model, ca.MX(tau), x0, u)
     return start + _np(model.out_scale) * _gated(g, n, model.n_gates, model.n_head)
 

@@ -219,6 +219,8 @@ class PINN(nn.Module):
         self.net = TangentMLP(n_lin + n_trig, self.n_head * self.n_gates, hidden, activation)
         # no parameters, no state; the arm from its description (older networks: by its system name)
         self.prior = None if prior is None else ArmPrior(prior.get("dynamics") or prior["system"], prior["kind"], t_max)
+        # the prior takes the arm's inputs, the first of the network's (a network given the previous input has more)
+        self.prior_nu = self.nu if self.prior is None else len(self.prior.arm.input_names)
 
     @property
     def sum_columns(self) -> tuple[slice, slice]:
@@ -283,7 +285,7 @@ class PINN(nn.Module):
 
     def _start(self, t: Tensor, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor | None]:
         """What the gated network output is added to, and its time derivative: x0 (None), or the prior's x_p(t)."""
-        return (x0, None) if self.prior is None else self.prior(t, x0, u)
+        return (x0, None) if self.prior is None else self.prior(t, x0, u[..., : self.prior_nu])
 
     def _assemble(self, t: Tensor, x0: Tensor, u: Tensor, n: Tensor) -> Tensor:
         """Network output to state, enforcing x(0) = x0 unless ic='soft'."""
@@ -372,6 +374,8 @@ class PINN(nn.Module):
             if self.prior is None:
                 start, dstart = x0, torch.eye(self.nx, self.nx + self.nu, dtype=z.dtype, device=z.device)
             else:
-                start, dstart = self.prior.with_jacobian(t, x0, u)
+                start, dstart = self.prior.with_jacobian(t, x0, u[..., : self.prior_nu])
+                if self.prior_nu < self.nu:  # inputs the prior does not take (the previous input)
+                    dstart = torch.nn.functional.pad(dstart, (0, self.nu - self.prior_nu))
             return start + self.out_scale * self._gated(g, n), jac + dstart  # jac (..., nx, nx + nu)
         return self.out_center + self.out_scale * n, self.out_scale.unsqueeze(-1) * dn.transpose(-1, -2)

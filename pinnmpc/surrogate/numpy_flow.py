@@ -132,6 +132,7 @@ class NumpyFlow:
     state_box: Box | None = None  # the network's training box (None: unbounded)
     input_box: Box | None = None
     start: CompiledPrior | None = None  # the prior at tau (pinnmpc.surrogate.prior): the output adds to x_p, not to x0
+    prior_nu: int | None = None  # the inputs the prior takes, the first ones (None: all; fewer: the previous input)
 
     array_api: ClassVar[str] = "numpy"
 
@@ -144,6 +145,8 @@ class NumpyFlow:
     def __post_init__(self) -> None:
         if self.periodic is None:
             self.periodic = np.empty(0, dtype=np.intp)
+        if self.prior_nu is None:
+            self.prior_nu = self.nu
         self.state_names = tuple(self.state_names) or tuple(f"x{i}" for i in range(self.nx))
         self.input_names = tuple(self.input_names) or tuple(f"u{i}" for i in range(self.nu))
         self.state_box = self.state_box or Box([-np.inf] * self.nx, [np.inf] * self.nx)
@@ -166,7 +169,7 @@ class NumpyFlow:
         if model.second_order:
             return SecondOrderNumpyFlow.from_second_order_pinn(model, tau, facts)
         if model.prior is not None:
-            facts["start"] = model.prior.compiled(tau)
+            facts["start"], facts["prior_nu"] = model.prior.compiled(tau), model.prior_nu
         first, _ = _folded_input(model, tau)
         hard = model.exact_ic
         if hard:  # the time gates are constants at t = tau: x(tau) - x0 = scale * sum_k g_k N_k
@@ -228,7 +231,8 @@ class NumpyFlow:
         n = mlp.value(NUMPY, [*self.hidden, (self.w_out, self.b_out)], self.activation, z)
         if self.start is not None:
             lead = x0.shape[:-1]
-            return self.start.value(x0.reshape(-1, self.nx), u.reshape(-1, self.nu))[0].reshape(*lead, self.nx) + n
+            arm_u = u.reshape(-1, self.nu)[:, : self.prior_nu]
+            return self.start.value(x0.reshape(-1, self.nx), arm_u)[0].reshape(*lead, self.nx) + n
         return x0 + n if self.hard_ic else n
 
     def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -260,9 +264,9 @@ class NumpyFlow:
         x1 += self.b_out
         jac = out[batch:].reshape(batch, n_in, nx).swapaxes(-1, -2)  # (batch, nx, n_in)
         if self.start is not None:
-            xp, jp = self.start.with_jacobian(x0, u)
+            xp, jp = self.start.with_jacobian(x0, u[:, : self.prior_nu])
             x1 += xp
-            jac += jp.reshape(batch, nx, n_in)
+            jac[..., : nx + self.prior_nu] += jp.reshape(batch, nx, nx + self.prior_nu)
         elif self.hard_ic:
             x1 += x0
             jac[:, :, :nx] += self.eye

@@ -13,6 +13,7 @@ import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from pinnmpc.plant.scipy_plant import ScipyPlant
+from pinnmpc.systems.previous_input import arm_system
 from pinnmpc.training.ssbfgs import SSBFGS
 from pinnmpc.util.io import atomic_write
 from pinnmpc.util.signals import StopSignal
@@ -90,7 +91,9 @@ class SelfLoopFigure(L.Callback):
         model, u = pl_module.model, torch.as_tensor(self.reference["u"], dtype=like.dtype, device=like.device)
         xs = [torch.as_tensor(self.reference["x"][0], dtype=u.dtype, device=u.device)]
         with torch.no_grad():
-            for uk in u:
+            for k, uk in enumerate(u):
+                if model.nu > len(uk):  # a network that takes the previous input too (WithPreviousInput)
+                    uk = torch.cat((uk, u[max(k - 1, 0)]))
                 xs.append(model(torch.full((1,), pl_module.tau, dtype=u.dtype, device=u.device), xs[-1], uk))
         x_pinn = torch.stack(xs).double().cpu().numpy()
         t = pl_module.tau * np.arange(len(u) + 1)
@@ -99,7 +102,7 @@ class SelfLoopFigure(L.Callback):
             self.reference["x"],
             x_pinn,
             self.reference["u"],
-            plots.Labels.of(pl_module.system),
+            plots.Labels.of(arm_system(pl_module.system)),  # the arm's inputs, not u_prev
             title=f"epoch {trainer.current_epoch}",
         )
         experiment.add_figure("self_loop", fig, global_step=trainer.global_step)

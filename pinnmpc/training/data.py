@@ -14,6 +14,7 @@ from torch.utils.data import DataLoader
 
 from pinnmpc.plant.integrators import n_steps, rk4_fixed, rk4_step
 from pinnmpc.systems.base import System
+from pinnmpc.systems.previous_input import WithPreviousInput, arm_system
 from pinnmpc.systems.sampling import random_pairs
 from pinnmpc.training.settings import DataSettings
 
@@ -241,13 +242,17 @@ class CollocationDataModule(L.LightningDataModule):
         from pinnmpc.robot_data.episodes import check_enough, split_episodes, transitions
         from pinnmpc.robot_data.logs import read_logs
 
-        logs = read_logs(self.logs, self.system)  # checked as a set: shared episodes would leak into validation
+        prev = isinstance(self.system, WithPreviousInput)  # the network takes u_prev too: the logs give it
+        logs = read_logs(self.logs, arm_system(self.system))  # checked as a set: shared episodes would leak into
+        #   validation
         parts = [split_episodes(log, self.val_episodes, self.seed) for log in logs]
-        t, x0, u, xt = transitions([train for train, _ in parts], self.t_max, self.robot_max_input_step)
+        t, x0, u, xt = transitions([train for train, _ in parts], self.t_max, self.robot_max_input_step, prev)
         fine = min(log.fine for log in logs)
-        check_enough(len(t), MIN_ROBOT_TRANSITIONS, "data.logs", tau=self.tau, fine=fine, t_max=self.t_max)
+        check_enough(
+            len(t), MIN_ROBOT_TRANSITIONS, "data.logs", tau=self.tau, fine=fine, t_max=self.t_max, from_start=prev
+        )
         self.robot = {"t": t, "x0": x0, "u": u, "dx": xt - x0}
-        vt, vx0, vu, vx1 = transitions([val for _, val in parts], self.tau, self.robot_max_input_step)
+        vt, vx0, vu, vx1 = transitions([val for _, val in parts], self.tau, self.robot_max_input_step, prev)
         at_tau = (vt[:, 0] - self.tau).abs() <= 1e-9 * self.tau  # one control period: what the controller asks for
         check_enough(int(at_tau.sum()), MIN_ROBOT_VALIDATION, "the held-out episodes of data.logs", tau=self.tau)
         self.val = {"x0": vx0[at_tau], "u": vu[at_tau], "x1": vx1[at_tau]}

@@ -19,7 +19,7 @@ from torch import Tensor, nn
 
 from pinnmpc.surrogate.checkpoint import load_surrogate
 from pinnmpc.surrogate.network import PINN
-from pinnmpc.systems.base import System
+from pinnmpc.systems.base import Box, System
 
 
 def widened(
@@ -30,11 +30,13 @@ def widened(
     angle_sums: Sequence[Sequence[int]] | None = None,
     prior_arm: dict[str, Any] | None = None,
     prior_kind: str | None = None,
+    inputs: Box | None = None,
 ) -> PINN:
     """A copy of `base` with hidden widths `hidden` (same depth, none narrower), optionally more time gates
     (`time_basis`: the base's relaxation times first, new ones after), angle-sum inputs (`angle_sums`: the
-    base's first), another arm under its prior (`prior_arm`) or another frozen-arm kind (`prior_kind`), and the
-    same network outputs."""
+    base's first), another arm under its prior (`prior_arm`) or another frozen-arm kind (`prior_kind`), more inputs
+    (`inputs`: the base's input box first, then the new inputs' bounds; they start deaf), and the same network
+    outputs."""
     old = [layer.out_features for layer in base.net.layers[:-1]]
     new = [int(w) for w in hidden]
     if len(new) != len(old) or any(n < o for n, o in zip(new, old)):
@@ -51,14 +53,33 @@ def widened(
         config["prior"] = {**config["prior"], "dynamics": dict(prior_arm)}
     if prior_kind is not None and config.get("prior"):
         config["prior"] = {**config["prior"], "kind": str(prior_kind)}
+    if inputs is not None:
+        config.update(_grown_inputs(base, inputs))
     model = PINN(**config).to(base.out_scale.dtype)
     generator = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for i, (src, dst) in enumerate(zip(base.net.layers[:-1], model.net.layers[:-1])):
             _embed(src, dst, generator, columns=_input_columns(base, model) if i == 0 else None)
         _embed(base.net.layers[-1], model.net.layers[-1], generator, fresh_rows=False)
-        model.load_state_dict({**model.state_dict(), **_buffers(base)})
+        model.load_state_dict({**model.state_dict(), **_buffers(base, model)})
     return model
+
+
+def _grown_inputs(base: PINN, inputs: Box) -> dict[str, object]:
+    """PINN settings for the input box `inputs`, which must extend the base's (its inputs first, same bounds)."""
+    low, high = list(inputs.low), list(inputs.high)
+    if len(low) < base.nu:
+        raise ValueError(
+            f"init_from's network takes {base.nu} inputs, this run's system {len(low)}: expected "
+            "model.previous_input=true for a network given the previous input"
+        )
+    have = (base.config["input_low"], base.config["input_high"])
+    if (low[: base.nu], high[: base.nu]) != (list(have[0]), list(have[1])):
+        raise ValueError(
+            f"the inputs' box {low}..{high} cannot start from a network with the input box {have[0]}..{have[1]}: "
+            "expected its inputs first, with the same bounds, then any new ones"
+        )
+    return {"input_low": low, "input_high": high}
 
 
 def _grown_basis(base: PINN, time_basis: Sequence[float]) -> dict[str, object]:
@@ -89,9 +110,15 @@ def _input_columns(base: PINN, model: PINN) -> torch.Tensor:
     """Where each network input of `base` sits in `model`'s input: (t, x0, u, cosines) in place, its angle sums'
     sines and cosines at the head of the grown network's (new sums follow each)."""
     (old_sin, _), (new_sin, new_cos) = base.sum_columns, model.sum_columns
-    n_old = len(base.sum_map)
+    n_old, n_lin = len(base.sum_map), 1 + base.nx + base.nu
+    added = model.nu - base.nu  # new inputs sit after the base's, before the cosines
     return torch.cat(
-        (torch.arange(old_sin.start), new_sin.start + torch.arange(n_old), new_cos.start + torch.arange(n_old))
+        (
+            torch.arange(n_lin),
+            n_lin + added + torch.arange(old_sin.start - n_lin),
+            new_sin.start + torch.arange(n_old),
+            new_cos.start + torch.arange(n_old),
+        )
     )
 
 
@@ -114,9 +141,18 @@ def _embed(
     dst.bias[:o] = src.bias
 
 
-def _buffers(model: PINN) -> dict[str, torch.Tensor]:
-    """The normalisation and output-scale buffers, which do not depend on the widths."""
-    return {k: v for k, v in model.state_dict().items() if not k.startswith("net.")}
+def _buffers(base: PINN, model: PINN) -> dict[str, torch.Tensor]:
+    """The base's normalisation and output-scale buffers, which do not depend on the widths; where the grown network
+    has more inputs, the base's normalisation leads and the new inputs keep their own."""
+    own = model.state_dict()
+    out = {}
+    for k, v in base.state_dict().items():
+        if k.startswith("net."):
+            continue
+        if v.shape != own[k].shape:
+            v = torch.cat((v, own[k][v.shape[0] :]))
+        out[k] = v
+    return out
 
 
 def grown_model(
@@ -158,7 +194,8 @@ def grown_model(
                 f"init_from={path} has model.{key}={have}; this run has model.{key}={want}, which widening cannot "
                 f"change (expected model.{key}={have}, or a fresh network without init_from)"
             )
-    return widened(base, hidden, seed, time_basis, angle_sums, prior_arm, prior)
+    inputs = system.input_box if system.input_box.dim != base.nu else None  # WithPreviousInput: u_prev added
+    return widened(base, hidden, seed, time_basis, angle_sums, prior_arm, prior, inputs)
 
 
 def _plain(value: Any) -> Any:

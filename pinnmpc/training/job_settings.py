@@ -80,6 +80,7 @@ TRAIN: dict[str, Check] = {
     "stage.samples": c.integer(1),
     "stage.h": c.positive(),
     "model.prior": c.optional(c.one_of(*PRIOR_KINDS)),
+    "model.previous_input": c.boolean(),
     "module.anchor_state_weight": c.optional(
         c.vector("nx", c.positive())
     ),  # its length; the rest: validate_module_data
@@ -143,5 +144,10 @@ def validate_train(cfg: DictConfig, system: Any) -> None:
         raise SettingError(
             f"stage.split/stage.base with model.prior={cfg.model.prior}: a correction stage does not support a "
             "prior; expected system.network.prior=null with it"
+        )
+    if cfg.model.get("previous_input") and not cfg.data.get("logs"):
+        raise SettingError(
+            "model.previous_input=true with data.logs=[]: only a robot's logs say what the previous input does; "
+            "expected data.logs=[<robot_log.npz>, ...]"
         )
     _t_max_covers_tau(cfg, system, "the network predicts x(tau)")

@@ -12,11 +12,14 @@ from pinnmpc.robot_data.episodes import transitions
 from pinnmpc.robot_data.logs import read_logs
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems.base import System
+from pinnmpc.systems.previous_input import WithPreviousInput, arm_system
 
 
 def log_transitions(system: System, logs: Sequence[str]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """(t, x0, u, x1) of every transition in the logs up to one period: read once for the checks below."""
-    return transitions(read_logs(list(logs), system), system.tau)
+    """(t, x0, u, x1) of every transition in the logs up to one period: read once for the checks below (u with u_prev
+    for a system that takes it)."""
+    prev = isinstance(system, WithPreviousInput)
+    return transitions(read_logs(list(logs), arm_system(system)), system.tau, previous_input=prev)
 
 
 def period_miss(net: PINN, system: System, logged: tuple[Tensor, ...]) -> Tensor:

@@ -22,6 +22,7 @@ from pinnmpc.robot_data.residual_model import physics_model
 from pinnmpc.surrogate.checkpoint import load_surrogate
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.systems.base import System
+from pinnmpc.systems.previous_input import WithPreviousInput
 from pinnmpc.systems.registry import build_system
 from pinnmpc.training.callbacks import AtomicCheckpoint, GracefulStop, SelfLoopFigure, SurrogateFacts
 from pinnmpc.training.data import CollocationDataModule
@@ -147,6 +148,10 @@ def train(
             f"pinnmpc.identify system={system.name} logs=[...] out=...> or data.n_anchor=0"
         )
     physics, physics_meta, physics_arm = physics_model(cfg.get("physics"), system, cfg.get("physics_prior_slope"))
+    previous = bool(cfg.model.get("previous_input"))
+    if previous:  # the network takes the period before's input too; the logs give it, the physics ignore it
+        plain, system = system, WithPreviousInput(system)
+        physics = system if physics is plain else WithPreviousInput(physics)
     ckpt_path = resolve_ckpt(cfg, run_dir)
     label = f"ckpt_path={ckpt_path}" if cfg.ckpt_path else f"resume=true: {ckpt_path}"
     ckpt = None if ckpt_path is None else read_ckpt(ckpt_path, label)
@@ -238,6 +243,8 @@ def train(
         meta["robot_logs"] = datamodule.robot_meta
     if physics_meta is not None:  # the residual of a model identified from the logs, not the nominal arm's
         meta["physics"] = physics_meta
+    if previous:  # its inputs are (u, u_prev): the controller feeds u_prev (pinnmpc.surrogate.previous_input)
+        meta["previous_input"] = True
     if interrupted and stop is not None:
         meta["signal"] = stop.name
     if distributed is not None:

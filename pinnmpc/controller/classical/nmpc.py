@@ -287,6 +287,7 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
     surrogate = None
     if transcription == "network":  # the network's flow map: loaded once, the smoothed repeat has no use for it
         from pinnmpc.surrogate.checkpoint import load_surrogate
+        from pinnmpc.systems.previous_input import takes_previous_input
 
         surrogate = load_surrogate(cfg.network, system=system.name if cfg.network is None else None)
         dims = (len(system.state_names), len(system.input_names))
@@ -294,6 +295,11 @@ def build_casadi_nmpc(cfg: Any, system: Any) -> CasadiNMPC:
             raise ValueError(
                 f"controller.network={cfg.network!r} maps {surrogate.nx} states and {surrogate.nu} inputs; the arm "
                 f"{system.name} has {dims[0]} and {dims[1]}"
+                + (
+                    " (it takes the previous input too: only controller=nmpc runs such a network)"
+                    if takes_previous_input(surrogate)
+                    else ""
+                )
             )
 
     def make_ocp(coulomb_width: float | None = None) -> CasadiOCP:

@@ -1,0 +1,96 @@
+"""A network that takes the previous input, (x0, u, u_prev) -> x(tau), as a flow map on states that carry u_prev.
+
+The controller's horizon needs x_{i+1} = F(x_i, u_i, u_{i-1}): with the state s = (x, p), p the input applied over
+the period before, that is s_{i+1} = (F(x_i, u_i, p_i), u_i), a plain flow map s -> s' under u, and every solver,
+the estimator and the joint limits work on it unchanged (pinnmpc.controller.previous_input feeds p from the input
+it applied last). The networks come from `model.previous_input=true` (pinnmpc.systems.previous_input).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from pinnmpc.systems.base import Box
+
+Array = Any  # a torch Tensor or a numpy array, as the wrapped map's array_api says
+
+
+class PreviousInputFlow:
+    """The flow map s = (x, p) -> (F(x, u, p), u) of a network F whose inputs are (u, u_prev)."""
+
+    def __init__(self, flow: Any) -> None:
+        n_in = len(flow.input_names)
+        if n_in % 2:
+            raise ValueError(
+                f"a network that takes the previous input has inputs (u, u_prev); this one has {n_in}: "
+                f"{list(flow.input_names)}"
+            )
+        self.flow, self._x, self._u = flow, len(flow.state_names), n_in // 2
+        nu, inputs, states = self._u, flow.input_box, flow.state_box
+        self.array_api: str = getattr(flow, "array_api", "torch")  # the wrapped map's arrays
+        self.tau = flow.tau
+        self.state_names = (*flow.state_names, *flow.input_names[nu:])
+        self.input_names = tuple(flow.input_names[:nu])
+        self.state_box = Box((*states.low, *inputs.low[nu:]), (*states.high, *inputs.high[nu:]))
+        self.input_box = Box(inputs.low[:nu], inputs.high[:nu])
+        self.nq = self._x // 2  # the arm's joints: its states (q, v) come first
+        self._numpy: PreviousInputFlow | None = None
+
+    def __getattr__(self, name: str) -> Any:
+        """Every other fact (meta, domain, the model, approximate_jacobians) is the wrapped map's."""
+        if name == "flow":  # not set yet (copying): no recursion through __getattr__
+            raise AttributeError(name)
+        return getattr(self.flow, name)
+
+    @property
+    def nx(self) -> int:
+        """The arm's states and the previous input."""
+        return self._x + self._u
+
+    @property
+    def nu(self) -> int:
+        """The arm's inputs."""
+        return self._u
+
+    def _network_inputs(self, s: Array, u: Array) -> tuple[Array, Array]:
+        """x and (u, p) of states s (..., nx + nu) and inputs u (..., nu)."""
+        x, p = s[..., : self._x], s[..., self._x :]
+        if isinstance(s, torch.Tensor):
+            return x, torch.cat(torch.broadcast_tensors(u, p), dim=-1)
+        return x, np.concatenate(np.broadcast_arrays(u, p), axis=-1)
+
+    def step(self, s: Array, u: Array) -> Array:
+        """(x(tau), u) for s = (x0, u_prev) (..., nx + nu) and u (..., nu)."""
+        x, inputs = self._network_inputs(s, u)
+        y = self.flow.step(x, inputs)
+        if isinstance(y, torch.Tensor):
+            return torch.cat((y, inputs[..., : self._u]), dim=-1)
+        return np.concatenate((y, inputs[..., : self._u]), axis=-1)
+
+    def step_with_jacobian(self, s: Array, u: Array) -> tuple[Array, Array, Array]:
+        """(x(tau), u), A = d/ds (..., nx + nu, nx + nu) and B = d/du (..., nx + nu, nu): the network's Jacobians
+        in the upper rows, u passed on below."""
+        x, inputs = self._network_inputs(s, u)
+        y, a, b = self.flow.step_with_jacobian(x, inputs)
+        nx, nu, lead = self._x, self._u, y.shape[:-1]
+        torch_side = isinstance(y, torch.Tensor)
+        zeros = (lambda *shape: y.new_zeros(shape)) if torch_side else (lambda *shape: np.zeros(shape))
+        big_a, big_b = zeros(*lead, nx + nu, nx + nu), zeros(*lead, nx + nu, nu)
+        big_a[..., :nx, :nx], big_a[..., :nx, nx:] = a, b[..., nu:]
+        big_b[..., :nx, :] = b[..., :nu]
+        big_b[..., nx:, :] = torch.eye(nu, dtype=y.dtype) if torch_side else np.eye(nu)
+        out = torch.cat((y, inputs[..., :nu]), dim=-1) if torch_side else np.concatenate((y, inputs[..., :nu]), -1)
+        return out, big_a, big_b
+
+    def numpy_flow(self) -> PreviousInputFlow | None:
+        """The same map over the wrapped map's numpy fast path (None where it has none)."""
+        if self.array_api == "numpy":
+            return self
+        if self._numpy is None:
+            fast = getattr(self.flow, "numpy_flow", None)
+            fast = fast() if callable(fast) else None
+            self._numpy = None if fast is None else PreviousInputFlow(fast)
+        return self._numpy
