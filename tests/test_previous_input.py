@@ -198,3 +198,22 @@ def test_a_network_given_the_previous_input_is_not_fine_tuned_as_a_plain_one(mak
                  f"data.logs=[{lag_log}]"]  # fmt: skip
     with pytest.raises(ValueError, match="takes 6 inputs, this run's system 3: expected model.previous_input=true"):
         build_model(make_cfg("train", overrides), load_system("planar3"))
+
+
+def test_the_self_loop_feeds_the_previous_input():
+    from pinnmpc.simulation.self_loop import rollout_surrogate, sine_inputs
+
+    base = load_surrogate(system="planar3")
+    u = sine_inputs(12, [20.0, -8.0, 2.0])
+    deaf = rollout_surrogate(_grown(base), np.zeros(6), u)  # a grown network still deaf to u_prev: as it was
+    assert np.allclose(deaf, rollout_surrogate(base, np.zeros(6), u), atol=1e-12, rtol=0)
+    hearing = _grown(base)
+    with torch.no_grad():
+        hearing.model.net.layers[0].weight[:, 10:13] = 0.3
+    x = rollout_surrogate(hearing, np.zeros(6), u)
+    with torch.no_grad():  # by hand: each step gets the input before it, the first its own
+        manual = [torch.zeros(6, dtype=torch.float64)]
+        for k in range(len(u)):
+            both = torch.from_numpy(np.concatenate((u[k], u[max(k - 1, 0)])))
+            manual.append(hearing.step(manual[-1], both))
+    assert np.allclose(x, torch.stack(manual).numpy(), atol=1e-12, rtol=0) and not np.allclose(x, deaf, atol=1e-6)

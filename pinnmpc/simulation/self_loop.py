@@ -15,6 +15,7 @@ from pinnmpc.plant.scipy_plant import ScipyPlant
 from pinnmpc.simulation.settings import validate_self_loop
 from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
+from pinnmpc.systems.previous_input import takes_previous_input
 from pinnmpc.systems.settings import job_system
 from pinnmpc.util.io import save_json, save_npz
 
@@ -28,10 +29,14 @@ def sine_inputs(steps: int, amplitude: Sequence[float]) -> np.ndarray:
 
 
 def rollout_surrogate(surrogate: Surrogate, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Self-loop: each prediction at tau becomes the next x0."""
+    """Self-loop: each prediction at tau becomes the next x0 (a network given the previous input gets the input before
+    each one, the first its own: a lag that starts settled)."""
     xs = [torch.as_tensor(x0, dtype=torch.float64)]
+    inputs = torch.as_tensor(u, dtype=torch.float64)
+    if takes_previous_input(surrogate):
+        inputs = torch.cat((inputs, torch.cat((inputs[:1], inputs[:-1]))), dim=-1)
     with torch.no_grad():
-        for uk in torch.as_tensor(u, dtype=torch.float64):
+        for uk in inputs:
             xs.append(surrogate.step(xs[-1], uk))
     return torch.stack(xs).numpy()
 
