@@ -15,7 +15,7 @@ from pinnmpc.plant.scipy_plant import ScipyPlant
 from pinnmpc.simulation.settings import validate_self_loop
 from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
-from pinnmpc.systems.previous_input import takes_previous_input
+from pinnmpc.systems.previous_input import takes_previous_input, with_previous
 from pinnmpc.systems.settings import job_system
 from pinnmpc.util.io import save_json, save_npz
 
@@ -34,7 +34,7 @@ def rollout_surrogate(surrogate: Surrogate, x0: np.ndarray, u: np.ndarray) -> np
     xs = [torch.as_tensor(x0, dtype=torch.float64)]
     inputs = torch.as_tensor(u, dtype=torch.float64)
     if takes_previous_input(surrogate):
-        inputs = torch.cat((inputs, torch.cat((inputs[:1], inputs[:-1]))), dim=-1)
+        inputs = with_previous(inputs)
     with torch.no_grad():
         for uk in inputs:
             xs.append(surrogate.step(xs[-1], uk))

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 from typing import Any
 
+import torch
+from torch import Tensor
+
 from pinnmpc.systems.base import Box
 
 SUFFIX = "_prev"  # the name of u_prev's entries: the input's name and this
@@ -23,7 +26,7 @@ class WithPreviousInput:
         if isinstance(system, WithPreviousInput):
             raise ValueError(f"system {system.name} already takes the previous input; expected a plain system")
         self.base = system
-        self.nu = len(system.input_names)
+        self.arm_nu = len(system.input_names)  # the arm's inputs, the first of these
         self.input_names = (*system.input_names, *(f"{n}{SUFFIX}" for n in system.input_names))
         self.input_units = (*system.input_units, *system.input_units)
         box = system.input_box
@@ -37,21 +40,27 @@ class WithPreviousInput:
 
     def rhs(self, x: Any, u: Any) -> Any:
         """dx/dt of the system under u (the first nu inputs); u_prev does not enter the model."""
-        return self.base.rhs(x, u[..., : self.nu])
+        return self.base.rhs(x, u[..., : self.arm_nu])
 
     def fast_rhs(self, x: Any, u: Any) -> Any:
         """fast_rhs of the system under u alone."""
-        return self.base.fast_rhs(x, u[..., : self.nu])
+        return self.base.fast_rhs(x, u[..., : self.arm_nu])
 
     def residual(self, x: Any, dxdt: Any, u: Any, form: str) -> Any:
         """The system's ODE residual under u alone."""
-        return self.base.residual(x, dxdt, u[..., : self.nu], form)
+        return self.base.residual(x, dxdt, u[..., : self.arm_nu], form)
 
 
 def takes_previous_input(model: Any) -> bool:
     """Whether a network (its surrogate, or its meta) was trained on the previous input too."""
     meta = model if isinstance(model, dict) else getattr(model, "meta", None)
     return isinstance(meta, dict) and bool(meta.get("previous_input"))
+
+
+def with_previous(u: Tensor) -> Tensor:
+    """(u_k, u_{k-1}) for each step of an input sequence (steps, nu), the first step's own input as the one before it
+    (a lag that starts settled): what a network given the previous input takes along an open-loop rollout."""
+    return torch.cat((u, torch.cat((u[:1], u[:-1]))), dim=-1)
 
 
 def arm_system(system: Any) -> Any:

@@ -13,7 +13,7 @@ import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from pinnmpc.plant.scipy_plant import ScipyPlant
-from pinnmpc.systems.previous_input import arm_system
+from pinnmpc.systems.previous_input import arm_system, with_previous
 from pinnmpc.training.ssbfgs import SSBFGS
 from pinnmpc.util.io import atomic_write
 from pinnmpc.util.signals import StopSignal
@@ -90,10 +90,9 @@ class SelfLoopFigure(L.Callback):
         like = pl_module.res_scale
         model, u = pl_module.model, torch.as_tensor(self.reference["u"], dtype=like.dtype, device=like.device)
         xs = [torch.as_tensor(self.reference["x"][0], dtype=u.dtype, device=u.device)]
+        inputs = with_previous(u) if model.nu > u.shape[-1] else u  # a network given the previous input too
         with torch.no_grad():
-            for k, uk in enumerate(u):
-                if model.nu > len(uk):  # a network that takes the previous input too (WithPreviousInput)
-                    uk = torch.cat((uk, u[max(k - 1, 0)]))
+            for uk in inputs:
                 xs.append(model(torch.full((1,), pl_module.tau, dtype=u.dtype, device=u.device), xs[-1], uk))
         x_pinn = torch.stack(xs).double().cpu().numpy()
         t = pl_module.tau * np.arange(len(u) + 1)
