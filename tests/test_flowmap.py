@@ -17,6 +17,7 @@ from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.surrogate.flowmap import CompiledRK4, ExactValues, FlowMap, RK4Model, check_flow_map, numpy_path
 from pinnmpc.surrogate.network import PINN
 from pinnmpc.surrogate.numpy_flow import NumpyFlow
+from pinnmpc.surrogate.previous_input import PreviousInputFlow
 from pinnmpc.systems import load_system
 from pinnmpc.systems.base import System
 from pinnmpc.systems.compiled import BatchedFunction
@@ -264,3 +265,39 @@ def test_the_numpy_path_names_wrong_shapes() -> None:
         for call in (flow.step, flow.step_with_jacobian):
             with pytest.raises(ValueError, match=r"expected \(\.\.\., 4\) and \(\.\.\., 2\)"):
                 call(x0, u)
+
+
+@pytest.mark.parametrize(("name", "kind"), CASES)
+def test_the_input_jacobian_alone_is_step_with_jacobians_b(maps: dict, systems: dict, name: str, kind: str) -> None:
+    """A cold solve's node inputs need only B: the OCP's input-only path gives step_with_jacobian's values and B
+    (the numpy network's own cheaper pass, every other map through the full one) on numpy arrays."""
+    model = numpy_path(maps[name, kind])
+    if model is None:  # the torch baseline: the lifted solver needs a numpy map
+        return
+    ocp = HorizonOCP(model, 4, [1.0] * model.nx, [1e-6] * model.nu)
+    x, u = _points(systems[name], (2, 4), seed=11)
+    y, b = ocp.step_with_input_jacobian(x, u)
+    want_y, _, want_b = ocp.step_with_jacobian(x, u)
+    assert b.shape == (2, 4, model.nx, model.nu)
+    np.testing.assert_allclose(y, want_y, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(b, want_b, rtol=1e-13, atol=1e-13)
+
+
+def test_the_input_jacobian_alone_with_a_prior_and_through_a_wrapper(systems: dict) -> None:
+    """The shipped planar3 network (a frozen-arm prior, periodic angles) gives the same B by its input-only pass;
+    a map wrapping it (the previous input's flow) is not handed its inner map's method but takes the full pass."""
+    flow = load_surrogate(system="planar3").numpy_flow()
+    ocp = HorizonOCP(flow, 3, [1.0] * flow.nx, [1e-6] * flow.nu)
+    x, u = _points(systems["planar3"], (5,), seed=12)
+    y, b = ocp.step_with_input_jacobian(x, u)
+    want_y, _, want_b = flow.step_with_jacobian(x, u)
+    np.testing.assert_allclose(y, want_y, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(b, want_b, rtol=1e-13, atol=1e-13)
+    wrapped = PreviousInputFlow(load_surrogate().numpy_flow())  # the PowerCube's 2 inputs read as (u, u_prev)
+    ocp = HorizonOCP(wrapped, 3, [1.0] * wrapped.nx, [1e-6] * wrapped.nu)
+    s, v = np.zeros((5, wrapped.nx)), np.full((5, wrapped.nu), 0.1)
+    y, b = ocp.step_with_input_jacobian(s, v)
+    want_y, _, want_b = ocp.step_with_jacobian(s, v)
+    assert b.shape == (5, wrapped.nx, wrapped.nu)
+    np.testing.assert_array_equal(y, want_y)
+    np.testing.assert_array_equal(b, want_b)

@@ -183,6 +183,15 @@ class HorizonOCP:
             y, a, b = (v.numpy() for v in t)
         return self._disturbed(y), a, b
 
+    def step_with_input_jacobian(self, x: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One predicted step and B = dx/du alone (numpy): the flow's own cheaper path where its class has one
+        (a wrapper's forwarded attribute would be its inner map's), else step_with_jacobian's."""
+        if self.flow is None or getattr(type(self.flow), "step_with_input_jacobian", None) is None:
+            y, _, b = self.step_with_jacobian(x, u)
+            return y, b
+        y, b = self.flow.step_with_input_jacobian(x, u)
+        return self._disturbed(y), b
+
     def prediction_error(self, x_prev: np.ndarray, u_prev: np.ndarray, x: np.ndarray) -> np.ndarray:
         """What the undisturbed model missed over the last period: x - F(x_prev, u_prev)."""
         return x - self._model_step(x_prev, u_prev)

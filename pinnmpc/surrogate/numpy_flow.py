@@ -236,22 +236,40 @@ class NumpyFlow:
         return x0 + n if self.hard_ic else n
 
     def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """x(tau), A = dx/dx0 (..., nx, nx), B = dx/du (..., nx, nu) by forward-mode tangents.
-
-        Values and the nx + nu tangents ride together in one (batch * (1 + nx + nu), width) matrix, the
-        batch's values in its first rows and their tangents below, so every layer is a single GEMM and
-        the values and tangents are contiguous views of it: one call per layer instead of two.
-        """
+        """x(tau), A = dx/dx0 (..., nx, nx), B = dx/du (..., nx, nu) by forward-mode tangents."""
         self._check(x0, u)
-        lead, nx, n_in = x0.shape[:-1], self.nx, self.nx + self.nu
-        x0, u = x0.reshape(-1, nx), u.reshape(-1, self.nu)
+        lead, nx = x0.shape[:-1], self.nx
+        x1, jac = self._with_tangents(x0.reshape(-1, nx), u.reshape(-1, self.nu), inputs_only=False)
+        jac = jac.reshape(*lead, nx, nx + self.nu)
+        return x1.reshape(*lead, nx), jac[..., :nx], jac[..., nx:]
+
+    def step_with_input_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """x(tau) and B = dx/du (..., nx, nu) alone: nu tangents a sample where step_with_jacobian carries nx + nu,
+        for callers that need no A (a cold solve's inputs node by node)."""
+        self._check(x0, u)
+        lead, nx = x0.shape[:-1], self.nx
+        x1, jac = self._with_tangents(x0.reshape(-1, nx), u.reshape(-1, self.nu), inputs_only=True)
+        return x1.reshape(*lead, nx), jac.reshape(*lead, nx, self.nu)
+
+    def _with_tangents(self, x0: np.ndarray, u: np.ndarray, inputs_only: bool) -> tuple[np.ndarray, np.ndarray]:
+        """x(tau) (batch, nx) and its Jacobian (batch, nx, k) w.r.t. (x0, u), or u alone, of rows x0, u.
+
+        Values and the k tangents ride together in one (batch * (1 + k), width) matrix, the batch's values in its
+        first rows and their tangents below, so every layer is a single GEMM and the values and tangents are
+        contiguous views of it: one call per layer instead of two.
+        """
+        nx, nu = self.nx, self.nu
+        n_in = nu if inputs_only else nx + nu
         batch, width = x0.shape[0], self.b_in.shape[0]
         z = np.empty((batch * (1 + n_in), width))
         value, tangent = z[:batch], z[batch:].reshape(batch, n_in, width)
         a, trig = self._first_layer(x0, u)
         y, slope = self.act(a)
         value[...] = y
-        self._input_tangents(slope, self._angle_rows(trig), tangent)
+        if inputs_only:  # the periodic states' rows are x0's: u's rows are the plain first layer's
+            np.multiply(slope[:, None, :], self.w_in[nx:], out=tangent)
+        else:
+            self._input_tangents(slope, self._angle_rows(trig), tangent)
         for w, b in self.hidden:
             z = z @ w
             value, tangent = z[:batch], z[batch:].reshape(batch, n_in, width)
@@ -264,14 +282,19 @@ class NumpyFlow:
         x1 += self.b_out
         jac = out[batch:].reshape(batch, n_in, nx).swapaxes(-1, -2)  # (batch, nx, n_in)
         if self.start is not None:
-            xp, jp = self.start.with_jacobian(x0, u[:, : self.prior_nu])
+            prior_nu = self.prior_nu
+            xp, jp = self.start.with_jacobian(x0, u[:, :prior_nu])
             x1 += xp
-            jac[..., : nx + self.prior_nu] += jp.reshape(batch, nx, nx + self.prior_nu)
+            jp = jp.reshape(batch, nx, nx + prior_nu)
+            if inputs_only:
+                jac[..., :prior_nu] += jp[..., nx:]
+            else:
+                jac[..., : nx + prior_nu] += jp
         elif self.hard_ic:
             x1 += x0
-            jac[:, :, :nx] += self.eye
-        jac = jac.reshape(*lead, nx, n_in)
-        return x1.reshape(*lead, nx), jac[..., :nx], jac[..., nx:]
+            if not inputs_only:
+                jac[:, :, :nx] += self.eye
+        return x1, jac
 
 
 @dataclass
@@ -376,3 +399,8 @@ class SecondOrderNumpyFlow(NumpyFlow):
         jac += self.kinematic
         jac = jac.reshape(*lead, nx, n_in)
         return x1.reshape(*lead, nx), jac[..., :nx], jac[..., nx:]
+
+    def step_with_input_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """x(tau) and B: through step_with_jacobian (its time-derivative rows share the tangents' layout)."""
+        x1, _, b = self.step_with_jacobian(x0, u)
+        return x1, b

@@ -251,7 +251,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         limits, trust = ocp.joint_limits, self.rti_trust
         if trust is not None and trust != np.inf and bool((np.abs(U - before) > trust * width).any()):
             return False
-        return limits is None or not (limits.reached(prior) | limits.reached(states)).any()
+        return limits is None or not limits.reached(np.concatenate((prior, states))).any()  # one call for both
 
     def warm_step(
         self, ocp: HorizonOCP, x0: Nd, U0: Nd, x_ref: Nd, u_prev: Nd, low: Nd, high: Nd, warm: object
@@ -270,11 +270,11 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         nodes = np.empty((1, horizon, nx))
         nodes[0, 0], nodes[0, 1:] = x0, prior[0, 1:]
         before = np.minimum(np.maximum(U0, low), high).reshape(1, -1)
-        lo, hi = _box_rows((1, *U0.shape), low, high)
+        lo, hi, width = self._warm_rows(U0.shape, low, high)
         data = (x_ref[None], u_prev[None], lo, hi)
         U, states, cost = compiled_step(compiled, ocp, nodes, before, data, self.damping)
-        if self._keeps(ocp, prior, before, U, states, hi - lo):
-            info = SolveInfo(np.ones(1, dtype=np.int64), cost, np.zeros(1, dtype=bool), states)
+        if self._keeps(ocp, prior, before, U, states, width):
+            info = SolveInfo(ONE_STEP, cost, UNCONVERGED, states)
             return U.reshape(U0.shape), info, LiftedWarm(states)
         with np.errstate(divide="ignore", invalid="ignore"):  # as solve(): ratios of decreases not formed yet
             out = self._solve(
@@ -282,6 +282,16 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             )
         U, iterations, cost, converged, states = out
         return U[0], SolveInfo(iterations, cost, converged, states), LiftedWarm(states)
+
+    def _warm_rows(self, shape: tuple[int, ...], low: Nd, high: Nd) -> tuple[Nd, Nd, Nd]:
+        """A warm sample's bounds as rows of one problem (1, H nu) and the box's width, read-only, kept from the last
+        sample while the bounds (compared by value) and the horizon stay the same."""
+        key = (shape, low.tobytes(), high.tobytes())
+        kept = getattr(self, "_rows", None)  # not a field: no setting of the solver's
+        if kept is None or kept[0] != key:
+            lo, hi = _box_rows((1, *shape), low, high)
+            kept = self._rows = (key, *(_read_only(a) for a in (lo, hi, hi - lo)))
+        return kept[1], kept[2], kept[3]
 
     def _rti_steps(
         self,
@@ -326,8 +336,13 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     def _compiled(self, ocp: HorizonOCP) -> CompiledRti | None:
         """The compiled real-time step of this OCP's horizon, weights and damping (None: numpy's), decided and built
         on first use and kept with the OCP."""
-        mine = STEP_OF.setdefault(ocp, {})
         choice = (bool(self.compiled_step), float(self.compiled_max_flops), float(self.damping))
+        last = getattr(
+            self, "_last_compiled", None
+        )  # the last sample's (not a field): a weak dictionary's lookup costs more
+        if last is not None and last[0] is ocp and last[1] == choice:
+            return last[2]
+        mine = STEP_OF.setdefault(ocp, {})
         if choice not in mine:
             mine[choice] = None
             if self._compiles(ocp):
@@ -337,6 +352,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
                     jac_u = ocp.input_jacobian()
                     COMPILED_STEPS[key] = CompiledRti(ocp.horizon, ocp.nx, ocp.nu, weights, jac_u, self.damping)
                 mine[choice] = COMPILED_STEPS[key]
+        self._last_compiled = (ocp, choice, mine[choice])
         return mine[choice]
 
     def _uses_warm(self, ocp: HorizonOCP) -> bool:
@@ -349,6 +365,14 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         return (ocp.horizon, ocp.nx)
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """a, read-only: shared between samples or solves, no user may change it."""
+    a.setflags(write=False)
+    return a
+
+
+ONE_STEP = _read_only(np.ones(1, dtype=np.int64))  # a warm real-time sample's iterations, shared
+UNCONVERGED = _read_only(np.zeros(1, dtype=bool))  # ... and its convergence: a real-time step stops short by design
 NODE_STEPS = 3  # Gauss-Newton steps of node_inputs: each one batched network call at the horizon's nodes
 
 
@@ -364,7 +388,7 @@ def node_inputs(
     u = U.reshape(batch, horizon, nu).copy()
     lo3, hi3 = lo.reshape(batch, horizon, nu), hi.reshape(batch, horizon, nu)
     for _ in range(NODE_STEPS):
-        y, _, b = ocp.step_with_jacobian(nodes, u)
+        y, b = ocp.step_with_input_jacobian(nodes, u)
         wb = w_q @ b  # (B, H, nx, nu)
         r = ((y - refb) @ w_q.T)[..., None]  # (B, H, nx, 1)
         hess = wb.swapaxes(-1, -2) @ wb + w_r.T @ w_r
