@@ -60,17 +60,28 @@ class PreviousInputNMPC(NMPC):
             raise ValueError(f"x_ref must be (H, {self.arm_nx}) reference states, got shape {ref.shape}")
         before = self._u_prev.copy()
         s = np.concatenate((x0, self._memory()))
-        padded = np.concatenate((ref, np.zeros((len(ref), self.ocp.nu))), axis=1)  # u_prev untracked (weight 0)
+        padded = self._padded(len(ref))  # u_prev untracked (weight 0): zeros after the arm's states
+        padded[:, : self.arm_nx] = ref
         u = super().make_step(s, padded)
         self._before = before
         return u
+
+    def _padded(self, rows: int) -> np.ndarray:
+        """The reference buffer (rows, nx) in the OCP's states, kept: NMPC.make_step copies what it is given."""
+        kept = getattr(self, "_reference", None)
+        if kept is None or kept.shape[0] != rows:
+            kept = self._reference = np.zeros((rows, self.ocp.nx))
+        return kept
 
     def prediction_error(self, x_prev: np.ndarray, u_prev: np.ndarray, x: np.ndarray) -> np.ndarray:
         """What the model missed over the last period, x - F(x_prev, u_prev, the input before it), in the arm's
         states: the input before is the controller's own record where u_prev is the one it applied last, else u_prev
         (a lag that had settled)."""
         u_prev = np.asarray(u_prev, dtype=np.float64)
-        before = self._before if np.array_equal(u_prev, self._u_prev) else u_prev
+        mine = u_prev.shape == self._u_prev.shape and bool(
+            (u_prev == self._u_prev).all()
+        )  # np.array_equal, less overhead
+        before = self._before if mine else u_prev
         s = np.concatenate((np.asarray(x_prev, dtype=np.float64), before))
         nxt = np.concatenate((np.asarray(x, dtype=np.float64), u_prev))
         return self.ocp.prediction_error(s, u_prev, nxt)[: self.arm_nx]

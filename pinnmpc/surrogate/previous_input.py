@@ -38,6 +38,7 @@ class PreviousInputFlow:
         self.input_box = Box(inputs.low[:nu], inputs.high[:nu])
         self.nq = self._x // 2  # the arm's joints: its states (q, v) come first
         self._numpy: PreviousInputFlow | None = None
+        self._eye = np.eye(nu)  # d u / d u: the lower block of every B
 
     def __getattr__(self, name: str) -> Any:
         """Every other fact (meta, domain, the model, approximate_jacobians) is the wrapped map's."""
@@ -60,6 +61,8 @@ class PreviousInputFlow:
         x, p = s[..., : self._x], s[..., self._x :]
         if isinstance(s, torch.Tensor):
             return x, torch.cat(torch.broadcast_tensors(u, p), dim=-1)
+        if u.shape == p.shape:  # the controller's calls: no broadcasting (its Python wrapper costs more than the join)
+            return x, np.concatenate((u, p), axis=-1)
         return x, np.concatenate(np.broadcast_arrays(u, p), axis=-1)
 
     def step(self, s: Array, u: Array) -> Array:
@@ -81,7 +84,7 @@ class PreviousInputFlow:
         big_a, big_b = zeros(*lead, nx + nu, nx + nu), zeros(*lead, nx + nu, nu)
         big_a[..., :nx, :nx], big_a[..., :nx, nx:] = a, b[..., nu:]
         big_b[..., :nx, :] = b[..., :nu]
-        big_b[..., nx:, :] = torch.eye(nu, dtype=y.dtype) if torch_side else np.eye(nu)
+        big_b[..., nx:, :] = torch.eye(nu, dtype=y.dtype) if torch_side else self._eye
         out = torch.cat((y, inputs[..., :nu]), dim=-1) if torch_side else np.concatenate((y, inputs[..., :nu]), -1)
         return out, big_a, big_b
 
