@@ -125,6 +125,24 @@ def test_the_warm_step_is_solve_on_one_problem_bit_for_bit(make_cfg: Any, push: 
     assert (min(loops[0][1][1:]) > 1) == (push > 0)  # solved on past the real-time step exactly where pushed
 
 
+def test_a_warm_step_takes_bounds_that_changed_since_the_last_sample(make_cfg: Any) -> None:
+    """planar3, 10 samples on its plant, then the warm step with the input box narrowed to its top tenth: the step's
+    inputs keep within the new box (the rows kept from the samples before are the old box's, compared by value)."""
+    nmpc, cfg = controller(make_cfg, "planar3", True)
+    system = load_system("planar3")
+    plant = make_plant(simulated_arm(system, cfg.system), cfg.plant, system.tau, cfg.system.get("robots"))
+    ref = np.array(system_reference(cfg, system, system.tau).x)
+    x = np.array(ref[0])
+    for k in range(10):
+        x = plant.step(x, nmpc.make_step(x, ref[k + 1 : k + 1 + nmpc.horizon]))
+    high = nmpc._high.copy()
+    low = high - 0.1 * (high - nmpc._low)
+    assert (low > nmpc._U).any()  # the plan lies below the new box: a step bounded by the old one would stay there
+    out = nmpc.solver.warm_step(nmpc.ocp, x, nmpc._U, ref[11 : 11 + nmpc.horizon], nmpc._u_prev, low, high, nmpc.warm)
+    assert out is not None
+    assert (out[0] >= low - 1e-12).all() and (out[0] <= high + 1e-12).all()
+
+
 @pytest.mark.parametrize(("name", "horizon", "compiles"), [("powercube", 5, True), ("panda", 20, False)])
 def test_only_small_steps_are_compiled(make_cfg: Any, name: str, horizon: int, compiles: bool) -> None:
     """compiled_max_flops: numpy's BLAS does a large step (the Panda at H = 20) faster than C without it."""
