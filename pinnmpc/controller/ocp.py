@@ -129,23 +129,25 @@ class HorizonOCP:
     @property
     def disturbance(self) -> np.ndarray | None:
         """Additive disturbance d (nx,) on every predicted step, x_{i+1} = F(x_i, u_i) + d (None: none)."""
-        return self._disturbance[np]
+        return self._disturbance
 
     @disturbance.setter
     def disturbance(self, d: np.ndarray | Sequence[float] | None) -> None:
         """Set d, e.g. the last one-step prediction error (offset-free MPC)."""
         if d is None:
-            self._disturbance = {np: None, torch: None}
+            self._disturbance = None
             return
         d = np.array(d, dtype=np.float64)
         if d.shape != (self.nx,) or not np.isfinite(d).all():
             raise ValueError(f"disturbance must be {self.nx} finite numbers (one per state), got {d.tolist()}")
-        self._disturbance = {np: d, torch: torch.from_numpy(d)}
+        self._disturbance = d
 
     def _disturbed(self, x: Array) -> Array:
-        """x + d where a disturbance is set."""
-        d = self._disturbance[xp_of(x)]
-        return x if d is None else x + d
+        """x + d where a disturbance is set (as a tensor, sharing d's memory, for torch's x)."""
+        d = self._disturbance
+        if d is None:
+            return x
+        return x + (torch.from_numpy(d) if isinstance(x, Tensor) else d)
 
     def _numpy_only(self, *arrays: Tensor) -> list[np.ndarray]:
         """Tensors for a numpy-only model: fine as constants, an error where autograd must pass through."""
