@@ -26,31 +26,18 @@ class RtiStep:
     """One compiled real-time step at batch 1 (rows of one): the step's result and, read only where a numpy finish
     needs them, its intermediates (each a view of the one result vector, shaped when asked for)."""
 
-    def __init__(self, out: np.ndarray, cuts: np.ndarray, horizon: int, nx: int, nu: int) -> None:
+    def __init__(self, out: np.ndarray, cuts: tuple[int, ...], horizon: int, nx: int, nu: int) -> None:
         self._out, self._cuts, self._dims = out, cuts, (horizon, nx, horizon * nu)
-        self.cut = bool(
-            out[cuts[POSITION["cut"]]] > 0.5
-        )  # a bound cut the Newton step short: the active-set path must finish it
+        # what every step reads, as views made once (inputs, states, cost and cut lead OUTPUTS)
+        self.inputs = out[cuts[0] : cuts[1]][None]  # (1, n) the inputs after the step
+        self.states = out[cuts[1] : cuts[2]].reshape(1, horizon, nx)  # (1, H, nx) the linearised states they reach
+        self.cost = out[cuts[2] : cuts[3]]  # (1,) the model's cost after the step
+        self.cut = bool(out[cuts[3]] > 0.5)  # a bound cut the Newton step short: the active-set path must finish it
 
     def _part(self, name: str) -> np.ndarray:
         """The result of that name (OUTPUTS), flat."""
         k = POSITION[name]
         return self._out[self._cuts[k] : self._cuts[k + 1]]
-
-    @property
-    def inputs(self) -> np.ndarray:
-        """(1, n) the inputs after the step."""
-        return self._part("inputs")[None]
-
-    @property
-    def states(self) -> np.ndarray:
-        """(1, H, nx) the linearised states they reach."""
-        return self._part("states").reshape(1, *self._dims[:2])
-
-    @property
-    def cost(self) -> np.ndarray:
-        """(1,) the model's cost after the step."""
-        return self._part("cost")
 
     @property
     def pred(self) -> np.ndarray:
@@ -169,7 +156,7 @@ class CompiledRti:
         f = rti_function(horizon, nx, nu, np.asarray(w_q), np.asarray(jac_u), w_d, float(damping))
         name = f"rti_step_{horizon}x{nx}x{nu}"  # the compiled cache tells weights apart by the C's hash
         self.f = compile_functions(name, [_packed(f)], opt="-O3")["rti_packed"]
-        self.cuts_out = np.cumsum([0, *(f.numel_out(j) for j in range(f.n_out()))])
+        self.cuts_out = tuple(int(c) for c in np.cumsum([0, *(f.numel_out(j) for j in range(f.n_out()))]))
         self._in = np.empty(sum(f.numel_in(i) for i in range(f.n_in())))
         self._out = np.empty(self.cuts_out[-1])
         self._buffer, self._evaluate = self.f.buffer()

@@ -238,7 +238,7 @@ class NMPC:
             return
         predicted = self._predicted
         error = self.ocp.prediction_error(*self._last, x) if predicted is None else x - predicted
-        self.ocp.disturbance = self._estimator.update(error)
+        self.ocp.estimated(self._estimator.update(error))
 
     def _planned_next(self, info: SolveInfo) -> np.ndarray | None:
         """The undisturbed prediction of the next state from the plan's own states (saves a network call); None

@@ -142,6 +142,11 @@ class HorizonOCP:
             raise ValueError(f"disturbance must be {self.nx} finite numbers (one per state), got {d.tolist()}")
         self._disturbance = d
 
+    def estimated(self, d: np.ndarray | None) -> None:
+        """Set d to the offset-free estimator's value (OffsetFree.update): finite, one per state and a new array each
+        update by construction, so it is kept as it is, not copied and checked as the public setter does."""
+        self._disturbance = d
+
     def _disturbed(self, x: Array) -> Array:
         """x + d where a disturbance is set (as a tensor, sharing d's memory, for torch's x)."""
         d = self._disturbance

@@ -336,12 +336,11 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     def _compiled(self, ocp: HorizonOCP) -> CompiledRti | None:
         """The compiled real-time step of this OCP's horizon, weights and damping (None: numpy's), decided and built
         on first use and kept with the OCP."""
-        choice = (bool(self.compiled_step), float(self.compiled_max_flops), float(self.damping))
-        last = getattr(
-            self, "_last_compiled", None
-        )  # the last sample's (not a field): a weak dictionary's lookup costs more
-        if last is not None and last[0] is ocp and last[1] == choice:
+        settings = (self.compiled_step, self.compiled_max_flops, self.damping)
+        last = getattr(self, "_last_compiled", None)  # the last one (not a field): cheaper than the weak lookup
+        if last is not None and last[0] is ocp and last[1] == settings:
             return last[2]
+        choice = (bool(self.compiled_step), float(self.compiled_max_flops), float(self.damping))
         mine = STEP_OF.setdefault(ocp, {})
         if choice not in mine:
             mine[choice] = None
@@ -352,7 +351,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
                     jac_u = ocp.input_jacobian()
                     COMPILED_STEPS[key] = CompiledRti(ocp.horizon, ocp.nx, ocp.nu, weights, jac_u, self.damping)
                 mine[choice] = COMPILED_STEPS[key]
-        self._last_compiled = (ocp, choice, mine[choice])
+        self._last_compiled = (ocp, settings, mine[choice])
         return mine[choice]
 
     def _uses_warm(self, ocp: HorizonOCP) -> bool:
