@@ -61,8 +61,10 @@ def check(nmpc: Any, name: str, seeds: range, spread: float = 0.3, atol: float =
         net = ocp.step_with_jacobian(nodes, U.reshape(1, ocp.horizon, ocp.nu))
         cuts.add(compiled(net, nodes, U, *rest).cut)
         got = compiled_step(compiled, ocp, nodes.copy(), U, tuple(rest), solver.damping)
-        for g, w in zip(got, numpy_step(ocp, nodes.copy(), U, *rest, solver.damping)):
+        for g, w in zip(got[:3], numpy_step(ocp, nodes.copy(), U, *rest, solver.damping), strict=True):
             np.testing.assert_allclose(g, w, rtol=TIGHT, atol=atol)
+        limits = ocp.joint_limits  # its last answer: whether the states it reached meet a joint-limit penalty
+        assert got[3] == (limits is not None and bool(limits.reached(got[1]).any()))
     return cuts
 
 

@@ -192,18 +192,28 @@ def _packed(f: ca.Function) -> ca.Function:
 
 
 def compiled_step(
-    compiled: CompiledRti, ocp: HorizonOCP, nodes: np.ndarray, U: np.ndarray, data: tuple, damping: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    compiled: CompiledRti,
+    ocp: HorizonOCP,
+    nodes: np.ndarray,
+    U: np.ndarray,
+    data: tuple,
+    damping: float,
+    prior: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """One real-time lifted step of one problem as LiftedGaussNewtonSolver._rti_steps takes it (inputs, the states
     they reach, the model's cost after the step): the network at the nodes, then the compiled step, finished in
-    numpy where a bound cuts it short or a joint-limit penalty acts. data: (reference, u_prev, low, high) rows."""
+    numpy where a bound cuts it short or a joint-limit penalty acts. data: (reference, u_prev, low, high) rows.
+    Last, whether the states reached, or prior (the last plan's states, where given), lie where a joint-limit penalty
+    acts: the linearisation's points and both plans checked in one call."""
     refb, upb, lo, hi = data
     step = compiled(ocp.step_with_jacobian(nodes, U.reshape(1, ocp.horizon, ocp.nu)), nodes, U, refb, upb, lo, hi)
-    limits = ocp.joint_limits is not None and bool(ocp.limit_residuals(step.pred).any())
-    if not step.cut and not limits:
-        return step.inputs, step.states, step.cost
+    joint_limits = ocp.joint_limits
+    plans = () if prior is None else (prior,)
+    at = None if joint_limits is None else joint_limits.reached(np.concatenate((step.pred, step.states, *plans)))
+    if not step.cut and (at is None or not at[0]):
+        return step.inputs, step.states, step.cost, at is not None and bool(at[1:].any())
     f, jtj, grad, hess, fixed = step.f, step.jtj, step.grad, step.hess, step.fixed
-    if limits:  # the penalty's rows join the model (the numpy path's own)
+    if at is not None and at[0]:  # the penalty's rows join the model (the numpy path's own)
         f, jtj, grad = ocp.gauss_newton_model(step.pred, step.sens, U, refb, upb)
         delta, _, predicted, _ = newton_step(jtj, grad, U, lo, hi, damping)
     else:
@@ -211,4 +221,5 @@ def compiled_step(
         predicted = -np.einsum("bi,bi->b", delta, grad + np.matmul(jtj, delta[..., None])[..., 0])
     moved = np.clip(U + delta, lo, hi) - U
     states = step.pred + (step.sens @ moved[..., None])[..., 0].reshape(step.pred.shape)
-    return U + moved, states, f - predicted
+    reached = joint_limits is not None and bool(joint_limits.reached(np.concatenate((states, *plans))).any())
+    return U + moved, states, f - predicted, reached

@@ -245,12 +245,17 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             X[rows] = ocp.rollout(x0b[rows], U[rows].reshape(-1, horizon, nu))
         return result(shape, project(U, lo, hi), iterations, cost, ~running, X)
 
-    def _keeps(self, ocp: HorizonOCP, prior: Nd, before: Nd, U: Nd, states: Nd, width: Nd) -> bool:
+    def _keeps(
+        self, ocp: HorizonOCP, prior: Nd, before: Nd, U: Nd, states: Nd, width: Nd, at_limits: bool | None = None
+    ) -> bool:
         """Whether a real-time step's plan stands: no step beyond rti_trust of the box's width (none is where every
-        one is trusted) and neither the last plan nor this one at the joint limits' penalty."""
+        one is trusted) and neither the last plan nor this one at the joint limits' penalty (at_limits: already
+        checked, compiled_step's answer)."""
         limits, trust = ocp.joint_limits, self.rti_trust
         if trust is not None and trust != np.inf and bool((np.abs(U - before) > trust * width).any()):
             return False
+        if at_limits is not None:
+            return not at_limits
         return limits is None or not limits.reached(np.concatenate((prior, states))).any()  # one call for both
 
     def warm_step(
@@ -272,8 +277,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         before = np.minimum(np.maximum(U0, low), high).reshape(1, -1)
         lo, hi, width = self._warm_rows(U0.shape, low, high)
         data = (x_ref[None], u_prev[None], lo, hi)
-        U, states, cost = compiled_step(compiled, ocp, nodes, before, data, self.damping)
-        if self._keeps(ocp, prior, before, U, states, width):
+        U, states, cost, at_limits = compiled_step(compiled, ocp, nodes, before, data, self.damping, prior)
+        if self._keeps(ocp, prior, before, U, states, width, at_limits):
             info = SolveInfo(ONE_STEP, cost, UNCONVERGED, states)
             return U.reshape(U0.shape), info, LiftedWarm(states)
         with np.errstate(divide="ignore", invalid="ignore"):  # as solve(): ratios of decreases not formed yet
@@ -310,7 +315,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         compiled = self._compiled(ocp) if U.shape[0] == 1 else None
         for _ in range(self.rti_steps):
             if compiled is not None:
-                U, states, cost = compiled_step(compiled, ocp, nodes, U, (refb, upb, lo, hi), self.damping)
+                U, states, cost, _ = compiled_step(compiled, ocp, nodes, U, (refb, upb, lo, hi), self.damping)
                 nodes[:, 1:] = states[:, :-1]
                 continue
             pred, sens, _, _ = linearise(ocp, nodes, U)
