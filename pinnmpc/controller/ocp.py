@@ -134,25 +134,28 @@ class HorizonOCP:
     @disturbance.setter
     def disturbance(self, d: np.ndarray | Sequence[float] | None) -> None:
         """Set d, e.g. the last one-step prediction error (offset-free MPC)."""
-        if d is None:
-            self._disturbance = None
-            return
-        d = np.array(d, dtype=np.float64)
-        if d.shape != (self.nx,) or not np.isfinite(d).all():
-            raise ValueError(f"disturbance must be {self.nx} finite numbers (one per state), got {d.tolist()}")
-        self._disturbance = d
+        if d is not None:
+            d = np.array(d, dtype=np.float64)
+            if d.shape != (self.nx,) or not np.isfinite(d).all():
+                raise ValueError(f"disturbance must be {self.nx} finite numbers (one per state), got {d.tolist()}")
+        self.estimated(d)
 
     def estimated(self, d: np.ndarray | None) -> None:
         """Set d to the offset-free estimator's value (OffsetFree.update): finite, one per state and a new array each
         update by construction, so it is kept as it is, not copied and checked as the public setter does."""
         self._disturbance = d
+        self._disturbance_torch: Tensor | None = None  # its tensor view, made when a torch solver first adds it
 
     def _disturbed(self, x: Array) -> Array:
-        """x + d where a disturbance is set (as a tensor, sharing d's memory, for torch's x)."""
+        """x + d where a disturbance is set."""
         d = self._disturbance
         if d is None:
             return x
-        return x + (torch.from_numpy(d) if isinstance(x, Tensor) else d)
+        if isinstance(x, Tensor):
+            if self._disturbance_torch is None:
+                self._disturbance_torch = torch.from_numpy(d)
+            return x + self._disturbance_torch
+        return x + d
 
     def _numpy_only(self, *arrays: Tensor) -> list[np.ndarray]:
         """Tensors for a numpy-only model: fine as constants, an error where autograd must pass through."""

@@ -78,9 +78,8 @@ class PreviousInputNMPC(NMPC):
         states: the input before is the controller's own record where u_prev is the one it applied last, else u_prev
         (a lag that had settled)."""
         u_prev = np.asarray(u_prev, dtype=np.float64)
-        mine = u_prev.shape == self._u_prev.shape and bool(
-            (u_prev == self._u_prev).all()
-        )  # np.array_equal, less overhead
+        # np.array_equal's test, without its wrapper
+        mine = u_prev.shape == self._u_prev.shape and bool((u_prev == self._u_prev).all())
         before = self._before if mine else u_prev
         s = np.concatenate((np.asarray(x_prev, dtype=np.float64), before))
         nxt = np.concatenate((np.asarray(x, dtype=np.float64), u_prev))
