@@ -109,7 +109,7 @@ def bench_cold(cfg: DictConfig, system: System, surrogate: Surrogate, ref: Refer
             controller = build_nmpc(settings, surrogate, system)
             row = loop_row(run_cfg, system, controller, surrogate.domain, surrogate.tau, case)
             loops.append((row, controller.stats))
-        row, stats = loops[0]
+        row = loops[0][0]  # the first loop's status
         cold = np.array([s[0].time_s for _, s in loops])
         warm = np.array([np.median([step.time_s for step in s[1:]]) for _, s in loops])
         rows.append(

@@ -162,10 +162,10 @@ def held_out_rmse(
     at_tau = (t[:, 0] - system.tau).abs() <= 1e-9 * system.tau
     x0, both, x1 = x0[at_tau], both[at_tau], x1[at_tau]
     u = both[:, : len(system.input_names)]
-    steps = {k: net.step for k, net in networks.items()}
-    for k, net in networks.items():
-        if takes_previous_input(net):  # it gets the previous input too
-            steps[k] = lambda a, b, n=net: n.step(a, both)
+    steps = {  # a network given the previous input gets it too
+        k: (lambda a, b, n=net: n.step(a, both)) if takes_previous_input(net) else net.step
+        for k, net in networks.items()
+    }
     for key, model in (models or {}).items():
         steps[key] = lambda a, b, m=model: rk4_fixed(m.rhs, a, b, system.tau / rk4_steps, rk4_steps)
     out = {}

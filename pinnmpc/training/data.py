@@ -243,8 +243,8 @@ class CollocationDataModule(L.LightningDataModule):
         from pinnmpc.robot_data.logs import read_logs
 
         prev = isinstance(self.system, WithPreviousInput)  # the network takes u_prev too: the logs give it
-        logs = read_logs(self.logs, arm_system(self.system))  # checked as a set: shared episodes would leak into
-        #   validation
+        # checked as a set: shared episodes would leak into validation
+        logs = read_logs(self.logs, arm_system(self.system))
         parts = [split_episodes(log, self.val_episodes, self.seed) for log in logs]
         t, x0, u, xt = transitions([train for train, _ in parts], self.t_max, self.robot_max_input_step, prev)
         fine = min(log.fine for log in logs)
