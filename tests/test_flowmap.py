@@ -301,3 +301,62 @@ def test_the_input_jacobian_alone_with_a_prior_and_through_a_wrapper(systems: di
     assert b.shape == (5, wrapped.nx, wrapped.nu)
     np.testing.assert_array_equal(y, want_y)
     np.testing.assert_array_equal(b, want_b)
+
+
+def _deferred_estimate(ocp: HorizonOCP, x: np.ndarray, u: np.ndarray, before: tuple[np.ndarray, np.ndarray]) -> None:
+    """A deferred offset-free estimate (HorizonOCP.defer_estimate) against the same OCP without one: the pass over
+    the nodes gives their Jacobians as alone and their step plus the d that the estimator's step F(x_prev, u_prev)
+    gave, computed once; a later use of d reads it, a new deferral read as d settles by a step of its own."""
+    want_y, want_a, want_b = ocp.step_with_jacobian(x, u)
+    seen: list[np.ndarray] = []
+
+    def update(step: np.ndarray) -> np.ndarray:
+        seen.append(step)
+        return 0.5 * (before[0] - step)
+
+    ocp.defer_estimate(*before, update)
+    y, a, b = ocp.step_with_jacobian(x, u)
+    assert len(seen) == 1
+    np.testing.assert_allclose(seen[0], ocp.flow.step(*before), rtol=1e-13, atol=1e-13)
+    d = ocp.disturbance
+    np.testing.assert_array_equal(d, 0.5 * (before[0] - seen[0]))
+    np.testing.assert_allclose(y, want_y + d, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(a, want_a, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(b, want_b, rtol=1e-13, atol=1e-13)
+    ocp.step_with_jacobian(x, u)
+    assert len(seen) == 1
+    ocp.defer_estimate(*before, update)
+    np.testing.assert_allclose(ocp.disturbance, d, rtol=1e-13, atol=1e-13)
+    assert len(seen) == 2
+
+
+@pytest.mark.parametrize(("name", "kind"), CASES)
+def test_the_estimators_step_rides_with_the_nodes(maps: dict, systems: dict, name: str, kind: str) -> None:
+    """Every numpy map: the numpy network carries the estimator's step as a row of values beside the nodes, a
+    second-order one and the compiled true model in a pass of their own; the OCP's answers are the same."""
+    model = numpy_path(maps[name, kind])
+    if model is None:  # the torch baseline: no numpy pass over nodes
+        return
+    ocp = HorizonOCP(model, 4, [1.0] * model.nx, [1e-6] * model.nu)
+    x, u = _points(systems[name], (1, 4), seed=13)
+    x_prev, u_prev = _points(systems[name], (), seed=14)
+    _deferred_estimate(ocp, x, u, (x_prev, u_prev))
+    if getattr(type(model), "step_with_jacobian_plus", None) is not None:  # the pass itself
+        got = model.step_with_jacobian_plus(x, u, x_prev[None], u_prev[None])
+        for g, w in zip(got, (*model.step_with_jacobian(x, u), model.step(x_prev[None], u_prev[None])), strict=True):
+            assert g.shape == w.shape
+            np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-13)
+
+
+def test_the_estimators_step_rides_with_a_prior_and_through_a_wrapper(systems: dict) -> None:
+    """The shipped planar3 network (a frozen-arm prior: its value at the estimator's row) and the previous input's
+    map around the PowerCube's network (its one pass, the input carried below)."""
+    flow = load_surrogate(system="planar3").numpy_flow()
+    x, u = _points(systems["planar3"], (1, 3), seed=15)
+    before = _points(systems["planar3"], (), seed=17)
+    _deferred_estimate(HorizonOCP(flow, 3, [1.0] * flow.nx, [1e-6] * flow.nu), x, u, before)
+    wrapped = PreviousInputFlow(load_surrogate().numpy_flow())
+    ocp = HorizonOCP(wrapped, 3, [1.0] * wrapped.nx, [1e-6] * wrapped.nu)
+    rng = np.random.default_rng(16)
+    s, v = rng.uniform(-0.3, 0.3, (1, 3, wrapped.nx)), rng.uniform(-0.3, 0.3, (1, 3, wrapped.nu))
+    _deferred_estimate(ocp, s, v, (rng.uniform(-0.3, 0.3, wrapped.nx), rng.uniform(-0.3, 0.3, wrapped.nu)))

@@ -28,10 +28,12 @@ log = logging.getLogger(__name__)
 
 class FloorProbe:
     """The controller with the floor timed after each of its solves: the network's step_with_jacobian on the
-    horizon's nodes (batch H) and one step (the estimator's), the same calls its Gauss-Newton model makes."""
+    horizon's nodes (batch H) and one step (the estimator's), in one pass where the map has one (its
+    step_with_jacobian_plus, as the controller's OCP calls it), else two calls."""
 
     def __init__(self, controller: Any, flow: Any) -> None:
         self.inner, self.flow = controller, flow
+        self._plus = getattr(type(flow), "step_with_jacobian_plus", None) is not None
         self.ocp_s: list[float] = []
         self.floor_s: list[float] = []
 
@@ -47,8 +49,11 @@ class FloorProbe:
         plan = self.inner.U.numpy()  # (H, nu): the inputs the next solve starts from
         nodes = np.vstack([np.asarray(x, dtype=np.float64)[None], np.asarray(x_ref, dtype=np.float64)[:-1]])
         floor_start = time.perf_counter()
-        self.flow.step_with_jacobian(nodes, plan)
-        self.flow.step(nodes[:1], plan[:1])
+        if self._plus:
+            self.flow.step_with_jacobian_plus(nodes, plan, nodes[:1], plan[:1])
+        else:
+            self.flow.step_with_jacobian(nodes, plan)
+            self.flow.step(nodes[:1], plan[:1])
         done = time.perf_counter()
         self.ocp_s.append(solved - start)
         self.floor_s.append(done - floor_start)

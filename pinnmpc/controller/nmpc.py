@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Sequence
@@ -179,10 +180,13 @@ class NMPC:
             self._estimate_disturbance(x0)
             ahead = self._ahead(x0) if self.delay_periods else None
             U, info, next_warm = self._solve_one(x0 if ahead is None else ahead[1], ref)
+            self.ocp.settle()  # a solver that never evaluated the model at the nodes
             # one problem: its bounded inputs sum finite exactly where each one is, and its one cost
             ok = math.isfinite(float(U.sum())) and math.isfinite(float(info.cost[0]))
         except (RuntimeError, FloatingPointError, np.linalg.LinAlgError):  # e.g. a singular solve on NaN outputs
             ok, info, next_warm = False, None, NO_WARM
+            with contextlib.suppress(RuntimeError, FloatingPointError, np.linalg.LinAlgError):
+                self.ocp.settle()  # the estimate as before the solve failed
         if not ok:
             fallback = True
             # self._U is already the previous plan shifted: its first entry is the input planned for now
@@ -239,8 +243,10 @@ class NMPC:
         if not self._estimator.on or self._last is None:
             return
         predicted = self._predicted
-        error = self.ocp.prediction_error(*self._last, x) if predicted is None else x - predicted
-        self.ocp.estimated(self._estimator.update(error))
+        if predicted is None:  # the model's step rides with the solve's pass over the nodes (HorizonOCP)
+            self.ocp.defer_estimate(*self._last, lambda step: self._estimator.update(x - step))
+            return
+        self.ocp.estimated(self._estimator.update(x - predicted))
 
     def _planned_next(self, info: SolveInfo) -> np.ndarray | None:
         """The undisturbed prediction of the next state from the plan's own states (saves a network call); None

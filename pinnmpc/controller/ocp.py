@@ -10,8 +10,9 @@ pinnmpc.surrogate.flowmap.FlowMap: the surrogate, its numpy fast path or the tru
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import torch
@@ -21,6 +22,8 @@ from pinnmpc.controller import shooting
 from pinnmpc.controller.array_backend import Array, cat, xp_of
 from pinnmpc.controller.limits import LIMIT_KEYS, JointLimits, as_float
 from pinnmpc.surrogate.flowmap import FlowMap, check_flow_map, numpy_path
+
+Deferred = tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], Any]]  # x_prev, u_prev, update: defer_estimate's
 
 __all__ = ["LIMIT_KEYS", "Array", "HorizonOCP", "JointLimits", "cat", "psd_sqrt", "xp_of"]  # JointLimits: limits.py
 
@@ -89,6 +92,7 @@ class HorizonOCP:
         self.differentiable = getattr(model, "array_api", "torch") == "torch"  # torch calls keep autograd
         fast = numpy_path(model) or (None if self.differentiable else model)
         self.flow: FlowMap | None = fast  # the numpy fast path (None: numpy arrays go through torch)
+        self._pending: Deferred | None = None  # an offset-free estimate waiting for its model step (defer_estimate)
         self.disturbance = None
 
     @property
@@ -129,6 +133,8 @@ class HorizonOCP:
     @property
     def disturbance(self) -> np.ndarray | None:
         """Additive disturbance d (nx,) on every predicted step, x_{i+1} = F(x_i, u_i) + d (None: none)."""
+        if self._pending is not None:
+            self.settle()
         return self._disturbance
 
     @disturbance.setter
@@ -142,12 +148,29 @@ class HorizonOCP:
 
     def estimated(self, d: np.ndarray | None) -> None:
         """Set d to the offset-free estimator's value (OffsetFree.update): finite, one per state and a new array each
-        update by construction, so it is kept as it is, not copied and checked as the public setter does."""
+        update by construction, so it is kept as it is, not copied and checked as the public setter does. An estimate
+        still deferred is dropped."""
+        self._pending = None
         self._disturbance = d
         self._disturbance_torch: Tensor | None = None  # its tensor view, made when a torch solver first adds it
 
+    def defer_estimate(self, x_prev: np.ndarray, u_prev: np.ndarray, update: Callable[[np.ndarray], Any]) -> None:
+        """The offset-free estimate from the undisturbed step F(x_prev, u_prev), made where the model is next used:
+        update(F) gives the d to predict with. A numpy flow with step_with_jacobian_plus evaluates that step in the
+        pass over the horizon's nodes; any other use of d settles it first by a step of its own."""
+        self._pending = (x_prev, u_prev, update)
+
+    def settle(self) -> None:
+        """Make a deferred estimate now, by its own model step (nothing where none waits)."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            x_prev, u_prev, update = pending
+            self.estimated(update(self._model_step(x_prev, u_prev)))
+
     def _disturbed(self, x: Array) -> Array:
         """x + d where a disturbance is set."""
+        if self._pending is not None:
+            self.settle()
         d = self._disturbance
         if d is None:
             return x
@@ -187,7 +210,14 @@ class HorizonOCP:
         elif isinstance(x, Tensor):
             y, a, b = (torch.from_numpy(v) for v in self.flow.step_with_jacobian(*self._numpy_only(x, u)))
         elif self.flow is not None:
-            y, a, b = self.flow.step_with_jacobian(x, u)
+            pending = self._pending
+            plus = None if pending is None else getattr(type(self.flow), "step_with_jacobian_plus", None)
+            if plus is None:  # a wrapper's forwarded attribute would be its inner map's: the class is asked
+                y, a, b = self.flow.step_with_jacobian(x, u)
+            else:  # the deferred estimate's step rides with the nodes
+                x_prev, u_prev, update = pending
+                y, a, b, nxt = self.flow.step_with_jacobian_plus(x, u, x_prev[None], u_prev[None])
+                self.estimated(update(nxt[0]))
         else:
             t = self.model.step_with_jacobian(torch.from_numpy(x), torch.from_numpy(u))
             y, a, b = (v.numpy() for v in t)

@@ -251,40 +251,64 @@ class NumpyFlow:
         x1, jac = self._with_tangents(x0.reshape(-1, nx), u.reshape(-1, self.nu), inputs_only=True)
         return x1.reshape(*lead, nx), jac.reshape(*lead, nx, self.nu)
 
-    def _with_tangents(self, x0: np.ndarray, u: np.ndarray, inputs_only: bool) -> tuple[np.ndarray, np.ndarray]:
-        """x(tau) (batch, nx) and its Jacobian (batch, nx, k) w.r.t. (x0, u), or u alone, of rows x0, u.
+    def step_with_jacobian_plus(
+        self, x0: np.ndarray, u: np.ndarray, x_plain: np.ndarray, u_plain: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """step_with_jacobian at x0, u (..., nx), (..., nu) and step at rows x_plain, u_plain (k, nx), (k, nu) in one
+        pass: the plain rows join the values' GEMMs without tangents (the estimator's step beside the nodes)."""
+        self._check(x0, u)
+        self._check(x_plain, u_plain)
+        lead, nx, nu = x0.shape[:-1], self.nx, self.nu
+        x0, u = x0.reshape(-1, nx), u.reshape(-1, nu)
+        batch = x0.shape[0]
+        rows = np.concatenate((x0, x_plain)), np.concatenate((u, u_plain))
+        x1, jac = self._with_tangents(*rows, inputs_only=False, plain=x_plain.shape[0])
+        jac = jac.reshape(*lead, nx, nx + nu)
+        return x1[:batch].reshape(*lead, nx), jac[..., :nx], jac[..., nx:], x1[batch:]
 
-        Values and the k tangents ride together in one (batch * (1 + k), width) matrix, the batch's values in its
-        first rows and their tangents below, so every layer is a single GEMM and the values and tangents are
-        contiguous views of it: one call per layer instead of two.
+    def _with_tangents(
+        self, x0: np.ndarray, u: np.ndarray, inputs_only: bool, plain: int = 0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """x(tau) (rows, nx) and its Jacobian (rows - plain, nx, k) w.r.t. (x0, u), or u alone, of rows x0, u; the
+        last `plain` rows get values alone.
+
+        Values and the k tangents ride together in one (rows + batch * k, width) matrix, the values in its first
+        rows and the tangents below, so every layer is a single GEMM and the values and tangents are contiguous
+        views of it: one call per layer instead of two.
         """
         nx, nu = self.nx, self.nu
         n_in = nu if inputs_only else nx + nu
-        batch, width = x0.shape[0], self.b_in.shape[0]
-        z = np.empty((batch * (1 + n_in), width))
-        value, tangent = z[:batch], z[batch:].reshape(batch, n_in, width)
+        rows, width = x0.shape[0], self.b_in.shape[0]
+        batch = rows - plain
+        z = np.empty((rows + batch * n_in, width))
+        value, tangent = z[:rows], z[rows:].reshape(batch, n_in, width)
         a, trig = self._first_layer(x0, u)
         y, slope = self.act(a)
         value[...] = y
+        if plain:
+            slope = slope[:batch]
+            trig = None if trig is None else (trig[0][:batch], trig[1][:batch])
         if inputs_only:  # the periodic states' rows are x0's: u's rows are the plain first layer's
             np.multiply(slope[:, None, :], self.w_in[nx:], out=tangent)
         else:
             self._input_tangents(slope, self._angle_rows(trig), tangent)
         for w, b in self.hidden:
             z = z @ w
-            value, tangent = z[:batch], z[batch:].reshape(batch, n_in, width)
+            value, tangent = z[:rows], z[rows:].reshape(batch, n_in, width)
             value += b
             y, slope = self.act(value)
             value[...] = y
-            tangent *= slope[:, None, :]
+            tangent *= slope[:batch, None, :]
         out = z @ self.w_out
-        x1 = out[:batch]
+        x1 = out[:rows]
         x1 += self.b_out
-        jac = out[batch:].reshape(batch, n_in, nx).swapaxes(-1, -2)  # (batch, nx, n_in)
+        jac = out[rows:].reshape(batch, n_in, nx).swapaxes(-1, -2)  # (batch, nx, n_in)
         if self.start is not None:
             prior_nu = self.prior_nu
-            xp, jp = self.start.with_jacobian(x0, u[:, :prior_nu])
-            x1 += xp
+            xp, jp = self.start.with_jacobian(x0[:batch], u[:batch, :prior_nu])
+            x1[:batch] += xp
+            if plain:
+                x1[batch:] += self.start.value(x0[batch:], u[batch:, :prior_nu])[0]
             jp = jp.reshape(batch, nx, nx + prior_nu)
             if inputs_only:
                 jac[..., :prior_nu] += jp[..., nx:]
@@ -404,3 +428,9 @@ class SecondOrderNumpyFlow(NumpyFlow):
         """x(tau) and B: through step_with_jacobian (its time-derivative rows share the tangents' layout)."""
         x1, _, b = self.step_with_jacobian(x0, u)
         return x1, b
+
+    def step_with_jacobian_plus(
+        self, x0: np.ndarray, u: np.ndarray, x_plain: np.ndarray, u_plain: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """step_with_jacobian and step, in two passes: the rows here carry time derivatives too."""
+        return (*self.step_with_jacobian(x0, u), self.step(x_plain, u_plain))

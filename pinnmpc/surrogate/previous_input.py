@@ -77,7 +77,23 @@ class PreviousInputFlow:
         """(x(tau), u), A = d/ds (..., nx + nu, nx + nu) and B = d/du (..., nx + nu, nu): the network's Jacobians
         in the upper rows, u passed on below."""
         x, inputs = self._network_inputs(s, u)
-        y, a, b = self.flow.step_with_jacobian(x, inputs)
+        return self._carried(*self.flow.step_with_jacobian(x, inputs), inputs)
+
+    def step_with_jacobian_plus(
+        self, s: np.ndarray, u: np.ndarray, s_plain: np.ndarray, u_plain: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """step_with_jacobian at (s, u) and step at rows (s_plain, u_plain): one pass where the wrapped map has
+        one (pinnmpc.surrogate.numpy_flow), else two."""
+        if getattr(type(self.flow), "step_with_jacobian_plus", None) is None:
+            return (*self.step_with_jacobian(s, u), self.step(s_plain, u_plain))
+        x, inputs = self._network_inputs(s, u)
+        x_plain, inputs_plain = self._network_inputs(s_plain, u_plain)
+        y, a, b, y_plain = self.flow.step_with_jacobian_plus(x, inputs, x_plain, inputs_plain)
+        plain = np.concatenate((y_plain, inputs_plain[..., : self._u]), axis=-1)
+        return (*self._carried(y, a, b, inputs), plain)
+
+    def _carried(self, y: Array, a: Array, b: Array, inputs: Array) -> tuple[Array, Array, Array]:
+        """The network's step and Jacobians at (x, (u, p)) as the map's on s: u passed on below."""
         nx, nu, lead = self._x, self._u, y.shape[:-1]
         torch_side = isinstance(y, torch.Tensor)
         zeros = (lambda *shape: y.new_zeros(shape)) if torch_side else (lambda *shape: np.zeros(shape))
