@@ -101,14 +101,15 @@ def test_a_closed_loop_tracks_alike_compiled_or_not(make_cfg: Any) -> None:
     np.testing.assert_allclose(loops[0], loops[1], rtol=1e-7, atol=1e-9)
 
 
+@pytest.mark.parametrize("compiled", [True, False])
 @pytest.mark.parametrize("push", [0.0, 1.9])
-def test_the_warm_step_is_solve_on_one_problem_bit_for_bit(make_cfg: Any, push: float) -> None:
-    """The Panda on its plant, 25 samples, the controller's warm_step against solve() (the solver without it): the
-    same inputs to the last bit; with joint 4's reference pushed past its limit every warm plan meets the penalty,
-    so warm_step hands its step on to the full solve."""
+def test_the_warm_step_is_solve_on_one_problem_bit_for_bit(make_cfg: Any, push: float, compiled: bool) -> None:
+    """The Panda on its plant, 25 samples, the controller's warm_step against solve() (the solver without it), its
+    real-time step compiled or in numpy: the same inputs to the last bit; with joint 4's reference pushed past its
+    limit every warm plan meets the penalty, so warm_step hands its step on to the full solve."""
     loops = []
     for direct in (True, False):
-        nmpc, cfg = controller(make_cfg, "panda", True)
+        nmpc, cfg = controller(make_cfg, "panda", compiled)
         if not direct:
             nmpc.solver.warm_step = None  # the batch path of solve()
         system = load_system("panda")

@@ -262,22 +262,26 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         self, ocp: HorizonOCP, x0: Nd, U0: Nd, x_ref: Nd, u_prev: Nd, low: Nd, high: Nd, warm: object
     ) -> tuple[Nd, SolveInfo, LiftedWarm | NoWarm] | None:
         """The controller's warm sample as solve() returns it for one problem (x0 (nx,), U0 (H, nu), x_ref (H, nx),
-        u_prev (nu,), bounds (nu,)), without its batch handling: one compiled real-time step from the last plan's
-        states. A plan that does not stand (_keeps) is solved on from that step as solve() would; None where solve()
-        must run: no plan to start from, not a compiled real-time iteration."""
+        u_prev (nu,), bounds (nu,)), without its batch handling: one real-time step from the last plan's states,
+        compiled or in numpy (_rti_steps). A plan that does not stand (_keeps) is solved on from that step as solve()
+        would; None where solve() must run: no plan to start from, not a real-time iteration of one step."""
         if not (self.rti and self.rti_steps == 1 and isinstance(warm, LiftedWarm) and ocp.flow is not None):
             return None
-        compiled = self._compiled(ocp)
         horizon, nx = ocp.horizon, ocp.nx
-        if compiled is None or warm.states.shape != (1, horizon, nx):
+        if warm.states.shape != (1, horizon, nx):
             return None
+        compiled = self._compiled(ocp)
         prior = warm.states
         nodes = np.empty((1, horizon, nx))
         nodes[0, 0], nodes[0, 1:] = x0, prior[0, 1:]
         before = np.minimum(np.maximum(U0, low), high).reshape(1, -1)
         lo, hi, width = self._warm_rows(U0.shape, low, high)
         data = (x_ref[None], u_prev[None], lo, hi)
-        U, states, cost, at_limits = compiled_step(compiled, ocp, nodes, before, data, self.damping, prior)
+        if compiled is None:
+            U, states, cost = self._rti_steps(ocp, nodes, before, *data)
+            at_limits = None
+        else:
+            U, states, cost, at_limits = compiled_step(compiled, ocp, nodes, before, data, self.damping, prior)
         if self._keeps(ocp, prior, before, U, states, width, at_limits):
             info = SolveInfo(ONE_STEP, cost, UNCONVERGED, states)
             return U.reshape(U0.shape), info, LiftedWarm(states)
