@@ -204,3 +204,25 @@ def test_one_problems_active_set_path_downdates_its_inverse_to_the_batchs_path()
     singular[0, :2, :2] = np.eye(2)
     with pytest.raises(np.linalg.LinAlgError):
         active_set_path(singular, np.ones((1, 4)), np.zeros((1, 4), dtype=bool), np.zeros((1, 4)), -1.0, 1.0)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_one_problems_newton_step_is_the_batchs(seed: int) -> None:
+    """newton_step at batch 1 (one problem's 1-D path on one factor) against the same problem inside a batch of
+    two (the batched masked solves and path): the same step, model decrease, projected gradient and cut, with
+    variables starting on their bounds and steps the box cuts short."""
+    rng = np.random.default_rng(seed)
+    jac = rng.normal(size=(2, 50, 24))
+    jtj, grad = jac.swapaxes(-1, -2) @ jac, rng.normal(size=(2, 24)) * 20.0
+    lo, hi = np.full((2, 24), -1.0), np.full((2, 24), 1.0)
+    u = rng.uniform(-1.0, 1.0, (2, 24))
+    pinned = 4 if seed % 2 else 0  # on the bound the gradient points out of: fixed from the start (odd seeds)
+    u[:, :pinned] = np.where(grad[:, :pinned] > 0, -1.0, 1.0)
+    batch = newton_step(jtj, grad, u, lo, hi, 1e-6)
+    assert batch.cut.all()
+    for k in range(2):
+        alone = newton_step(jtj[k : k + 1], grad[k : k + 1], u[k : k + 1], lo[k : k + 1], hi[k : k + 1], 1e-6)
+        for got, want in zip(alone, batch, strict=True):
+            assert got.shape == want[k : k + 1].shape
+            np.testing.assert_allclose(got, want[k : k + 1], rtol=1e-9, atol=1e-12)
+        assert np.all(alone.delta[0, :pinned] == 0.0)

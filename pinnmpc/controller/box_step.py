@@ -42,6 +42,10 @@ def newton_step(
     The model decreases along every segment. damping: Levenberg-Marquardt damping relative to the
     mean diagonal of J^T J.
     """
+    if u.shape[0] == 1:
+        one = _newton_one(jtj[0], grad[0], u[0], *_rows(lo, hi, u), damping)
+        if one is not None:
+            return one
     tol = BOUND_TOL * (hi - lo)  # "at a bound" up to rounding: steps aimed at a bound land within it
     fixed = ((u - lo <= tol) & (grad > 0)) | ((hi - u <= tol) & (grad < 0))
     pgrad_max = np.abs(np.where(fixed, 0.0, grad)).max(-1)
@@ -60,6 +64,25 @@ def newton_step(
     # ||r||^2 - ||r + J delta||^2 = -(grad . delta + delta^T J^T J delta)
     predicted = -np.einsum("bi,bi->b", delta, grad + np.matmul(jtj, delta[..., None])[..., 0])
     return BoxStep(delta, pgrad_max, predicted, cut)
+
+
+def _newton_one(
+    jtj: np.ndarray, grad: np.ndarray, u: np.ndarray, lo: np.ndarray, hi: np.ndarray, damping: float
+) -> BoxStep | None:
+    """newton_step of one problem (jtj (n, n), the rest (n,)) on 1-D arrays, where a sample's few small numpy calls
+    cost more than their arithmetic; None where its free block is not positive definite (the batch path decides)."""
+    tol = BOUND_TOL * (hi - lo)
+    fixed = ((u - lo <= tol) & (grad > 0)) | ((hi - u <= tol) & (grad < 0))
+    pgrad_max = np.abs(np.where(fixed, 0.0, grad)).max()
+    hess = jtj.copy()
+    n = hess.shape[0]
+    hess.flat[:: n + 1] += damping * max(hess.diagonal().mean(), 1e-30)
+    one = _path_one(hess, grad, fixed, u, lo, hi)
+    if one is None:
+        return None
+    delta, cut = one
+    predicted = -(delta @ (grad + jtj @ delta))
+    return BoxStep(delta[None], np.array([pgrad_max]), np.array([predicted]), np.array([cut]))
 
 
 def active_set_path(
@@ -89,6 +112,8 @@ def active_set_path(
 
 def _rows(lo: np.ndarray | float, hi: np.ndarray | float, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The first problem's bounds, however lo and hi broadcast against u (B, n)."""
+    if isinstance(lo, np.ndarray) and isinstance(hi, np.ndarray) and lo.shape == hi.shape == u.shape:
+        return lo[0], hi[0]  # rows already: np.broadcast_to's Python wrapper costs more than the view
     return np.broadcast_to(lo, u.shape)[0], np.broadcast_to(hi, u.shape)[0]
 
 
@@ -103,12 +128,13 @@ def _path_one(
     free = np.flatnonzero(~fixed)
     if not free.size:
         return np.zeros_like(u), False
-    sub = hess[np.ix_(free, free)]
+    every = free.size == u.size  # nothing fixed: the whole problem, no gathers
+    sub = hess if every else hess[np.ix_(free, free)]
     factor, info = dpotrf(sub, lower=0, clean=0)
     if info != 0:
         return None
-    room_hi, room_lo = (hi - u)[free], (lo - u)[free]
-    step, model_grad = np.zeros(len(free)), grad[free]  # on the free variables: the path so far, grad + 2 H step
+    room_hi, room_lo = (hi - u, lo - u) if every else ((hi - u)[free], (lo - u)[free])
+    step, model_grad = np.zeros(len(free)), grad if every else grad[free]  # the path so far, grad + 2 H step
     active = np.ones(len(free), dtype=bool)
     held = np.empty(0, dtype=np.intp)  # positions in free of the variables fixed on the way
     columns = np.empty((len(free), 0))  # K^-1 E: the factor's solves of their unit vectors
@@ -119,8 +145,10 @@ def _path_one(
             direction -= columns @ np.linalg.solve(columns[held], direction[held])
             direction[held] = 0.0
         room = np.where(direction > 0, room_hi - step, room_lo - step)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(active & (direction != 0), np.maximum(room / direction, 0.0), np.inf)
+        moving = active & (direction != 0)
+        ratio = np.full(len(free), np.inf)  # the fraction of the direction to each bound, where it moves
+        np.divide(room, direction, out=ratio, where=moving)
+        np.maximum(ratio, 0.0, out=ratio, where=moving)
         first = ratio.min()
         length = min(first, 1.0)
         step += length * direction
@@ -134,6 +162,8 @@ def _path_one(
         units = np.zeros((len(free), len(met)))
         units[met, np.arange(len(met))] = 1.0
         columns = np.hstack((columns, dpotrs(factor, units)[0]))
+    if every:
+        return step, cut
     delta = np.zeros_like(u)
     delta[free] = step
     return delta, cut
