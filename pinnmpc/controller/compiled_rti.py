@@ -22,12 +22,20 @@ OUTPUTS = ("inputs", "states", "cost", "cut", "pred", "sens", "jtj", "hess", "gr
 POSITION = {name: k for k, name in enumerate(OUTPUTS)}  # each result's place in the result vector
 
 
+KEPT = POSITION["sens"]  # the results before it (inputs, states, cost, cut, pred) are copied out of the buffer
+
+
 class RtiStep:
     """One compiled real-time step at batch 1 (rows of one): the step's result and, read only where a numpy finish
-    needs them, its intermediates (each a view of the one result vector, shaped when asked for)."""
+    needs them, its intermediates (each a view of the result vector, shaped when asked for). The results up to pred
+    are its own copy; the intermediates after them view the compiled function's buffer, valid until its next call
+    (compiled_step reads them at once): copying the Gauss-Newton matrices every sample would cost a large arm more
+    than their rare use."""
 
     def __init__(self, out: np.ndarray, cuts: tuple[int, ...], horizon: int, nx: int, nu: int) -> None:
-        self._out, self._cuts, self._dims = out, cuts, (horizon, nx, horizon * nu)
+        head = out[: cuts[KEPT]].copy()
+        self._out, self._head, self._cuts, self._dims = out, head, cuts, (horizon, nx, horizon * nu)
+        out = head
         # what every step reads, as views made once (inputs, states, cost and cut lead OUTPUTS)
         self.inputs = out[cuts[0] : cuts[1]][None]  # (1, n) the inputs after the step
         self.states = out[cuts[1] : cuts[2]].reshape(1, horizon, nx)  # (1, H, nx) the linearised states they reach
@@ -37,7 +45,7 @@ class RtiStep:
     def _part(self, name: str) -> np.ndarray:
         """The result of that name (OUTPUTS), flat."""
         k = POSITION[name]
-        return self._out[self._cuts[k] : self._cuts[k + 1]]
+        return (self._head if k < KEPT else self._out)[self._cuts[k] : self._cuts[k + 1]]
 
     @property
     def pred(self) -> np.ndarray:
@@ -177,7 +185,7 @@ class CompiledRti:
         holds them (rows of one)."""
         np.concatenate([v.reshape(-1) for v in (*ynet, nodes, U, ref, u_prev, lo, hi)], out=self._in)
         self._evaluate()
-        return RtiStep(self._out.copy(), self.cuts_out, self.horizon, self.nx, self.nu)
+        return RtiStep(self._out, self.cuts_out, self.horizon, self.nx, self.nu)
 
 
 def _packed(f: ca.Function) -> ca.Function:

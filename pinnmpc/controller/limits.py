@@ -97,12 +97,21 @@ class JointLimits:
         """Where the limited joints' velocities sit in a state (positions first)."""
         return _frozen(len(self.low) + self.joints)
 
+    @cached_property
+    def _numpy_indices(self) -> tuple[slice | np.ndarray, slice | np.ndarray]:
+        """The limited joints' positions and velocities in a state as numpy indices: slices (views, no gathers)
+        where the joints are consecutive, as every arm's here are, else the index arrays."""
+        j, nq = self.joints, len(self.low)
+        if j.size and np.array_equal(j, np.arange(j[0], j[0] + j.size)):
+            return slice(int(j[0]), int(j[0]) + j.size), slice(nq + int(j[0]), nq + int(j[0]) + j.size)
+        return j, self._velocities
+
     def governed(self, x_ref: np.ndarray) -> np.ndarray:
         """Reference states (..., nx; positions first) with every limited position past (limit - margin) moved onto
         it and its velocity there zeroed: where the arm may not follow, the tracking cost then pulls towards where the
         penalty starts instead of against it (a reference beyond it left plans chattering at the limits, crossing
         them from some starts); a reference inside is returned as it is."""
-        j = self.joints
+        j, velocities = self._numpy_indices
         low, high = self.inner
         q = x_ref[..., j]
         outside = (q < low) | (q > high)
@@ -110,8 +119,7 @@ class JointLimits:
             return x_ref
         governed = np.array(x_ref, dtype=np.float64)
         governed[..., j] = np.clip(q, low, high)
-        nq = len(self.low)
-        governed[..., nq + j] = np.where(outside, 0.0, x_ref[..., nq + j])
+        governed[..., velocities] = np.where(outside, 0.0, x_ref[..., velocities])
         return governed
 
     def reached(self, states: np.ndarray) -> np.ndarray:
@@ -125,7 +133,7 @@ class JointLimits:
         """The positions the penalty checks against the lower and the upper limits (..., limited joints): each limited
         joint's position plus lookahead times its velocity where it moves towards that limit."""
         numpy = isinstance(states, np.ndarray)
-        joints, velocities = (self.joints, self._velocities) if numpy else self._torch_indices
+        joints, velocities = self._numpy_indices if numpy else self._torch_indices
         q = states[..., joints]
         if not self.lookahead:
             return q, q
