@@ -20,3 +20,9 @@ def xp_of(a: Array) -> ModuleType:
 def cat(parts: list[Array], axis: int) -> Array:
     """Concatenate in either namespace."""
     return torch.cat(parts, axis) if isinstance(parts[0], Tensor) else np.concatenate(parts, axis)
+
+
+def read_only(a: np.ndarray) -> np.ndarray:
+    """a, made read-only: an array kept and shared (between samples, solves or users) that no one may change."""
+    a.setflags(write=False)
+    return a

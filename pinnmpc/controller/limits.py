@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pinnmpc.controller.array_backend import Array
+from pinnmpc.controller.array_backend import Array, read_only
 
 LIMIT_KEYS = ("low", "high", "weight", "margin")
 OPTIONAL_LIMIT_KEYS = ("lookahead",)
@@ -84,18 +84,18 @@ class JointLimits:
     def joints(self) -> np.ndarray:
         """Indices of the joints with a finite limit on at least one side (read-only; kept: a controller checks
         its plans against them every sample)."""
-        return _frozen(np.flatnonzero(np.isfinite(self.low) | np.isfinite(self.high)))
+        return read_only(np.flatnonzero(np.isfinite(self.low) | np.isfinite(self.high)))
 
     @cached_property
     def inner(self) -> tuple[np.ndarray, np.ndarray]:
         """Where the penalty starts, (low + margin, high - margin), for the limited joints (read-only, kept)."""
         j = self.joints
-        return _frozen(np.asarray(self.low)[j] + self.margin), _frozen(np.asarray(self.high)[j] - self.margin)
+        return read_only(np.asarray(self.low)[j] + self.margin), read_only(np.asarray(self.high)[j] - self.margin)
 
     @cached_property
     def _velocities(self) -> np.ndarray:
         """Where the limited joints' velocities sit in a state (positions first)."""
-        return _frozen(len(self.low) + self.joints)
+        return read_only(len(self.low) + self.joints)
 
     @cached_property
     def _numpy_indices(self) -> tuple[slice | np.ndarray, slice | np.ndarray]:
@@ -146,12 +146,6 @@ class JointLimits:
     def _torch_indices(self) -> tuple[Tensor, Tensor]:
         """joints and their velocities' places as torch indices (a read-only numpy index would be shared)."""
         return torch.tensor(self.joints), torch.tensor(self._velocities)
-
-
-def _frozen(a: np.ndarray) -> np.ndarray:
-    """a, read-only: a kept property must not change under its users."""
-    a.setflags(write=False)
-    return a
 
 
 def as_float(mask: Array, scale: float) -> Array:

@@ -12,7 +12,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from pinnmpc.controller.array_backend import Array, Nd
+from pinnmpc.controller.array_backend import Array, Nd, read_only
 from pinnmpc.controller.box_step import newton_step
 from pinnmpc.controller.compiled_rti import CompiledRti, compiled_step, step_flops
 from pinnmpc.controller.ocp import HorizonOCP
@@ -299,7 +299,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         kept = getattr(self, "_rows", None)  # not a field: no setting of the solver's
         if kept is None or kept[0] != key:
             lo, hi = _box_rows((1, *shape), low, high)
-            kept = self._rows = (key, *(_read_only(a) for a in (lo, hi, hi - lo)))
+            kept = self._rows = (key, *(read_only(a) for a in (lo, hi, hi - lo)))
         return kept[1], kept[2], kept[3]
 
     def _rti_steps(
@@ -345,11 +345,10 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     def _compiled(self, ocp: HorizonOCP) -> CompiledRti | None:
         """The compiled real-time step of this OCP's horizon, weights and damping (None: numpy's), decided and built
         on first use and kept with the OCP."""
-        settings = (self.compiled_step, self.compiled_max_flops, self.damping)
-        last = getattr(self, "_last_compiled", None)  # the last one (not a field): cheaper than the weak lookup
-        if last is not None and last[0] is ocp and last[1] == settings:
-            return last[2]
         choice = (bool(self.compiled_step), float(self.compiled_max_flops), float(self.damping))
+        last = getattr(self, "_last_compiled", None)  # the last one (not a field): cheaper than the weak lookup
+        if last is not None and last[0] is ocp and last[1] == choice:
+            return last[2]
         mine = STEP_OF.setdefault(ocp, {})
         if choice not in mine:
             mine[choice] = None
@@ -360,7 +359,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
                     jac_u = ocp.input_jacobian()
                     COMPILED_STEPS[key] = CompiledRti(ocp.horizon, ocp.nx, ocp.nu, weights, jac_u, self.damping)
                 mine[choice] = COMPILED_STEPS[key]
-        self._last_compiled = (ocp, settings, mine[choice])
+        self._last_compiled = (ocp, choice, mine[choice])
         return mine[choice]
 
     def _uses_warm(self, ocp: HorizonOCP) -> bool:
@@ -373,14 +372,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         return (ocp.horizon, ocp.nx)
 
 
-def _read_only(a: np.ndarray) -> np.ndarray:
-    """a, read-only: shared between samples or solves, no user may change it."""
-    a.setflags(write=False)
-    return a
-
-
-ONE_STEP = _read_only(np.ones(1, dtype=np.int64))  # a warm real-time sample's iterations, shared
-UNCONVERGED = _read_only(np.zeros(1, dtype=bool))  # ... and its convergence: a real-time step stops short by design
+ONE_STEP = read_only(np.ones(1, dtype=np.int64))  # a warm real-time sample's iterations, shared
+UNCONVERGED = read_only(np.zeros(1, dtype=bool))  # ... and its convergence: a real-time step stops short by design
 NODE_STEPS = 3  # Gauss-Newton steps of node_inputs: each one batched network call at the horizon's nodes
 
 
