@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 from pinnmpc import load_surrogate, load_system
 from pinnmpc.controller.box_step import newton_step
 from pinnmpc.controller.build import build_nmpc
-from pinnmpc.controller.compiled_rti import compiled_step
+from pinnmpc.controller.compiled_rti import compiled_step, spd_solve
 from pinnmpc.controller.shooting import linearise
 from pinnmpc.plant.build import make_plant, simulated_arm
 from pinnmpc.simulation.setup import system_reference
@@ -226,3 +226,20 @@ def test_one_problems_newton_step_is_the_batchs(seed: int) -> None:
             assert got.shape == want[k : k + 1].shape
             np.testing.assert_allclose(got, want[k : k + 1], rtol=1e-9, atol=1e-12)
         assert np.all(alone.delta[0, :pinned] == 0.0)
+
+
+def test_the_compiled_steps_cholesky_solve_is_numpys_and_breaks_down_to_nan() -> None:
+    """spd_solve (the compiled step's solve) on damped Gauss-Newton matrices as the step forms them: numpy's solve to
+    rounding; on a matrix with a zero pivot no number comes out, which compiled_step takes as its cue to finish the
+    step in numpy."""
+    rng = np.random.default_rng(0)
+    solve = spd_solve(12)
+    for _ in range(4):
+        jac = rng.normal(size=(30, 12)) * np.logspace(-3, 2, 12)  # columns scaled over five decades
+        hess = jac.T @ jac + 1e-9 * np.trace(jac.T @ jac) / 12 * np.eye(12)
+        b = rng.normal(size=12)
+        want = np.linalg.solve(hess, b)
+        np.testing.assert_allclose(np.asarray(solve(hess, b)).ravel(), want, rtol=1e-7, atol=1e-12 * np.abs(want).max())
+    broken = np.eye(12)
+    broken[5, 5] = 0.0
+    assert not np.isfinite(np.asarray(solve(broken, np.ones(12)))).all()

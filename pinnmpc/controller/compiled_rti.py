@@ -11,6 +11,8 @@ path, box_step.active_set_path) and a plan whose joint-limit penalty acts (Horiz
 
 from __future__ import annotations
 
+import math
+
 import casadi as ca
 import numpy as np
 
@@ -98,6 +100,15 @@ def _blocks(v: ca.MX, count: int, rows: int, cols: int) -> list[ca.MX]:
     return [ca.reshape(v[k * size : (k + 1) * size], cols, rows).T for k in range(count)]
 
 
+def spd_solve(n: int) -> ca.Function:
+    """(a, b) -> a^-1 b for a symmetric positive definite a (n, n) as straight-line code: a Cholesky factor and two
+    triangular solves, a third of a QR's arithmetic on the step's dense damped Gauss-Newton matrix. A matrix singular
+    to rounding leaves NaN (compiled_step then finishes in numpy)."""
+    a, b = ca.SX.sym("a", n, n), ca.SX.sym("b", n)
+    r = ca.chol(a)  # upper triangular, a = r^T r
+    return ca.Function("spd_solve", [a, b], [ca.solve(r, ca.solve(r.T, b))], {"cse": True})
+
+
 def rti_function(
     horizon: int, nx: int, nu: int, w_q: np.ndarray, jac_u: np.ndarray, w_d: np.ndarray | None, damping: float
 ) -> ca.Function:
@@ -136,7 +147,7 @@ def rti_function(
     free = 1 - fixed
     hess = jtj + damping * ca.fmax(ca.sum1(ca.diag(jtj)) / n, 1e-30) * ca.MX.eye(n)
     masked = hess * (free @ free.T) + ca.diag(fixed)
-    delta = ca.solve(masked, -0.5 * grad * free, "qr")
+    delta = spd_solve(n)(masked, -0.5 * grad * free)
     moved = U + delta
     cut = ca.mmax(free * ca.logic_or(moved > hi, moved < lo))
     predicted = -ca.dot(delta, grad + jtj @ delta)
@@ -218,11 +229,13 @@ def compiled_step(
     joint_limits = ocp.joint_limits
     plans = () if prior is None else (prior,)
     at = None if joint_limits is None else joint_limits.reached(np.concatenate((step.pred, step.states, *plans)))
-    if not step.cut and (at is None or not at[0]):
+    solved = math.isfinite(step.cost[0])  # else its Cholesky factor broke down (spd_solve)
+    if solved and not step.cut and (at is None or not at[0]):
         return step.inputs, step.states, step.cost, at is not None and bool(at[1:].any())
     f, jtj, grad, hess, fixed = step.f, step.jtj, step.grad, step.hess, step.fixed
     if at is not None and at[0]:  # the penalty's rows join the model (the numpy path's own)
         f, jtj, grad = ocp.gauss_newton_model(step.pred, step.sens, U, refb, upb)
+    if not solved or (at is not None and at[0]):
         delta, _, predicted, _ = newton_step(jtj, grad, U, lo, hi, damping)
     else:
         delta = active_set_path(hess, grad, fixed, U, lo, hi)
