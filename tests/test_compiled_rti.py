@@ -59,7 +59,11 @@ def check(nmpc: Any, name: str, seeds: range, spread: float = 0.3, atol: float =
     for seed in seeds:
         nodes, U, *rest = problem(nmpc, name, seed, spread)
         net = ocp.step_with_jacobian(nodes, U.reshape(1, ocp.horizon, ocp.nu))
-        cuts.add(compiled(net, nodes, U, *rest).cut)
+        step = compiled(net, nodes, U, *rest)
+        cuts.add(step.cut)
+        limits = ocp.joint_limits  # the C's answer on the joint limits: JointLimits.reached's on the same states
+        want = [False, False] if limits is None else [bool(limits.reached(s)[0]) for s in (step.pred, step.states)]
+        assert list(step.reach) == want
         got = compiled_step(compiled, ocp, nodes.copy(), U, tuple(rest), solver.damping)
         for g, w in zip(got[:3], numpy_step(ocp, nodes.copy(), U, *rest, solver.damping), strict=True):
             np.testing.assert_allclose(g, w, rtol=TIGHT, atol=atol)
@@ -82,6 +86,22 @@ def test_an_acting_joint_limit_penalty_joins_the_model_as_in_numpy(make_cfg: Any
     nodes = problem(nmpc, "panda", 0, spread=1.1)[0]
     assert nmpc.ocp.limit_residuals(nodes).any()
     check(nmpc, "panda", range(3), spread=1.1, atol=STIFF)
+
+
+def test_the_compiled_step_checks_the_joint_limits_as_numpy_does(make_cfg: Any) -> None:
+    """The Panda's soft limits with their lookahead, nodes drawn near the middle of the box and over all of it: the
+    compiled step's own answer (whether its predictions and the states it reaches meet the penalty) is
+    JointLimits.reached's on both sides of the limits (check compares them problem by problem)."""
+    nmpc, _ = controller(make_cfg, "panda", True)
+    assert nmpc.ocp.joint_limits.lookahead > 0
+    seen = set()
+    for spread in (0.3, 1.1):
+        for seed in range(3):
+            nodes, U, *rest = problem(nmpc, "panda", seed, spread)
+            net = nmpc.ocp.step_with_jacobian(nodes, U.reshape(1, nmpc.ocp.horizon, nmpc.ocp.nu))
+            seen.update(nmpc.solver._compiled(nmpc.ocp)(net, nodes, U, *rest).reach)
+        check(nmpc, "panda", range(3), spread=spread, atol=STIFF)
+    assert seen == {True, False}
 
 
 def test_a_closed_loop_tracks_alike_compiled_or_not(make_cfg: Any) -> None:

@@ -6,7 +6,8 @@ floor), then chains the linearised predictions along the horizon (shooting.linea
 calls, most of the controller's own time. Here the same arithmetic is one CasADi function of the network's values
 and Jacobians (the weights, damping and horizon fixed), generated as C and called through CasADi's buffer API.
 What it cannot finish alone is left to the numpy path with its outputs: a step a bound cuts short (the active-set
-path, box_step.active_set_path) and a plan whose joint-limit penalty acts (HorizonOCP.gauss_newton_model).
+path, box_step.active_set_path) and a plan whose joint-limit penalty acts (HorizonOCP.gauss_newton_model). Whether it
+acts is the C's answer too (JointLimits.reached on the linearisation's points and the states reached).
 """
 
 from __future__ import annotations
@@ -17,14 +18,15 @@ import casadi as ca
 import numpy as np
 
 from pinnmpc.controller.box_step import BOUND_TOL, active_set_path, newton_step
+from pinnmpc.controller.limits import JointLimits
 from pinnmpc.controller.ocp import HorizonOCP
 from pinnmpc.systems.compiled import compile_functions
 
-OUTPUTS = ("inputs", "states", "cost", "cut", "pred", "sens", "jtj", "hess", "grad", "fixed", "f")
+OUTPUTS = ("inputs", "states", "cost", "cut", "reach", "pred", "sens", "jtj", "hess", "grad", "fixed", "f")
 POSITION = {name: k for k, name in enumerate(OUTPUTS)}  # each result's place in the result vector
 
 
-KEPT = POSITION["sens"]  # the results before it (inputs, states, cost, cut, pred) are copied out of the buffer
+KEPT = POSITION["sens"]  # the results before it (inputs, states, cost, cut, reach, pred) are copied out of the buffer
 
 
 class RtiStep:
@@ -43,6 +45,8 @@ class RtiStep:
         self.states = out[cuts[1] : cuts[2]].reshape(1, horizon, nx)  # (1, H, nx) the linearised states they reach
         self.cost = out[cuts[2] : cuts[3]]  # (1,) the model's cost after the step
         self.cut = bool(out[cuts[3]] > 0.5)  # a bound cut the Newton step short: the active-set path must finish it
+        reach = out[cuts[4] : cuts[5]]  # whether the predictions, and the states reached, meet a joint-limit penalty
+        self.reach = (bool(reach[0] > 0.5), bool(reach[1] > 0.5))
 
     def _part(self, name: str) -> np.ndarray:
         """The result of that name (OUTPUTS), flat."""
@@ -109,11 +113,36 @@ def spd_solve(n: int) -> ca.Function:
     return ca.Function("spd_solve", [a, b], [ca.solve(r, ca.solve(r.T, b))], {"cse": True})
 
 
+def reaches(x: ca.MX, horizon: int, nx: int, limits: JointLimits | None) -> ca.MX:
+    """1 where any of the stacked states x (H nx, positions first) lies where the joint-limit penalty acts, else 0:
+    JointLimits.reached's arithmetic (the lookahead along a velocity towards a limit), infinite sides left out."""
+    if limits is None or not limits.joints.size:
+        return ca.MX(1, 1)
+    states = ca.reshape(x, nx, horizon)  # column i: state i
+    nq, joints, (low, high) = len(limits.low), limits.joints.tolist(), limits.inner
+    q, v = states[joints, :], states[[nq + j for j in joints], :]
+    flags = []
+    for side, towards, beyond in ((low, ca.fmin, ca.lt), (high, ca.fmax, ca.gt)):
+        ahead = q + limits.lookahead * towards(v, 0) if limits.lookahead else q
+        for k, value in enumerate(side):
+            if np.isfinite(value):
+                flags.append(ca.mmax(beyond(ahead[k, :], float(value))))
+    return ca.mmax(ca.vertcat(*flags)) if flags else ca.MX(1, 1)
+
+
 def rti_function(
-    horizon: int, nx: int, nu: int, w_q: np.ndarray, jac_u: np.ndarray, w_d: np.ndarray | None, damping: float
+    horizon: int,
+    nx: int,
+    nu: int,
+    w_q: np.ndarray,
+    jac_u: np.ndarray,
+    w_d: np.ndarray | None,
+    damping: float,
+    limits: JointLimits | None = None,
 ) -> ca.Function:
     """(y, a, b, nodes, U, ref, u_prev, lo, hi) -> OUTPUTS, every argument and result a flat C-ordered row: the
-    arithmetic of linearise, gauss_newton_model (without joint limits), newton_step and the step's clipping."""
+    arithmetic of linearise, gauss_newton_model (without joint limits), newton_step and the step's clipping, and
+    whether the predictions and the states reached meet the limits' penalty (reaches)."""
     n = horizon * nu
     y, a, b = ca.MX.sym("y", horizon * nx), ca.MX.sym("a", horizon * nx * nx), ca.MX.sym("b", horizon * nx * nu)
     nodes, U, ref = ca.MX.sym("nodes", horizon * nx), ca.MX.sym("U", n), ca.MX.sym("ref", horizon * nx)
@@ -153,7 +182,8 @@ def rti_function(
     predicted = -ca.dot(delta, grad + jtj @ delta)
     step = ca.fmin(ca.fmax(moved, lo), hi) - U
     states = pred + sens @ step
-    outs = [U + step, states, f - predicted, cut, pred]  # stacked (H nx) columns: the C order of (H, nx)
+    reach = ca.vertcat(reaches(pred, horizon, nx, limits), reaches(states, horizon, nx, limits))
+    outs = [U + step, states, f - predicted, cut, reach, pred]  # stacked (H nx) columns: the C order of (H, nx)
     outs += [_c_order(sens), _c_order(jtj), _c_order(hess), grad, fixed, f]
     args = [y, a, b, nodes, U, ref, u_prev, lo, hi]
     return ca.Function("rti_step", args, [ca.densify(o) for o in outs], {"cse": True})
@@ -165,14 +195,23 @@ def _c_order(m: ca.MX) -> ca.MX:
 
 
 class CompiledRti:
-    """The compiled real-time step of one OCP (horizon, weights, damping), built once and cached by its C. Its
-    arguments go in as one vector and its results come out as one (a call per argument through CasADi's buffer API
-    costs as much as the arithmetic of a small arm's step), both buffers kept."""
+    """The compiled real-time step of one OCP (horizon, weights, damping, joint limits), built once and cached by its
+    C. Its arguments go in as one vector and its results come out as one (a call per argument through CasADi's buffer
+    API costs as much as the arithmetic of a small arm's step), both buffers kept."""
 
-    def __init__(self, horizon: int, nx: int, nu: int, weights: tuple, jac_u: np.ndarray, damping: float) -> None:
+    def __init__(
+        self,
+        horizon: int,
+        nx: int,
+        nu: int,
+        weights: tuple,
+        jac_u: np.ndarray,
+        damping: float,
+        limits: JointLimits | None = None,
+    ) -> None:
         w_q, _, w_d = weights
-        self.horizon, self.nx, self.nu = horizon, nx, nu
-        f = rti_function(horizon, nx, nu, np.asarray(w_q), np.asarray(jac_u), w_d, float(damping))
+        self.horizon, self.nx, self.nu, self.limits = horizon, nx, nu, limits
+        f = rti_function(horizon, nx, nu, np.asarray(w_q), np.asarray(jac_u), w_d, float(damping), limits)
         name = f"rti_step_{horizon}x{nx}x{nu}"  # the compiled cache tells weights apart by the C's hash
         self.f = compile_functions(name, [_packed(f)], opt="-O3")["rti_packed"]
         self.cuts_out = tuple(int(c) for c in np.cumsum([0, *(f.numel_out(j) for j in range(f.n_out()))]))
@@ -218,29 +257,38 @@ def compiled_step(
     data: tuple,
     damping: float,
     prior: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    prior_reached: bool | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool, bool | None]:
     """One real-time lifted step of one problem as LiftedGaussNewtonSolver._rti_steps takes it (inputs, the states
     they reach, the model's cost after the step): the network at the nodes, then the compiled step, finished in
     numpy where a bound cuts it short or a joint-limit penalty acts. data: (reference, u_prev, low, high) rows.
     Last, whether the states reached, or prior (the last plan's states, where given), lie where a joint-limit penalty
-    acts: the linearisation's points and both plans checked in one call."""
+    acts, and whether the states reached do (None without limits): the compiled step's answers for its own points,
+    prior_reached for prior where the step that planned it gave one."""
     refb, upb, lo, hi = data
     step = compiled(ocp.step_with_jacobian(nodes, U.reshape(1, ocp.horizon, ocp.nu)), nodes, U, refb, upb, lo, hi)
-    joint_limits = ocp.joint_limits
-    plans = () if prior is None else (prior,)
-    at = None if joint_limits is None else joint_limits.reached(np.concatenate((step.pred, step.states, *plans)))
+    limits = ocp.joint_limits
+    if limits is None:
+        at_points, at_states = False, None
+    elif compiled.limits == limits:  # its C checked them
+        at_points, at_states = step.reach
+    else:
+        at_points, at_states = (bool(a) for a in limits.reached(np.concatenate((step.pred, step.states))))
+    at_prior = limits is not None and prior is not None
+    if at_prior:
+        at_prior = bool(limits.reached(prior)[0]) if prior_reached is None else prior_reached
     solved = math.isfinite(step.cost[0])  # else its Cholesky factor broke down (spd_solve)
-    if solved and not step.cut and (at is None or not at[0]):
-        return step.inputs, step.states, step.cost, at is not None and bool(at[1:].any())
+    if solved and not step.cut and not at_points:
+        return step.inputs, step.states, step.cost, bool(at_states) or at_prior, at_states
     f, jtj, grad, hess, fixed = step.f, step.jtj, step.grad, step.hess, step.fixed
-    if at is not None and at[0]:  # the penalty's rows join the model (the numpy path's own)
+    if at_points:  # the penalty's rows join the model (the numpy path's own)
         f, jtj, grad = ocp.gauss_newton_model(step.pred, step.sens, U, refb, upb)
-    if not solved or (at is not None and at[0]):
+    if not solved or at_points:
         delta, _, predicted, _ = newton_step(jtj, grad, U, lo, hi, damping)
     else:
         delta = active_set_path(hess, grad, fixed, U, lo, hi)
         predicted = -np.einsum("bi,bi->b", delta, grad + np.matmul(jtj, delta[..., None])[..., 0])
     moved = np.clip(U + delta, lo, hi) - U
     states = step.pred + (step.sens @ moved[..., None])[..., 0].reshape(step.pred.shape)
-    reached = joint_limits is not None and bool(joint_limits.reached(np.concatenate((states, *plans))).any())
-    return U + moved, states, f - predicted, reached
+    at_states = None if limits is None else bool(limits.reached(states)[0])
+    return U + moved, states, f - predicted, bool(at_states) or at_prior, at_states

@@ -20,7 +20,7 @@ from pinnmpc.controller.shooting import linearise, reached
 from pinnmpc.controller.solvers.base import NO_WARM, NoWarm, Problem, SolveInfo, SolveResult, project, result
 from pinnmpc.controller.solvers.gauss_newton import GaussNewtonSolver
 
-COMPILED_STEPS: dict[tuple, CompiledRti] = {}  # per (horizon, sizes, damping, weights): the compiled real-time step
+COMPILED_STEPS: dict[tuple, CompiledRti] = {}  # per (horizon, sizes, damping, limits, weights): the compiled step
 STEP_OF: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # per OCP and solver choice: its step (None: numpy)
 
 
@@ -33,6 +33,8 @@ class LiftedWarm:
     """
 
     states: np.ndarray  # (B, H, nx)
+    reached: bool | None = None  # whether they meet the OCP's joint-limit penalty, where the step that planned them
+    #   said so (compiled_step); None: not known
 
 
 @dataclass
@@ -279,12 +281,13 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         data = (x_ref[None], u_prev[None], lo, hi)
         if compiled is None:
             U, states, cost = self._rti_steps(ocp, nodes, before, *data)
-            at_limits = None
+            at_limits = reached = None
         else:
-            U, states, cost, at_limits = compiled_step(compiled, ocp, nodes, before, data, self.damping, prior)
+            step = compiled_step(compiled, ocp, nodes, before, data, self.damping, prior, warm.reached)
+            U, states, cost, at_limits, reached = step
         if self._keeps(ocp, prior, before, U, states, width, at_limits):
             info = SolveInfo(ONE_STEP, cost, UNCONVERGED, states)
-            return U.reshape(U0.shape), info, LiftedWarm(states)
+            return U.reshape(U0.shape), info, LiftedWarm(states, reached)
         with np.errstate(divide="ignore", invalid="ignore"):  # as solve(): ratios of decreases not formed yet
             out = self._solve(
                 ocp, x0[None], U0[None], x_ref[None], u_prev[None], low, high, prior, stepped=(U, states, cost)
@@ -319,7 +322,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         compiled = self._compiled(ocp) if U.shape[0] == 1 else None
         for _ in range(self.rti_steps):
             if compiled is not None:
-                U, states, cost, _ = compiled_step(compiled, ocp, nodes, U, (refb, upb, lo, hi), self.damping)
+                U, states, cost, *_ = compiled_step(compiled, ocp, nodes, U, (refb, upb, lo, hi), self.damping)
                 nodes[:, 1:] = states[:, :-1]
                 continue
             pred, sens, _, _ = linearise(ocp, nodes, U)
@@ -354,10 +357,12 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             mine[choice] = None
             if self._compiles(ocp):
                 weights = ocp.weights[np]
-                key = (ocp.horizon, ocp.nx, ocp.nu, self.damping, *(w if w is None else w.tobytes() for w in weights))
+                key = (ocp.horizon, ocp.nx, ocp.nu, self.damping, ocp.joint_limits)
+                key += tuple(w if w is None else w.tobytes() for w in weights)
                 if key not in COMPILED_STEPS:  # pure functions of their arguments: shared by every solver
                     jac_u = ocp.input_jacobian()
-                    COMPILED_STEPS[key] = CompiledRti(ocp.horizon, ocp.nx, ocp.nu, weights, jac_u, self.damping)
+                    sizes = (ocp.horizon, ocp.nx, ocp.nu)
+                    COMPILED_STEPS[key] = CompiledRti(*sizes, weights, jac_u, self.damping, ocp.joint_limits)
                 mine[choice] = COMPILED_STEPS[key]
         self._last_compiled = (ocp, choice, mine[choice])
         return mine[choice]
