@@ -360,3 +360,17 @@ def test_the_estimators_step_rides_with_a_prior_and_through_a_wrapper(systems: d
     rng = np.random.default_rng(16)
     s, v = rng.uniform(-0.3, 0.3, (1, 3, wrapped.nx)), rng.uniform(-0.3, 0.3, (1, 3, wrapped.nu))
     _deferred_estimate(ocp, s, v, (rng.uniform(-0.3, 0.3, wrapped.nx), rng.uniform(-0.3, 0.3, wrapped.nu)))
+
+
+def test_a_stand_in_priors_pass_takes_every_rows_value_in_one_call() -> None:
+    """The shipped Panda network (midpoint prior, another prior's Jacobian standing in): its pass over the nodes with
+    the estimator's row takes the prior's value of every row in one call and its Jacobian apart, and answers as
+    step_with_jacobian at the nodes and step at the row (to rounding: step's MLP pass is the values' own)."""
+    flow = load_surrogate(system="panda").numpy_flow()
+    assert flow.start.jacobian is not None and flow.approximate_jacobians
+    panda = load_system("panda")
+    x, u = _points(panda, (5,), seed=18)
+    before = _points(panda, (1,), seed=19)
+    got = flow.step_with_jacobian_plus(x, u, *before)
+    for g, w in zip(got, (*flow.step_with_jacobian(x, u), flow.step(*before)), strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-13)

@@ -304,11 +304,15 @@ class NumpyFlow:
         x1 += self.b_out
         jac = out[rows:].reshape(batch, n_in, nx).swapaxes(-1, -2)  # (batch, nx, n_in)
         if self.start is not None:
-            prior_nu = self.prior_nu
-            xp, jp = self.start.with_jacobian(x0[:batch], u[:batch, :prior_nu])
-            x1[:batch] += xp
-            if plain:
-                x1[batch:] += self.start.value(x0[batch:], u[batch:, :prior_nu])[0]
+            prior_nu, alone = self.prior_nu, self.start.jacobian
+            if alone is not None:  # the value of every row in one call (each call's code and data are fetched anew)
+                x1 += self.start.value(x0, u[:, :prior_nu])[0]
+                jp = alone(x0[:batch], u[:batch, :prior_nu])
+            else:
+                xp, jp = self.start.with_jacobian(x0[:batch], u[:batch, :prior_nu])
+                x1[:batch] += xp
+                if plain:
+                    x1[batch:] += self.start.value(x0[batch:], u[batch:, :prior_nu])[0]
             jp = jp.reshape(batch, nx, nx + prior_nu)
             if inputs_only:
                 jac[..., :prior_nu] += jp[..., nx:]

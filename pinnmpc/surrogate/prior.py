@@ -77,6 +77,8 @@ class CompiledPrior:
     value: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]  # -> [x_p (B, nx)]
     with_jacobian: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]  # -> [x_p, J (B, nx (nx + nu)) row-major]
     stand_in_jacobian: bool = False  # J is another prior's (MIDPOINT_JACOBIAN), not the derivative of x_p
+    jacobian: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None  # -> J alone, where another function
+    #   than the value's gives it (the stand-in): a caller then takes every row's value in one call
 
 
 class ArmPrior(nn.Module):
@@ -361,7 +363,8 @@ class ArmPrior(nn.Module):
             lib = compile_functions(tag, [value], opt="-O2")
             exact = BatchedFunction(lib[value.name()])
             held_prior = ArmPrior(self.arm, MIDPOINT_JACOBIAN).compiled(tau).with_jacobian
-            fast = CompiledPrior(exact, lambda x0, u: [exact(x0, u)[0], held_prior(x0, u)[1]], True)
+            alone = lambda x0, u: held_prior(x0, u)[1]  # noqa: E731
+            fast = CompiledPrior(exact, lambda x0, u: [exact(x0, u)[0], alone(x0, u)], True, alone)
         elif n >= EIGEN_FROM_JOINTS:
             from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
 
