@@ -19,7 +19,7 @@ from pinnmpc.bench.loops import loop_row
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.references.files import Reference
 from pinnmpc.surrogate.checkpoint import Surrogate
-from pinnmpc.surrogate.flowmap import numpy_path
+from pinnmpc.surrogate.flowmap import numpy_path, passes_plain_rows
 from pinnmpc.systems.base import System
 from pinnmpc.util.tables import fmt
 
@@ -33,7 +33,7 @@ class FloorProbe:
 
     def __init__(self, controller: Any, flow: Any) -> None:
         self.inner, self.flow = controller, flow
-        self._plus = getattr(type(flow), "step_with_jacobian_plus", None) is not None
+        self._plus = passes_plain_rows(flow)
         self.ocp_s: list[float] = []
         self.floor_s: list[float] = []
 

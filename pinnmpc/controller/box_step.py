@@ -52,15 +52,11 @@ def newton_step(
     hess = jtj.copy()
     diagonal = np.einsum("bii->bi", hess)  # a writable view
     diagonal += damping * np.maximum(diagonal.mean(-1, keepdims=True), 1e-30)
-    one = _path_one(hess[0], grad[0], fixed[0], u[0], *_rows(lo, hi, u)) if u.shape[0] == 1 else None
-    if one is not None:  # one problem: its Newton step and, where a bound cuts it, the path, on one factor
-        delta, cut = one[0][None], np.array([one[1]])
-    else:
-        delta = masked_solve(hess, grad, fixed)
-        moved = u + delta
-        cut = (~fixed & ((moved > hi) | (moved < lo))).any(-1)
-        if cut.any():
-            delta = active_set_path(hess, grad, fixed, u, lo, hi)
+    delta = masked_solve(hess, grad, fixed)  # one problem came here only where _newton_one's factor failed
+    moved = u + delta
+    cut = (~fixed & ((moved > hi) | (moved < lo))).any(-1)
+    if cut.any():
+        delta = active_set_path(hess, grad, fixed, u, lo, hi)
     # ||r||^2 - ||r + J delta||^2 = -(grad . delta + delta^T J^T J delta)
     predicted = -np.einsum("bi,bi->b", delta, grad + np.matmul(jtj, delta[..., None])[..., 0])
     return BoxStep(delta, pgrad_max, predicted, cut)

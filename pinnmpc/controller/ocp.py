@@ -21,7 +21,7 @@ from torch import Tensor
 from pinnmpc.controller import shooting
 from pinnmpc.controller.array_backend import Array, cat, xp_of
 from pinnmpc.controller.limits import LIMIT_KEYS, JointLimits, as_float
-from pinnmpc.surrogate.flowmap import FlowMap, check_flow_map, numpy_path
+from pinnmpc.surrogate.flowmap import FlowMap, check_flow_map, numpy_path, passes_plain_rows
 
 Deferred = tuple[np.ndarray, np.ndarray, Callable[[np.ndarray], Any]]  # x_prev, u_prev, update: defer_estimate's
 
@@ -211,8 +211,7 @@ class HorizonOCP:
             y, a, b = (torch.from_numpy(v) for v in self.flow.step_with_jacobian(*self._numpy_only(x, u)))
         elif self.flow is not None:
             pending = self._pending
-            plus = None if pending is None else getattr(type(self.flow), "step_with_jacobian_plus", None)
-            if plus is None:  # a wrapper's forwarded attribute would be its inner map's: the class is asked
+            if pending is None or not passes_plain_rows(self.flow):
                 y, a, b = self.flow.step_with_jacobian(x, u)
             else:  # the deferred estimate's step rides with the nodes
                 x_prev, u_prev, update = pending

@@ -66,6 +66,12 @@ def numpy_path(model: Any) -> FlowMap | None:
     return numpy_flow() if callable(numpy_flow) else None
 
 
+def passes_plain_rows(flow: Any) -> bool:
+    """Whether the map evaluates plain rows (values alone) in its pass over the nodes (step_with_jacobian_plus):
+    asked of its class, since a wrapper's forwarded attribute would be its inner map's."""
+    return getattr(type(flow), "step_with_jacobian_plus", None) is not None
+
+
 def check_flow_map(model: Any) -> None:
     """Fail early, naming what is missing, when an object cannot serve as a FlowMap."""
     missing = [a for a in ("tau", "state_names", "input_names", "state_box", "input_box") if not hasattr(model, a)]

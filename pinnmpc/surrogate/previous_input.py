@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from pinnmpc.surrogate.flowmap import passes_plain_rows
 from pinnmpc.systems.base import Box
 
 Array = Any  # a torch Tensor or a numpy array, as the wrapped map's array_api says
@@ -84,7 +85,7 @@ class PreviousInputFlow:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """step_with_jacobian at (s, u) and step at rows (s_plain, u_plain): one pass where the wrapped map has
         one (pinnmpc.surrogate.numpy_flow), else two."""
-        if getattr(type(self.flow), "step_with_jacobian_plus", None) is None:
+        if not passes_plain_rows(self.flow):
             return (*self.step_with_jacobian(s, u), self.step(s_plain, u_plain))
         x, inputs = self._network_inputs(s, u)
         x_plain, inputs_plain = self._network_inputs(s_plain, u_plain)
