@@ -20,11 +20,16 @@ from tests.conftest import CONF
 
 
 def first_solve(
-    name: str, cold_states: str, horizon: int = 40, jump: float = 0.0, ahead: float = 1.0, **lifted: object
+    name: str,
+    cold_states: str,
+    horizon: int = 40,
+    jump: float = 0.0,
+    ahead: float = 1.0,
+    start: int = 30,
+    **lifted: object,
 ) -> tuple[int, bool, float]:
-    """Iterations, convergence and cost of the controller's first (cold) solve at sample 30 of the built-in
+    """Iterations, convergence and cost of the controller's first (cold) solve at sample start of the built-in
     reference, its joint angles raised by jump from ahead s on (lifted: more lifted solver settings)."""
-    start = 30
     register_configs()
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("closed_loop", overrides=[f"system={name}", f"controller.horizon={horizon}"])
@@ -58,6 +63,22 @@ def test_a_cold_start_with_a_jump_it_cannot_make_stays_within_its_cap(name: str,
     )
     assert iterations <= 10 < full_iterations and full_converged
     assert full_cost * (1 - 1e-9) <= cost <= 1.01 * full_cost
+
+
+@pytest.mark.parametrize(("name", "jump", "ahead", "start"), [("planar3", 0.6, 0.9, 40), ("panda", -0.6, 0.95, 0)])
+def test_a_real_time_cold_solve_stays_within_its_cap_where_it_misses_its_promise(
+    name: str, jump: float, ahead: float, start: int
+) -> None:
+    """Two cold starts that went past cold_max_iter: planar3's stopped a hair above the cost its model promised and
+    went on by single shooting (12 iterations); the Panda's, whose prior's Jacobian stands in (inexact), ran
+    lifted_max_iter_inexact (19). A real-time iteration hands either plan on within the cap, at the cost of the solve
+    run on (within 1e-5)."""
+    iterations, _, cost = first_solve(name, "reference", jump=jump, ahead=ahead, start=start)
+    full_iterations, _, full_cost = first_solve(
+        name, "reference", jump=jump, ahead=ahead, start=start, cold_accept=False
+    )
+    assert iterations <= 10 < full_iterations
+    assert cost <= full_cost * (1 + 1e-5)
 
 
 def test_a_cycling_lifted_iteration_is_damped_to_convergence() -> None:

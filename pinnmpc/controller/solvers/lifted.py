@@ -91,9 +91,10 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     node_inputs a horizon of 40 converges in 2-3; one holding a jump the arm cannot make cycles, damped
     (cycle_step), to within a millionth of its optimal cost in about 10."""
     cold_accept: bool = True
-    """A real-time iteration's cold solve still unconverged after cold_max_iter hands on its plan where that ends
-    below its start's cost (the next samples' steps go on from it), so its cold start is bounded in iterations;
-    false, or a solver run to convergence (rti false): single shooting with max_iter more."""
+    """A real-time iteration's cold solve still unconverged after cold_max_iter, or stopped where its cost misses the
+    model's promise, hands on its plan where that ends below its start's cost (the next samples' steps go on from it),
+    so its cold start is bounded in iterations; false, or a solver run to convergence (rti false): single shooting
+    with max_iter more."""
     cycle_step: float = 0.5
     """A lifted step that turns back on the last one (cosine below -1/2: full steps cycling between two points, as
     where an infeasible jump in the reference keeps inputs on and off their bounds) goes this fraction of the way,
@@ -102,7 +103,8 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     """controller.model=exact_values: relative slack of the check that a stop's cost keeps the model's promise
     (the Jacobians are the PINN's, not the derivatives of the values, so promises are inexact)."""
     lifted_max_iter_inexact: int = 20
-    """controller.model=exact_values: lifted_max_iter for it (inexact Jacobians converge linearly)."""
+    """controller.model=exact_values, or a prior whose Jacobian stands in: lifted_max_iter for it (inexact Jacobians
+    converge linearly); a real-time iteration's cold solve keeps cold_max_iter (cold_accept)."""
     compiled_step: bool = True
     """A real-time step of one problem runs its work after the network call (the chain, the Gauss-Newton model, the
     box step) as one compiled function (pinnmpc.controller.compiled_rti, CasADi-generated C, built once per horizon
@@ -181,9 +183,14 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         was_cut = np.ones(batch, dtype=bool)  # whether a bound cut the previous step short (none taken yet)
         promised = np.full(batch, np.inf)  # the model's cost of the point each problem stops at (after its step)
         inexact = getattr(ocp.flow, "approximate_jacobians", False)
-        cap = self.cold_max_iter if prior is None else self.lifted_max_iter
+        # a real-time iteration's cold plan is handed on however it stopped (cold_accept), within cold_max_iter
+        handed_on = bool(self.rti and self.cold_accept and prior is None)
+        if handed_on or not inexact:
+            cap = self.cold_max_iter if prior is None else self.lifted_max_iter
+        else:
+            cap = self.lifted_max_iter_inexact
         last_step = np.zeros_like(U)  # each problem's last step, against which a reversal shows a cycle
-        for _ in range(self.lifted_max_iter_inexact if inexact else cap):
+        for _ in range(cap):
             # the whole batch every time (no row gathering: batch-1 solves are dominated by per-op overhead);
             # problems that stopped take no further steps, their states only settle onto the prediction
             pred, sens, defect, steps = linearise(ocp, nodes, U)
@@ -224,8 +231,9 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         # predicted decreases the stopping tests extrapolated from
         slack = self.tol_promise_inexact if inexact else self.tol_gap
         broken = cost > promised + slack * np.abs(promised)
-        kept = running & bool(self.rti and self.cold_accept and prior is None)  # a real-time cold plan, improved
-        failed = (running & ~kept) | broken | ~np.isfinite(cost) | (cost > start_cost)
+        # a handed-on plan goes to the next samples' steps where it ends below its start; any other stop must have
+        # converged and kept its promise
+        failed = ((running | broken) & ~handed_on) | ~np.isfinite(cost) | (cost > start_cost)
         if failed.any():  # rare: redo those problems by single shooting from the better of start and end
             rows = np.flatnonzero(failed)
             start = np.where(
