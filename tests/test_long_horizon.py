@@ -13,9 +13,13 @@ from pinnmpc.cli.structured import register_configs
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.solvers import LiftedGaussNewtonSolver
 from pinnmpc.controller.solvers.lifted import node_inputs
-from pinnmpc.simulation.setup import system_reference
+from pinnmpc.plant.build import make_plant
+from pinnmpc.references import Reference
+from pinnmpc.simulation.loop import run_loop
+from pinnmpc.simulation.setup import build_controller, system_reference
 from pinnmpc.surrogate.checkpoint import load_surrogate
 from pinnmpc.systems import load_system
+from pinnmpc.systems.registry import build_system
 from tests.conftest import CONF
 
 
@@ -55,30 +59,58 @@ def test_a_cold_start_at_h40_converges_in_a_few_lifted_steps(name: str) -> None:
 
 @pytest.mark.parametrize(("name", "jump", "ahead"), [("powercube", 0.3, 1.0), ("planar3", 0.6, 2.0)])
 def test_a_cold_start_with_a_jump_it_cannot_make_stays_within_its_cap(name: str, jump: float, ahead: float) -> None:
-    """A horizon holding a jump in every joint: the bounded cold solve ends within cold_max_iter (10), where the
-    solve run on to convergence takes more, at a cost within 1% of that solve's."""
+    """A horizon holding a jump in every joint: the real-time iteration's cold solve ends within cold_rti_max_iter (5),
+    where the solve run on to convergence takes more; one more iteration allowed, it takes it."""
     iterations, _, cost = first_solve(name, "reference", jump=jump, ahead=ahead)
+    more, _, _ = first_solve(name, "reference", jump=jump, ahead=ahead, cold_rti_max_iter=6)
     full_iterations, full_converged, full_cost = first_solve(
         name, "reference", jump=jump, ahead=ahead, cold_accept=False, cold_max_iter=60
     )
-    assert iterations <= 10 < full_iterations and full_converged
-    assert full_cost * (1 - 1e-9) <= cost <= 1.01 * full_cost
+    assert iterations == 5 < more <= 6 < full_iterations and full_converged
+    assert np.isfinite(cost) and full_cost * (1 - 1e-9) <= cost
 
 
 @pytest.mark.parametrize(("name", "jump", "ahead", "start"), [("planar3", 0.6, 0.9, 40), ("panda", -0.6, 0.95, 0)])
 def test_a_real_time_cold_solve_stays_within_its_cap_where_it_misses_its_promise(
     name: str, jump: float, ahead: float, start: int
 ) -> None:
-    """Two cold starts that went past cold_max_iter: planar3's stopped a hair above the cost its model promised and
-    went on by single shooting (12 iterations); the Panda's, whose prior's Jacobian stands in (inexact), ran
-    lifted_max_iter_inexact (19). A real-time iteration hands either plan on within the cap, at the cost of the solve
-    run on (within 1e-5)."""
-    iterations, _, cost = first_solve(name, "reference", jump=jump, ahead=ahead, start=start)
-    full_iterations, _, full_cost = first_solve(
+    """Two cold starts that went past their cap: planar3's stopped a hair above the cost its model promised and went
+    on by single shooting (12 iterations); the Panda's, whose prior's Jacobian stands in (inexact), ran
+    lifted_max_iter_inexact (19). A real-time iteration hands either plan on within cold_rti_max_iter."""
+    iterations, _, _ = first_solve(name, "reference", jump=jump, ahead=ahead, start=start)
+    full_iterations, _, _ = first_solve(
         name, "reference", jump=jump, ahead=ahead, start=start, cold_accept=False
     )
-    assert iterations <= 10 < full_iterations
-    assert cost <= full_cost * (1 + 1e-5)
+    assert iterations <= 5 and full_iterations > 10
+
+
+def test_a_cold_plan_handed_on_unconverged_tracks_as_the_converged_one(make_cfg) -> None:
+    """The PowerCube 1 s before a jump at H = 40: after 5 lifted iterations the cold plan costs far more than the
+    solve run on to convergence (13 iterations), yet the next sample's one real-time step meets that solve's plan and
+    the closed loop on the real plant tracks alike."""
+    start, jump, horizon = 30, 0.3, 40
+
+    def loop(**lifted: object) -> tuple[float, list]:
+        overrides = ["system=powercube", f"controller.horizon={horizon}", "progress=false"]
+        overrides += [f"controller.solvers.lifted_gauss_newton.{k}={v}" for k, v in lifted.items()]
+        cfg = make_cfg("closed_loop", overrides)
+        system = build_system(cfg.system)
+        ctrl, domain, tau = build_controller(cfg, system)
+        whole = system_reference(cfg, system, tau)
+        x = whole.x[start:].copy()
+        x[1 + round(1.0 / tau) :, : system.nq] += jump  # the first plan's x_ref holds it from 1 s ahead
+        ref = Reference(t=whole.t[start:] - whole.t[start], x=x, name="jump")
+        run = run_loop(ctrl, make_plant(system, cfg.plant, tau), ref, max_steps=20, domain=domain, progress=False)
+        assert run.status == "ok", run.status
+        q = slice(0, system.nq)
+        return float(np.abs(run.x[:, q] - ref.x[: len(run.x), q]).mean(axis=0).max()), ctrl.stats
+
+    handed, stats = loop()
+    converged, full_stats = loop(cold_accept="false", cold_max_iter=60)
+    assert stats[0].iterations <= 5 < full_stats[0].iterations
+    assert stats[0].cost > 10 * full_stats[0].cost  # handed on far from converged ...
+    assert stats[1].cost <= 1.01 * full_stats[1].cost  # ... one step later where the converged plan went
+    assert handed <= 1.05 * converged
 
 
 def test_a_cycling_lifted_iteration_is_damped_to_convergence() -> None:

@@ -87,14 +87,17 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     states, as multiple-shooting codes start: the horizon's nonlinearity spread over its nodes, so long horizons
     converge in a few lifted steps) | rollout (of U0 from x0)."""
     cold_max_iter: int = 10
-    """Lifted iterations of a cold solve (lifted_max_iter for the others): from the reference's states and
-    node_inputs a horizon of 40 converges in 2-3; one holding a jump the arm cannot make cycles, damped
+    """Lifted iterations of a cold solve run to convergence (lifted_max_iter for the others): from the reference's
+    states and node_inputs a horizon of 40 converges in 2-3; one holding a jump the arm cannot make cycles, damped
     (cycle_step), to within a millionth of its optimal cost in about 10."""
     cold_accept: bool = True
-    """A real-time iteration's cold solve still unconverged after cold_max_iter, or stopped where its cost misses the
-    model's promise, hands on its plan where that ends below its start's cost (the next samples' steps go on from it),
-    so its cold start is bounded in iterations; false, or a solver run to convergence (rti false): single shooting
-    with max_iter more."""
+    """A real-time iteration's cold solve takes at most cold_rti_max_iter lifted iterations and hands on its plan,
+    converged or not, and whether or not its cost keeps the model's promise, where that ends below its start's cost
+    (the next samples' steps go on from it), so its cold start is bounded in iterations; false, or a solver run to
+    convergence (rti false): cold_max_iter, then single shooting with max_iter more."""
+    cold_rti_max_iter: int = 5
+    """Lifted iterations of a real-time iteration's cold solve (cold_accept): a jump the arm cannot make at H = 40
+    takes up to 10 to converge, and the closed loop tracks the same from the plan after 5 (docs/results.md)."""
     cycle_step: float = 0.5
     """A lifted step that turns back on the last one (cosine below -1/2: full steps cycling between two points, as
     where an infeasible jump in the reference keeps inputs on and off their bounds) goes this fraction of the way,
@@ -104,7 +107,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
     (the Jacobians are the PINN's, not the derivatives of the values, so promises are inexact)."""
     lifted_max_iter_inexact: int = 20
     """controller.model=exact_values, or a prior whose Jacobian stands in: lifted_max_iter for it (inexact Jacobians
-    converge linearly); a real-time iteration's cold solve keeps cold_max_iter (cold_accept)."""
+    converge linearly); a real-time iteration's cold solve keeps cold_rti_max_iter (cold_accept)."""
     compiled_step: bool = True
     """A real-time step of one problem runs its work after the network call (the chain, the Gauss-Newton model, the
     box step) as one compiled function (pinnmpc.controller.compiled_rti, CasADi-generated C, built once per horizon
@@ -119,7 +122,7 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
             raise ValueError(f"LiftedGaussNewtonSolver.cold_states={self.cold_states!r}; expected reference or rollout")
         if not 0 < self.cycle_step <= 1:
             raise ValueError(f"LiftedGaussNewtonSolver.cycle_step={self.cycle_step!r}; expected a fraction in (0, 1]")
-        for name in ("rti_steps", "lifted_max_iter", "lifted_max_iter_inexact", "cold_max_iter"):
+        for name in ("rti_steps", "lifted_max_iter", "lifted_max_iter_inexact", "cold_max_iter", "cold_rti_max_iter"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"LiftedGaussNewtonSolver.{name}={value!r}; expected a whole number >= 1")
@@ -183,12 +186,14 @@ class LiftedGaussNewtonSolver(GaussNewtonSolver):
         was_cut = np.ones(batch, dtype=bool)  # whether a bound cut the previous step short (none taken yet)
         promised = np.full(batch, np.inf)  # the model's cost of the point each problem stops at (after its step)
         inexact = getattr(ocp.flow, "approximate_jacobians", False)
-        # a real-time iteration's cold plan is handed on however it stopped (cold_accept), within cold_max_iter
+        # a real-time iteration's cold plan is handed on however it stopped (cold_accept), within cold_rti_max_iter
         handed_on = bool(self.rti and self.cold_accept and prior is None)
-        if handed_on or not inexact:
-            cap = self.cold_max_iter if prior is None else self.lifted_max_iter
-        else:
+        if handed_on:
+            cap = self.cold_rti_max_iter
+        elif inexact:
             cap = self.lifted_max_iter_inexact
+        else:
+            cap = self.cold_max_iter if prior is None else self.lifted_max_iter
         last_step = np.zeros_like(U)  # each problem's last step, against which a reversal shows a cycle
         for _ in range(cap):
             # the whole batch every time (no row gathering: batch-1 solves are dominated by per-op overhead);
