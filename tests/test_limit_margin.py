@@ -122,7 +122,7 @@ def test_perturbed_starts_near_the_limits_never_cross_them(arm: str, controller:
 
 
 @pytest.mark.parametrize("controller", ["nmpc", "exact", "casadi"])
-@pytest.mark.parametrize("rise", [0.3, 1.0])
+@pytest.mark.parametrize("rise", [pytest.param(0.3, marks=SLOW), 1.0])  # the faster rise in the default run
 def test_the_lab_robot_stays_inside_on_references_onto_the_limits(controller: str, rise: float) -> None:
     """The Panda's lab robot (a 1 kg load, motor inertia, dry friction the model leaves out), joints 4 and 6 driven
     onto their limits and held there, from perturbed starts: no sample past a limit, for every controller kind with
