@@ -210,7 +210,7 @@ class CompiledRti:
         limits: JointLimits | None = None,
     ) -> None:
         w_q, _, w_d = weights
-        self.horizon, self.nx, self.nu, self.limits = horizon, nx, nu, limits
+        self.horizon, self.nx, self.nu = horizon, nx, nu
         f = rti_function(horizon, nx, nu, np.asarray(w_q), np.asarray(jac_u), w_d, float(damping), limits)
         name = f"rti_step_{horizon}x{nx}x{nu}"  # the compiled cache tells weights apart by the C's hash
         self.f = compile_functions(name, [_packed(f)], opt="-O3")["rti_packed"]
@@ -260,22 +260,18 @@ def compiled_step(
     prior_reached: bool | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool, bool | None]:
     """One real-time lifted step of one problem as LiftedGaussNewtonSolver._rti_steps takes it (inputs, the states
-    they reach, the model's cost after the step): the network at the nodes, then the compiled step, finished in
-    numpy where a bound cuts it short or a joint-limit penalty acts. data: (reference, u_prev, low, high) rows.
+    they reach, the model's cost after the step): the network at the nodes, then the compiled step (built for the
+    OCP's joint limits), finished in numpy where a bound cuts it short or a joint-limit penalty acts. data:
+    (reference, u_prev, low, high) rows.
     Last, whether the states reached, or prior (the last plan's states, where given), lie where a joint-limit penalty
     acts, and whether the states reached do (None without limits): the compiled step's answers for its own points,
     prior_reached for prior where the step that planned it gave one."""
     refb, upb, lo, hi = data
     step = compiled(ocp.step_with_jacobian(nodes, U.reshape(1, ocp.horizon, ocp.nu)), nodes, U, refb, upb, lo, hi)
-    limits = ocp.joint_limits
-    if limits is None:
-        at_points, at_states = False, None
-    elif compiled.limits == limits:  # its C checked them
-        at_points, at_states = step.reach
-    else:
-        at_points, at_states = (bool(a) for a in limits.reached(np.concatenate((step.pred, step.states))))
-    at_prior = limits is not None and prior is not None
-    if at_prior:
+    limits = ocp.joint_limits  # the compiled step's own (LiftedGaussNewtonSolver._compiled keys them by it)
+    at_points, at_states = (False, None) if limits is None else step.reach  # its C checked them
+    at_prior = False
+    if limits is not None and prior is not None:
         at_prior = bool(limits.reached(prior)[0]) if prior_reached is None else prior_reached
     solved = math.isfinite(step.cost[0])  # else its Cholesky factor broke down (spd_solve)
     if solved and not step.cut and not at_points:
