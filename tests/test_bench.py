@@ -16,8 +16,8 @@ from omegaconf import DictConfig
 
 from pinnmpc.bench import run_bench, run_controller
 from pinnmpc.bench.common import bench_reference
-from pinnmpc.bench.report import md_targets
-from pinnmpc.bench.targets import _per_state
+from pinnmpc.bench.report import md_targets, targets_verdict
+from pinnmpc.bench.targets import _per_state, speed_targets
 from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.surrogate.checkpoint import CHECKPOINTS
 from pinnmpc.surrogate.flowmap import RK4Model
@@ -54,6 +54,7 @@ TINY = [
     "floor.cold.repeats=2",
     "peers.horizons=[3]",
     f"peers.max_steps={MAX_STEPS}",
+    "+targets.floor_ratio.2=100",  # a horizon added to the default's: H = 2 gets a floor target, H = 4 none
 ]
 SECTIONS = ("step", "closed_loop", "optimality", "scaling", "classical", "kinds", "floor", "peers")
 SECTIONS_OFF = [f"{s}.enabled=false" for s in SECTIONS]
@@ -275,6 +276,40 @@ def test_targets_sit_next_to_the_measured_numbers(bench: tuple[dict[str, Any], P
     assert not any(w.endswith("MAE dalpha") for w in targets)  # null: no target for velocities
     ratio = targets["OCP median / plant step median"]
     assert ratio["value"] == pytest.approx(row["ratio_ocp_to_plant"]) and ratio["met"] == (ratio["value"] <= 1.0)
+
+
+def test_the_speed_targets_sit_next_to_the_floor_the_cold_start_and_the_peers(
+    bench: tuple[dict[str, Any], Path],
+) -> None:
+    """Section 5 also holds the network controller's speed targets, each the number its section measured."""
+    result, run_dir = bench
+    targets = {t["what"]: t for t in result["targets"]}
+    floor = {r["horizon"]: r for r in result["floor"]["rows"]}
+    at_2 = targets["OCP / floor (median), H = 2"]
+    assert at_2["value"] == floor[2]["ratio_median"] and at_2["limit"] == 100.0
+    assert at_2["met"] == (at_2["value"] <= 100.0) and not at_2["at_least"]
+    assert not any(w.startswith("OCP / floor (median), H = 4") for w in targets)  # not listed: no target
+    plain, jump = result["floor"]["cold"]
+    assert targets["cold start at H = 6: iterations"]["value"] == plain["cold_iterations"]
+    assert targets["cold start at H = 6, after a jump: time / warm median"]["value"] == jump["ratio"]
+    peer = targets["fastest peer's OCP / ours, H = 3"]
+    pairs = result["peers"]["rows"][0]["pairs"]
+    assert peer["at_least"] and peer["value"] == min(p["ratio_median"][k] for k, p in pairs.items())
+    assert peer["limit"] == 1.5 and peer["met"] == (peer["value"] >= 1.5)
+    assert not any(w.startswith("classical NMPC's OCP") for w in targets)  # the PowerCube has none (null)
+    assert "| fastest peer's OCP / ours, H = 3 | at least 1.5 |" in (run_dir / "bench.md").read_text()
+
+
+def test_the_panda_asks_the_network_controller_to_be_twice_as_fast_as_the_classical_one() -> None:
+    """system.targets.classical_speedup (the Panda's 2) is checked on section 6's interleaved line, from below."""
+    cfg = _cfg(["system=panda"])
+    assert cfg.targets.classical_speedup == 2.0 and _cfg([]).targets.classical_speedup is None
+    paired = {"base": "pinn_lifted_gauss_newton", "ratio_median": {"pinn_lifted_gauss_newton": 1.0, "hpipm": 1.87}}
+    (row,) = speed_targets(cfg.targets, {"classical": {"paired": paired}})
+    assert (row["value"], row["limit"], row["met"], row["at_least"]) == (1.87, 2.0, False, True)
+    verdict = targets_verdict([row])
+    assert "classical NMPC's OCP / ours, interleaved 1.87 < 2 (0.935x)" in verdict
+    assert "Speed ratios move with the machine's load" in verdict and "trade accuracy" not in verdict
 
 
 def test_targets_verdict_says_what_was_missed_and_by_how_much() -> None:

@@ -16,6 +16,7 @@ SYSTEM: dict[str, Check] = {  # the per-joint lists of conf/system/<name>.yaml t
     "system.network.angle_sums": c.listof(c.listof(c.joint_index()), empty=True),
     "system.targets.one_step_rmse": c.per_state_targets(),
     "system.targets.closed_loop_mae": c.per_state_targets(),
+    "system.targets.classical_speedup": c.optional(c.positive()),
     "system.self_loop.x0": c.vector("nx"),
     "system.self_loop.amplitude": c.vector("nu"),
     "system.control.Q": c.weight("nx"),  # the NMPC's weights: checked before a training the controller comes after

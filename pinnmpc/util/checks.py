@@ -130,6 +130,19 @@ def listof(element: Check, empty: bool = False) -> Check:
     return _check
 
 
+def by_horizon() -> Check:
+    """A limit per prediction horizon: a mapping of whole numbers >= 1 (or their digits as text) to numbers > 0."""
+
+    def _check(v: Any, _d: Dims) -> str | None:
+        keys_ok = isinstance(v, dict) and all(
+            (_is_int(h) and h >= 1) or (isinstance(h, str) and h.isdigit() and int(h) >= 1) for h in v
+        )
+        ok = keys_ok and all(_is_real(x) and x > 0 for x in v.values())
+        return None if ok else "a mapping of horizons (whole numbers >= 1) to limits > 0, e.g. {5: 2.0, 20: 2.5}"
+
+    return _check
+
+
 def weight(n: str) -> Check:
     """A cost weight: n non-negative finite numbers (a diagonal) or an n x n symmetric PSD matrix."""
 
