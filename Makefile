@@ -74,7 +74,8 @@ robustness: install  ## closed loops under measurement noise and friction/mass m
 	$(PY) -m pinnmpc.robustness $(OVERRIDES)
 
 evaluate: install  ## one-step accuracy and cost of the surrogate vs Euler/RK4/RK45 (the bench's step table only)
-	$(PY) -m pinnmpc.bench closed_loop.enabled=false optimality.enabled=false scaling.enabled=false $(OVERRIDES)
+	$(PY) -m pinnmpc.bench closed_loop.enabled=false optimality.enabled=false scaling.enabled=false \
+	  kinds.enabled=false floor.enabled=false peers.enabled=false $(OVERRIDES)
 
 bench: install  ## benchmarks: bench.json, bench.md and plots in outputs/bench/<time>/
 	$(PY) -m pinnmpc.bench $(OVERRIDES)

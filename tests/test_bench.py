@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import math
+import shlex
+import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -17,6 +19,7 @@ from omegaconf import DictConfig
 from pinnmpc.bench import run_bench, run_controller
 from pinnmpc.bench.common import bench_reference
 from pinnmpc.bench.report import md_targets, targets_verdict
+from pinnmpc.bench.settings import BENCH_SECTIONS
 from pinnmpc.bench.targets import _per_state, speed_targets
 from pinnmpc.surrogate import Surrogate, load_surrogate
 from pinnmpc.surrogate.checkpoint import CHECKPOINTS
@@ -310,6 +313,16 @@ def test_the_panda_asks_the_network_controller_to_be_twice_as_fast_as_the_classi
     verdict = targets_verdict([row])
     assert "classical NMPC's OCP / ours, interleaved 1.87 < 2 (0.935x)" in verdict
     assert "Speed ratios move with the machine's load" in verdict and "trade accuracy" not in verdict
+
+
+def test_make_evaluate_runs_the_step_table_alone() -> None:
+    """`make evaluate` promises the bench's step table only: any other section its command left on (the floor, the
+    peers and the kinds are on by default) would run closed loops."""
+    dry = subprocess.run(["make", "-n", "evaluate"], capture_output=True, text=True, cwd=CONF.parent, check=True)
+    words = shlex.split(dry.stdout.replace("\\\n", " "))
+    overrides = words[words.index("pinnmpc.bench") + 1 :]
+    cfg = _cfg(overrides)
+    assert [s for s in BENCH_SECTIONS if cfg[s].enabled] == ["step"]
 
 
 def test_targets_verdict_says_what_was_missed_and_by_how_much() -> None:
