@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shlex
 import subprocess
 from collections.abc import Iterator
@@ -318,8 +319,13 @@ def test_the_panda_asks_the_network_controller_to_be_twice_as_fast_as_the_classi
 def test_make_evaluate_runs_the_step_table_alone() -> None:
     """`make evaluate` promises the bench's step table only: any other section its command left on (the floor, the
     peers and the kinds are on by default) would run closed loops."""
-    dry = subprocess.run(["make", "-n", "evaluate"], capture_output=True, text=True, cwd=CONF.parent, check=True)
-    words = shlex.split(dry.stdout.replace("\\\n", " "))
+    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MFLAGS", "MAKELEVEL")}  # under `make test`
+    dry = subprocess.run(
+        ["make", "-n", "--no-print-directory", "evaluate"], capture_output=True, text=True, cwd=CONF.parent, env=env
+    )
+    assert dry.returncode == 0, dry.stderr
+    (line,) = [ln for ln in dry.stdout.replace("\\\n", " ").splitlines() if "pinnmpc.bench" in ln]
+    words = shlex.split(line)
     overrides = words[words.index("pinnmpc.bench") + 1 :]
     cfg = _cfg(overrides)
     assert [s for s in BENCH_SECTIONS if cfg[s].enabled] == ["step"]
