@@ -53,7 +53,7 @@ def missing_peers() -> dict[str, str]:
 def bench_peers(cfg: DictConfig, system: System, surrogate: Surrogate, ref: Reference) -> dict[str, Any]:
     """Per horizon of peers.horizons: the network controller and each CasADi peer (peers.qpsols), pair by pair, track
     the reference with their samples interleaved; per pair both OCP medians, the per-sample ratio to ours and each
-    one's worst joint MAE (`pairs`, by the peer's name)."""
+    one's worst joint MAE (`pairs`, by the peer's name), and the fastest peer's name (`fastest`; None without peers)."""
     rows = []
     plant = lambda: make_plant(cfg, system, surrogate.tau)  # noqa: E731
     for horizon in cfg.peers.horizons:
@@ -63,8 +63,8 @@ def bench_peers(cfg: DictConfig, system: System, surrogate: Surrogate, ref: Refe
             name = f"casadi_rti_{qpsol}"
             peer = build_casadi_nmpc(peer_cfg(cfg, int(horizon), str(qpsol)), system)
             pairs[name] = paired_ocp({OURS: ours, name: peer}, plant, ref, cfg.peers.max_steps, system.nq)
-        rows.append({"horizon": int(horizon), "pairs": pairs})
         fastest = min(pairs, key=lambda k: pairs[k]["ratio_median"][k], default=None)
+        rows.append({"horizon": int(horizon), "pairs": pairs, "fastest": fastest})
         if fastest is not None:
             ratio = pairs[fastest]["ratio_median"][fastest]
             log.info("peers: H=%d, the fastest peer %s at %.2fx ours", horizon, fastest, ratio)

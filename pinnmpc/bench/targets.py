@@ -61,10 +61,9 @@ def speed_targets(t: DictConfig, result: dict[str, Any]) -> list[dict[str, Any]]
             rows.append(_target(f"{where}: time / warm median", r["ratio"], t.cold_ratio))
     if t.get("peer_speedup") is not None:
         for r in (result.get("peers") or {}).get("rows", []):
-            pairs = r["pairs"]
-            if pairs:
-                name = min(pairs, key=lambda k: pairs[k]["ratio_median"][k])
-                ratio = pairs[name]["ratio_median"][name]
+            name = r["fastest"]  # bench_peers names it
+            if name is not None:
+                ratio = r["pairs"][name]["ratio_median"][name]
                 rows.append(_target(f"fastest peer's OCP / ours, H = {r['horizon']}", ratio, t.peer_speedup, True))
     paired = (result.get("classical") or {}).get("paired")
     if paired and t.get("classical_speedup") is not None:
