@@ -34,6 +34,7 @@ from omegaconf import OmegaConf
 from torch import Tensor, nn
 
 from pinnmpc.surrogate import matrix_exp
+from pinnmpc.surrogate.prior_stand_in import held_inertia_jacobian, steady_velocity_jacobian
 from pinnmpc.surrogate.substeps import (
     friction_substeps,
     midpoint_step,
@@ -52,9 +53,6 @@ FRICTION_STEPS = 2  # exponential Heun sub-steps of frozen_arm_friction over a p
 MIDPOINT_STEPS = 6  # sub-steps of midpoint_arm over a period, each with its own configuration: its miss falls as
 #   h^2; with 6 the Panda's prior alone is at 0.54x its one-step targets at worst, with 4 1.08x
 #   (docs/training-findings.md)
-MIDPOINT_JACOBIAN = "frozen_arm"  # the kind whose exact Jacobian (by eigendecomposition) stands in for
-#   midpoint_arm's on arms of EIGEN_FROM_JOINTS or more joints: its own, by AD, would cost several times the value;
-#   frozen_arm_moving's is 2x closer to it and 2x dearer, and tracks no closer (docs/design.md)
 SQUARING_NORM = 0.5  # the largest 1-norm of X / 2^s the export's general Taylor series (degree
 #   matrix_exp.TAYLOR_DEGREE) is trusted at: its remainder is then ~1e-14
 RATE_MARGIN = 1.5  # the largest rate of M^-1 kv sampled over the box, times this, is what squarings plan for
@@ -76,7 +74,7 @@ class CompiledPrior:
 
     value: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]  # -> [x_p (B, nx)]
     with_jacobian: Callable[[np.ndarray, np.ndarray], list[np.ndarray]]  # -> [x_p, J (B, nx (nx + nu)) row-major]
-    stand_in_jacobian: bool = False  # J is another prior's (MIDPOINT_JACOBIAN), not the derivative of x_p
+    stand_in_jacobian: bool = False  # J stands in for the derivative of x_p (pinnmpc.surrogate.prior_stand_in)
     jacobian: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None  # -> J alone, where another function
     #   than the value's gives it (the stand-in): a caller then takes every row's value in one call
 
@@ -137,7 +135,7 @@ class ArmPrior(nn.Module):
 
     @property
     def stand_in_jacobian(self) -> bool:
-        """Whether the compiled Jacobian is another prior's (MIDPOINT_JACOBIAN): midpoint_arm on a long arm."""
+        """Whether the compiled Jacobian stands in for x_p's (prior_stand_in): midpoint_arm on a long arm."""
         return self.midpoint and self.nq >= EIGEN_FROM_JOINTS
 
     def __deepcopy__(self, memo: dict) -> ArmPrior:
@@ -358,12 +356,13 @@ class ArmPrior(nn.Module):
                 xp = ca.vertcat(q0 + vss * tau + ca.mtimes(lag, d), vss + ca.mtimes(e, d))
         value = ca.Function(f"{tag}_value", [x, u], [xp], {"cse": True})
         if self.stand_in_jacobian:
-            # the Jacobian of the arm held at q0 (MIDPOINT_JACOBIAN) stands in for this one's: the controller's
+            # the Jacobian of the arm frozen at q0 with its inertia held stands in for this one's: the controller's
             # linearisation is that arm's, its model's value exact (an inexact-Jacobian SQP; docs/design.md)
-            lib = compile_functions(tag, [value], opt="-O2")
-            exact = BatchedFunction(lib[value.name()])
-            held_prior = ArmPrior(self.arm, MIDPOINT_JACOBIAN).compiled(tau).with_jacobian
-            alone = lambda x0, u: held_prior(x0, u)[1]  # noqa: E731
+            steady = steady_velocity_jacobian(frozen, kv, f"{tag}_steady")
+            held = held_inertia_jacobian(held_arm, steady, self.steps, tau, f"{tag}_held_inertia")
+            lib = compile_functions(tag, [value, held], opt="-O2")
+            exact, stand_in = BatchedFunction(lib[value.name()]), BatchedFunction(lib[held.name()])
+            alone = lambda x0, u: stand_in(x0, u)[0]  # noqa: E731
             fast = CompiledPrior(exact, lambda x0, u: [exact(x0, u)[0], alone(x0, u)], True, alone)
         elif n >= EIGEN_FROM_JOINTS:
             from pinnmpc.surrogate.prior_eigen import EigenPriorJacobian
