@@ -175,6 +175,45 @@ def test_the_controller_feeds_the_input_it_applied_last():
     assert np.abs(run.x[:, :3] - ref.x[: len(run.x), :3]).mean() < 0.05
 
 
+class _PeriodLate:
+    """A plant that runs each command over the period after the one it answered, as plant=franka does at
+    plant.command_at = tau (the first period: no input)."""
+
+    delay_periods = 1
+
+    def __init__(self, plant: object, nu: int) -> None:
+        self.plant, self.running = plant, np.zeros(nu)
+
+    def step(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The state a period on under the command before u; u runs next."""
+        x_next = self.plant.step(x, self.running)
+        self.running = np.array(u, dtype=np.float64)
+        return x_next
+
+
+def test_with_a_plant_a_period_late_the_monitor_takes_the_input_before_the_one_that_ran():
+    """The last period ran the command before the last (a period late), after the one before it: the model monitor's
+    prediction takes that one as the previous input, not the command that ran (a settled lag)."""
+    system = load_system("planar3")
+    net = _grown(load_surrogate(system="planar3"))
+    with torch.no_grad():
+        net.model.net.layers[0].weight[:, 10:13] = 0.3  # a network that hears the previous input
+    settings = {"horizon": 5, "Q": [1, 1, 1, 0, 0, 0], "R": [1e-8, 1e-7, 1e-6], "disturbance": {"gain": 0.7}}
+    controller = build_nmpc(settings, net, system)
+    t = np.arange(0.0, 2.0, system.tau)
+    q = 0.2 * np.sin(np.outer(t, [0.8, 1.1, 1.5]))
+    ref = Reference(t, np.hstack([q, np.gradient(q, t, axis=0)]), "sine")
+    run = run_loop(controller, _PeriodLate(_robot(LAG_ONLY), 3), ref, max_steps=12, progress=False)
+    assert run.status == "ok" and controller.delay_periods == 1
+    x, u = run.x, run.u
+    missed = controller.prediction_error(x[-2], u[-2], x[-1])
+    ran = np.concatenate((x[-1], u[-2]))
+    expected = controller.ocp.prediction_error(np.concatenate((x[-2], u[-3])), u[-2], ran)[:6]
+    settled = controller.ocp.prediction_error(np.concatenate((x[-2], u[-2])), u[-2], ran)[:6]
+    np.testing.assert_allclose(missed, expected, rtol=0, atol=1e-12)
+    assert np.abs(expected - settled).max() > 1e-6  # the two differ: the test tells them apart
+
+
 def test_padded_weights():
     assert padded_weight([1, 2], 2) == [1.0, 2.0, 0.0, 0.0]
     assert padded_weight([[1, 0], [0, 2]], 1) == [[1.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 0.0]]

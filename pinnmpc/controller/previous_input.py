@@ -38,9 +38,10 @@ class PreviousInputNMPC(NMPC):
         super().__post_init__()
 
     def reset(self) -> None:
-        """As NMPC.reset; the input before the last one is the last one (a lag that starts settled)."""
+        """As NMPC.reset; the inputs before the last one are the last one (a lag that starts settled)."""
         super().reset()
         self._before = self._u_prev.copy()
+        self._older = self._u_prev.copy()  # the input before _before: a plant a period late still runs _before
 
     def describe(self) -> dict[str, Any]:
         """NMPC's description, and that its model takes the previous input."""
@@ -63,7 +64,7 @@ class PreviousInputNMPC(NMPC):
         padded = self._padded(len(ref))  # u_prev untracked (weight 0): zeros after the arm's states
         padded[:, : self.arm_nx] = ref
         u = super().make_step(s, padded)
-        self._before = before
+        self._older, self._before = self._before, before
         return u
 
     def _padded(self, rows: int) -> np.ndarray:
@@ -75,12 +76,15 @@ class PreviousInputNMPC(NMPC):
 
     def prediction_error(self, x_prev: np.ndarray, u_prev: np.ndarray, x: np.ndarray) -> np.ndarray:
         """What the model missed over the last period, x - F(x_prev, u_prev, the input before it), in the arm's
-        states: the input before is the controller's own record where u_prev is the one it applied last, else u_prev
-        (a lag that had settled)."""
+        states: the input before is the controller's own record where u_prev is the one it applied last (or, with a
+        plant a period late, the one before that, which that plant ran over the last period), else u_prev (a lag that
+        had settled)."""
         u_prev = np.asarray(u_prev, dtype=np.float64)
-        # np.array_equal's test, without its wrapper
-        mine = u_prev.shape == self._u_prev.shape and bool((u_prev == self._u_prev).all())
-        before = self._before if mine else u_prev
+        before = u_prev
+        for applied, preceding in ((self._u_prev, self._before), (self._before, self._older)):
+            if u_prev.shape == applied.shape and bool((u_prev == applied).all()):  # np.array_equal, unwrapped
+                before = preceding
+                break
         s = np.concatenate((np.asarray(x_prev, dtype=np.float64), before))
         nxt = np.concatenate((np.asarray(x, dtype=np.float64), u_prev))
         return self.ocp.prediction_error(s, u_prev, nxt)[: self.arm_nx]
