@@ -312,7 +312,8 @@ class ArmPrior(nn.Module):
     def compiled(self, tau: float) -> CompiledPrior:
         """x_p(tau), and with its Jacobian, for numpy rows: the value as a fixed Taylor-and-squaring exponential
         compiled to C by CasADi, the Jacobian by CasADi's exact AD through it or, on larger arms, exactly by
-        eigendecomposition (pinnmpc.surrogate.prior_eigen); built once per tau and checked against the torch form."""
+        eigendecomposition (pinnmpc.surrogate.prior_eigen), where midpoint_arm's takes a stand-in
+        (pinnmpc.surrogate.prior_stand_in); built once per tau and checked against the torch form."""
         if tau in self._compiled:
             return self._compiled[tau]
         if self.steps and not math.isclose(tau, self.arm.tau, rel_tol=1e-12):
