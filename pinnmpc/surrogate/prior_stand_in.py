@@ -31,12 +31,11 @@ def held_inertia_jacobian(held_arm: ca.Function, steady: ca.Function, steps: int
     n = held_arm.size1_in(0)
     lag, e, by_q, by_u = (ca.SX.sym(a, n, n) for a in ("lag", "e", "by_q", "by_u"))
     eye = ca.SX.eye(n)
-    power, total = e, eye + e  # E^k and I + E + ... + E^k
-    for _ in range(steps - 2):
-        power = ca.mtimes(power, e)
-        total = total + power
-    e_tau = ca.mtimes(power, e) if steps > 1 else e
-    lag_tau = ca.mtimes(lag, total) if steps > 1 else lag
+    e_tau, total = eye, ca.SX(n, n)  # E^steps and I + E + ... + E^(steps - 1), built up together
+    for _ in range(steps):
+        total = total + e_tau
+        e_tau = ca.mtimes(e_tau, e)
+    lag_tau = ca.mtimes(lag, total)
     by_vss = ca.vertcat(tau * eye - lag_tau, eye - e_tau)
     kinematic = ca.vertcat(eye, ca.SX(n, n))
     jac = ca.horzcat(kinematic + ca.mtimes(by_vss, by_q), ca.vertcat(lag_tau, e_tau), ca.mtimes(by_vss, by_u))
