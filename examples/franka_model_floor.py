@@ -1,0 +1,150 @@
+"""How close could a model track franky-sim? The NMPC predicts each period with franky-sim's own MuJoCo FR3, run in
+this process with the gains plant=franka serves it (1 ms ticks, its servo law), and with franky's ramp from the last
+command to the new one (each joint at franky's acceleration limit, from `--ramp-start` s into the period); its
+Jacobians are the shipped fr3.pt's. The plant is the real franky-sim through libfranka (plant=franka's defaults).
+
+    python examples/franka_model_floor.py --reference random-101            # docs/franka.md, "what the loop allows"
+    python examples/franka_model_floor.py --reference random-101 --no-ramp  # the physics alone
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+import pinocchio as pin
+from franky_sim.mujoco_simulator import MujocoSimulator
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from pinnmpc import load_surrogate
+from pinnmpc.cli.structured import register_configs
+from pinnmpc.controller.build import build_nmpc
+from pinnmpc.plant.build import make_plant
+from pinnmpc.simulation import run_loop
+from pinnmpc.simulation.setup import system_reference
+from pinnmpc.systems.base import Box
+from pinnmpc.systems.previous_input import WithPreviousInput
+from pinnmpc.systems.registry import build_system
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+TICK = 1e-3  # franky-sim's physics step and libfranka's command rate, s
+
+
+class FrankySimPhysics:
+    """franky-sim's FR3 (MuJoCo, its pinocchio model for the servo's bias torques) stepped here, tick by tick."""
+
+    def __init__(self, q0: np.ndarray, gains: np.ndarray, acceleration: np.ndarray, ramp_start: float | None) -> None:
+        self._context = MujocoSimulator()
+        sim = self._context.__enter__()
+        self.robot = sim.add_robot(initial_q=tuple(q0), kv=tuple(gains))
+        sim.start()
+        self.model, self.data = sim.model, sim.data
+        self.arm_q, self.arm_v = list(self.robot._qpos_addrs), list(self.robot._dof_addrs)
+        self.fingers = list(self.robot._finger_qpos_addrs)
+        self.finger_q = self.data.qpos[self.fingers].copy()
+        self.pin_model, self.pin_data = self.robot._BaseRobot__model, self.robot._BaseRobot__data
+        self.gains, self.acceleration, self.ramp_start = gains, acceleration, ramp_start
+        self.low, self.high = np.asarray(self.robot.torque_limit_low), np.asarray(self.robot.torque_limit_high)
+
+    def period(self, x0: np.ndarray, previous: np.ndarray, command: np.ndarray, tau: float) -> np.ndarray:
+        """(q, v) a period after x0 while the servo's command ramps from `previous` to `command` (ramp_start None:
+        the new command from the first tick)."""
+        d = self.data
+        d.qvel[:] = 0.0
+        d.qpos[self.arm_q], d.qvel[self.arm_v], d.qpos[self.fingers] = x0[:7], x0[7:], self.finger_q
+        d.qacc_warmstart[:] = 0.0
+        mujoco.mj_forward(self.model, d)
+        for i in range(round(tau / TICK)):
+            reach = np.inf if self.ramp_start is None else self.acceleration * max(0.0, i * TICK - self.ramp_start)
+            target = previous + np.clip(command - previous, -reach, reach)
+            q, v = d.qpos[self.arm_q], d.qvel[self.arm_v]
+            gravity = pin.computeGeneralizedGravity(self.pin_model, self.pin_data, q).copy()
+            bias = pin.nonLinearEffects(self.pin_model, self.pin_data, q, v) - gravity
+            d.qfrc_applied[self.arm_v] = np.clip(self.gains * (target - v) + bias, self.low, self.high) + gravity
+            self.robot._pre_step()  # the hand's own finger servo
+            mujoco.mj_step(self.model, d)
+        return np.concatenate([d.qpos[self.arm_q], d.qvel[self.arm_v]])
+
+
+class FrankySimFlow:
+    """A flow map on inputs (u, u_prev): values by FrankySimPhysics, Jacobians of a network in u (none in u_prev)."""
+
+    array_api = "numpy"
+
+    def __init__(self, physics: FrankySimPhysics, network: Any, system: Any) -> None:
+        with_previous = WithPreviousInput(system)
+        self.physics, self.network, self.tau = physics, network.numpy_flow(), system.tau
+        self.state_names, self.input_names = tuple(system.state_names), tuple(with_previous.input_names)
+        self.state_box, self.input_box = system.state_box, with_previous.input_box
+        self.domain = Box([-np.inf] * len(self.state_names), [np.inf] * len(self.state_names))
+        self.meta = {"previous_input": True}  # the controller feeds u_prev (pinnmpc.controller.previous_input)
+
+    @property
+    def nx(self) -> int:
+        """The arm's states."""
+        return len(self.state_names)
+
+    @property
+    def nu(self) -> int:
+        """The command and the one before it."""
+        return len(self.input_names)
+
+    def numpy_flow(self) -> FrankySimFlow:
+        """Itself: numpy in and out."""
+        return self
+
+    def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """x(tau) row by row (..., nx) for x0 (..., nx) and (u, u_prev) (..., nu)."""
+        lead, m = np.shape(x0)[:-1], self.nu // 2
+        rows = np.broadcast_arrays(np.reshape(x0, (-1, self.nx)), np.reshape(u, (-1, self.nu)))
+        out = [self.physics.period(x, p[m:], p[:m], self.tau) for x, p in zip(*rows)]
+        return np.reshape(out, (*lead, self.nx))
+
+    def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """step's values; A and B of the network in u, zero in u_prev."""
+        m = self.nu // 2
+        _, a, b = self.network.step_with_jacobian(np.ascontiguousarray(x0), np.ascontiguousarray(u[..., :m]))
+        return self.step(x0, u), a, np.concatenate((b, np.zeros_like(b)), axis=-1)
+
+
+def main() -> None:
+    """One closed loop on franky-sim with the model above; prints the worst joint-angle MAE."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--reference", default="default", help="a built-in reference of the FR3")
+    parser.add_argument("--ramp-start", type=float, default=0.002, help="s into the period franky's ramp begins")
+    parser.add_argument("--no-ramp", action="store_true", help="the model's command steps at the period's start")
+    parser.add_argument("--no-estimator", action="store_true", help="controller.disturbance.gain=0")
+    parser.add_argument("--steps", type=int, default=200, help="control periods")
+    args = parser.parse_args()
+    register_configs()
+    overrides = ["system=fr3", "plant=franka", f"reference.name={args.reference}", "progress=false"]
+    with initialize_config_dir(config_dir=str(CONF), version_base=None):
+        cfg = compose(config_name="closed_loop", overrides=overrides)
+    system = build_system(cfg.system)
+    reference = system_reference(cfg, system, system.tau)
+    plant = make_plant(system, cfg.plant, system.tau)
+    try:
+        ramp_start = None if args.no_ramp else args.ramp_start
+        physics = FrankySimPhysics(
+            reference.x[0, :7], np.asarray(system.servo_gain), np.asarray(plant.command_acceleration), ramp_start
+        )
+        flow = FrankySimFlow(physics, load_surrogate(system="fr3"), system)
+        controller_cfg = OmegaConf.to_container(cfg.controller, resolve=True)
+        settings = {k: v for k, v in controller_cfg.items() if k not in ("kind", "checkpoint")}
+        if args.no_estimator:
+            settings["disturbance"] = {**settings["disturbance"], "gain": 0.0}
+        controller = build_nmpc(settings, flow, system)
+        x0 = plant.start(reference.x[0])
+        result = run_loop(controller, plant, reference, x0=x0, max_steps=args.steps, progress=False)
+    finally:
+        plant.close()
+    error = np.abs(result.x[:, :7] - reference.x[: len(result.x), :7]).mean(axis=0).max()
+    print(f"{result.status}: worst joint-angle MAE {error:.3e} rad, libfranka errors {plant.errors}")
+
+
+if __name__ == "__main__":
+    main()
