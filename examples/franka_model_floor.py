@@ -26,6 +26,7 @@ from pinnmpc.controller.build import build_nmpc
 from pinnmpc.plant.build import make_plant
 from pinnmpc.simulation import run_loop
 from pinnmpc.simulation.setup import system_reference
+from pinnmpc.surrogate.checkpoint import Dimensions
 from pinnmpc.systems.base import Box
 from pinnmpc.systems.previous_input import WithPreviousInput
 from pinnmpc.systems.registry import build_system
@@ -70,7 +71,7 @@ class FrankySimPhysics:
         return np.concatenate([d.qpos[self.arm_q], d.qvel[self.arm_v]])
 
 
-class FrankySimFlow:
+class FrankySimFlow(Dimensions):
     """A flow map on inputs (u, u_prev): values by FrankySimPhysics, Jacobians of a network in u (none in u_prev)."""
 
     array_api = "numpy"
@@ -82,16 +83,6 @@ class FrankySimFlow:
         self.state_box, self.input_box = system.state_box, with_previous.input_box
         self.domain = Box([-np.inf] * len(self.state_names), [np.inf] * len(self.state_names))
         self.meta = {"previous_input": True}  # the controller feeds u_prev (pinnmpc.controller.previous_input)
-
-    @property
-    def nx(self) -> int:
-        """The arm's states."""
-        return len(self.state_names)
-
-    @property
-    def nu(self) -> int:
-        """The command and the one before it."""
-        return len(self.input_names)
 
     def numpy_flow(self) -> FrankySimFlow:
         """Itself: numpy in and out."""
