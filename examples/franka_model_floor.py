@@ -1,18 +1,22 @@
-"""How close could a model track franky-sim? The NMPC predicts each period with franky-sim's own MuJoCo FR3, run in
-this process with the gains plant=franka serves it (1 ms ticks, its servo law), and with franky's ramp from the last
-command to the new one (each joint at franky's acceleration limit, from `--ramp-start` s into the period); its
-Jacobians are the shipped fr3.pt's. The plant is the real franky-sim through libfranka (plant=franka's defaults).
+"""How close could a model track franky-sim? The NMPC predicts each period under franky's ramp from the last command
+to the new one (each joint at franky's acceleration limit, from `--ramp-start` s into the period) with franky-sim's
+own MuJoCo FR3, run in this process with the gains plant=franka serves it (1 ms ticks, its servo law), or with a
+system's arm (`--model`: a name or a .yaml, such as identify's) integrated under that ramp; its Jacobians are the
+shipped fr3.pt's. The plant is the real franky-sim through libfranka (plant=franka's defaults).
 
     python examples/franka_model_floor.py --reference random-101            # docs/franka.md, "what the loop allows"
     python examples/franka_model_floor.py --reference random-101 --no-ramp  # the physics alone
+    python examples/franka_model_floor.py --reference random-101 --model outputs/identify/fr3_sim.yaml
 """
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import casadi as ca
 import mujoco
 import numpy as np
 import pinocchio as pin
@@ -24,12 +28,14 @@ from pinnmpc import load_surrogate
 from pinnmpc.cli.structured import register_configs
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.plant.build import make_plant
+from pinnmpc.plant.integrators import rk4_step
 from pinnmpc.simulation import run_loop
 from pinnmpc.simulation.setup import system_reference
 from pinnmpc.surrogate.checkpoint import Dimensions
 from pinnmpc.systems.base import Box
+from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 from pinnmpc.systems.previous_input import WithPreviousInput
-from pinnmpc.systems.registry import build_system
+from pinnmpc.systems.registry import build_system, load_system
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 TICK = 1e-3  # franky-sim's physics step and libfranka's command rate, s
@@ -70,30 +76,55 @@ class FrankySimPhysics:
             mujoco.mj_step(self.model, d)
         return np.concatenate([d.qpos[self.arm_q], d.qvel[self.arm_v]])
 
+    def rows(self, x0: np.ndarray, inputs: np.ndarray, tau: float) -> np.ndarray:
+        """period() of each row of x0 (B, 14) and (u, u_prev) (B, 14)."""
+        return np.stack([self.period(x, p[7:], p[:7], tau) for x, p in zip(x0, inputs)])
 
-class FrankySimFlow(Dimensions):
-    """A flow map on inputs (u, u_prev): values by FrankySimPhysics, Jacobians of a network in u (none in u_prev)."""
+
+class RampedArm:
+    """A system's arm integrated under the ramped command by RK4 sub-steps of h (the command at each one's middle),
+    compiled: rows(x0, (u, u_prev), tau) -> x(tau)."""
+
+    def __init__(self, system: Any, acceleration: np.ndarray, ramp_start: float | None, tau: float, h: float) -> None:
+        nx, nu = len(system.state_names), len(system.input_names)
+        x, inputs, v = ca.MX.sym("x", nx), ca.MX.sym("u", 2 * nu), ca.MX.sym("v", nu)
+        one = ca.Function("one", [x, v], [rk4_step(system.casadi_rhs(), x, v, h, h)])
+        u, previous, x1 = inputs[:nu], inputs[nu:], x
+        for i in range(round(tau / h)):
+            reach = np.inf if ramp_start is None else acceleration * max(0.0, (i + 0.5) * h - ramp_start)
+            x1 = one(x1, previous + ca.fmin(ca.fmax(u - previous, -reach), reach))
+        start = "none" if ramp_start is None else f"{ramp_start * 1e4:.0f}"
+        step = ca.Function(f"{system.name}_ramped_{start}_{h * 1e6:.0f}", [x, inputs], [x1])
+        self._step = BatchedFunction(compile_functions(step.name(), [step])[step.name()])
+
+    def rows(self, x0: np.ndarray, inputs: np.ndarray, tau: float) -> np.ndarray:
+        """x(tau) of each row."""
+        return self._step(np.ascontiguousarray(x0), np.ascontiguousarray(inputs))[0]
+
+
+class RampFlow(Dimensions):
+    """A flow map on inputs (u, u_prev): values by a model's rows (FrankySimPhysics, RampedArm), Jacobians of a
+    network in u (none in u_prev)."""
 
     array_api = "numpy"
 
-    def __init__(self, physics: FrankySimPhysics, network: Any, system: Any) -> None:
+    def __init__(self, values: Callable[..., np.ndarray], network: Any, system: Any) -> None:
         with_previous = WithPreviousInput(system)
-        self.physics, self.network, self.tau = physics, network.numpy_flow(), system.tau
+        self.values, self.network, self.tau = values, network.numpy_flow(), system.tau
         self.state_names, self.input_names = tuple(system.state_names), tuple(with_previous.input_names)
         self.state_box, self.input_box = system.state_box, with_previous.input_box
         self.domain = Box([-np.inf] * len(self.state_names), [np.inf] * len(self.state_names))
         self.meta = {"previous_input": True}  # the controller feeds u_prev (pinnmpc.controller.previous_input)
 
-    def numpy_flow(self) -> FrankySimFlow:
+    def numpy_flow(self) -> RampFlow:
         """Itself: numpy in and out."""
         return self
 
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """x(tau) row by row (..., nx) for x0 (..., nx) and (u, u_prev) (..., nu)."""
-        lead, m = np.shape(x0)[:-1], self.nu // 2
+        lead = np.shape(x0)[:-1]
         rows = np.broadcast_arrays(np.reshape(x0, (-1, self.nx)), np.reshape(u, (-1, self.nu)))
-        out = [self.physics.period(x, p[m:], p[:m], self.tau) for x, p in zip(*rows)]
-        return np.reshape(out, (*lead, self.nx))
+        return np.reshape(self.values(*rows, self.tau), (*lead, self.nx))
 
     def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """step's values; A and B of the network in u, zero in u_prev."""
@@ -110,6 +141,8 @@ def main() -> None:
     parser.add_argument("--no-ramp", action="store_true", help="the model's command steps at the period's start")
     parser.add_argument("--no-estimator", action="store_true", help="controller.disturbance.gain=0")
     parser.add_argument("--steps", type=int, default=200, help="control periods")
+    parser.add_argument("--model", default=None, help="a system (name or .yaml) instead of franky-sim's physics")
+    parser.add_argument("--substep", type=float, default=5e-4, help="--model's RK4 step, s")
     args = parser.parse_args()
     register_configs()
     overrides = ["system=fr3", "plant=franka", f"reference.name={args.reference}", "progress=false"]
@@ -119,11 +152,12 @@ def main() -> None:
     reference = system_reference(cfg, system, system.tau)
     plant = make_plant(system, cfg.plant, system.tau)
     try:
-        ramp_start = None if args.no_ramp else args.ramp_start
-        physics = FrankySimPhysics(
-            reference.x[0, :7], np.asarray(system.servo_gain), np.asarray(plant.command_acceleration), ramp_start
-        )
-        flow = FrankySimFlow(physics, load_surrogate(system="fr3"), system)
+        ramp_start, acceleration = None if args.no_ramp else args.ramp_start, np.asarray(plant.command_acceleration)
+        if args.model is None:
+            model: Any = FrankySimPhysics(reference.x[0, :7], np.asarray(system.servo_gain), acceleration, ramp_start)
+        else:
+            model = RampedArm(load_system(args.model), acceleration, ramp_start, system.tau, args.substep)
+        flow = RampFlow(model.rows, load_surrogate(system="fr3"), system)
         controller_cfg = OmegaConf.to_container(cfg.controller, resolve=True)
         settings = {k: v for k, v in controller_cfg.items() if k not in ("kind", "checkpoint")}
         if args.no_estimator:

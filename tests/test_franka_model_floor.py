@@ -11,6 +11,7 @@ import pytest
 from pinnmpc import load_surrogate, load_system
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.plant.franka_sim import franky_missing
+from pinnmpc.surrogate.flowmap import CompiledRK4
 from tests.conftest import ROOT
 
 pytestmark = pytest.mark.skipif(bool(franky_missing()), reason=franky_missing() or "franky present")
@@ -48,9 +49,22 @@ def test_the_ramp_delays_a_new_command(example):
     assert np.allclose(settled, physics(example, None).period(x0, command, command, 0.05), atol=1e-12)
 
 
+def test_a_system_under_the_ramp_is_its_flow_where_the_command_does_not_change(example):
+    system = load_system("fr3")
+    arm = example["RampedArm"](system, FRANKY_ACCELERATION, 0.002, 0.05, 5e-4)
+    x0 = np.tile(np.concatenate([HOME, np.full(7, 0.05)]), (2, 1))
+    command = np.array([np.full(7, 0.1), np.full(7, -0.1)])
+    settled = arm.rows(x0, np.concatenate([command, command], axis=1), 0.05)
+    exact = CompiledRK4(system, 0.05, 5e-4).step(x0, command)
+    assert np.abs(settled - exact).max() < 1e-12
+    ramped = arm.rows(x0, np.concatenate([command, np.zeros((2, 7))], axis=1), 0.05)
+    lost = (exact - ramped)[:, 0] * np.sign(command[:, 0])  # joint 1 behind where the command did not ramp
+    assert np.all((lost > 2e-4) & (lost < 1e-3)), lost
+
+
 def test_its_flow_map_runs_a_previous_input_nmpc(example):
     system = load_system("fr3")
-    flow = example["FrankySimFlow"](physics(example, 0.002), load_surrogate(system="fr3"), system)
+    flow = example["RampFlow"](physics(example, 0.002).rows, load_surrogate(system="fr3"), system)
     x = np.tile(np.concatenate([HOME, np.zeros(7)]), (2, 1))
     u = np.zeros((2, 14))
     y, a, b = flow.step_with_jacobian(x, u)
