@@ -94,6 +94,30 @@ def test_a_servos_dry_friction_enters_the_prior_where_the_servo_settles() -> Non
     assert float(miss[0]) < 0.7 * float(miss[1])
 
 
+def test_a_servos_joint_damping_enters_the_prior_with_its_gain() -> None:
+    """A velocity servo with joint damping D and dry friction: the frozen model's gain is K + D and its drive settles
+    where K (u - v) - D v = C tanh(s v); that prior predicts the damped servo's true step closer than the one that
+    leaves the damping out."""
+    base = load_system("planar3")
+    servo = dataclasses.replace(base, actuation="velocity_servo", servo_gain=(20.0, 10.0, 3.0), viscous=(),
+                                coulomb=(2.0, 1.0, 0.3))  # fmt: skip
+    damped = dataclasses.replace(servo, viscous=(4.0, 2.0, 1.0))
+    gen = torch.Generator().manual_seed(6)
+    low, high = base.state_box.tensors()
+    x0 = low + (high - low) * torch.rand(64, 6, generator=gen, dtype=torch.float64)
+    x0[:, 3:] *= 0.2
+    u = 3.0 * torch.rand(64, 3, generator=gen, dtype=torch.float64) - 1.5
+    gain, damping = (torch.tensor(v, dtype=torch.float64) for v in (damped.servo_gain, damped.viscous))
+    np.testing.assert_allclose(damped.linear_gain, (gain + damping).numpy())
+    settled = damped.frozen_terms(x0[:, :3], u)[1] / (gain + damping)
+    held = torch.tensor(damped.coulomb, dtype=torch.float64) * torch.tanh(damped.coulomb_slope * settled)
+    np.testing.assert_allclose((gain * (u - settled) - damping * settled).numpy(), held.numpy(), atol=1e-12)
+    true = reference_flow(damped, x0, u, TAU, 1e-4).double()
+    t = torch.full((64, 1), TAU, dtype=torch.float64)
+    miss = [(ArmPrior(arm)(t, x0, u)[0] - true)[:, 3:].square().mean().sqrt() for arm in (damped, servo)]
+    assert float(miss[0]) < 0.5 * float(miss[1]), miss
+
+
 def test_the_memo_follows_in_place_changes_of_its_inputs(prior, points) -> None:
     x0, u = (a.clone() for a in points)
     t = torch.full((6, 1), TAU, dtype=torch.float64)

@@ -1,12 +1,12 @@
 """Classical identification: the model's physical coefficients fitted to robot logs by bounded linear least squares.
 
 The arm's equation M(q) dv/dt + h(q, v) = torque is linear in every coefficient fitted here: per-joint viscous D and
-Coulomb C (torque = u - D v - C tanh(s v)) or servo gain K and Coulomb C (torque = g0(q) + K (u - v) - C tanh(s v)),
-a point mass m_p at a given place (M and h gain m_p times those of a unit mass) and per-joint armature A (on M's
-diagonal). The fit integrates that equation over each fine interval of a hold period instead of differentiating the
-samples: the interval's velocity change carries the inertia (A dv exactly), its position change the viscous term
-(D dq exactly) and the input is held, so only the slowly varying M(q), h and the Coulomb term are averaged over the
-interval's two ends.
+Coulomb C (torque = u - D v - C tanh(s v)) or servo gain K, damping D and Coulomb C (torque = g0(q) + K (u - v) - D v
+- C tanh(s v)), a point mass m_p at a given place (M and h gain m_p times those of a unit mass) and per-joint armature
+A (on M's diagonal). The fit integrates that equation over each fine interval of a hold period instead of
+differentiating the samples: the interval's velocity change carries the inertia (A dv exactly), its position change
+the viscous term (D dq exactly) and the input is held, so only the slowly varying M(q), h and the Coulomb term are
+averaged over the interval's two ends.
 Differences of the fine samples would not do: planar3's velocities relax within milliseconds after each input step,
 below a 10 ms fine step, and the acceleration estimates were off by as much as their size. One bounded least-squares
 solve (every coefficient >= 0) gives the fit, with no iterations or starting guess. A joint's equation counts only
@@ -214,7 +214,7 @@ def identify(
         raise ValueError(f"settle={settle}; expected 0 <= settle < the control period {system.tau} s")
     if "payload_pos" in fit and not (math.isfinite(place_range) and place_range > 0):
         raise ValueError(f"payload.range={place_range!r}; expected a finite number > 0 (m)")
-    friction = ("servo_gain", "coulomb") if system.actuation == "velocity_servo" else ("viscous", "coulomb")
+    friction = ("servo_gain", "viscous", "coulomb") if system.actuation == "velocity_servo" else ("viscous", "coulomb")
     allowed = (*friction, "payload", "payload_pos", "armature")
     fit = [k for k in fit if k in allowed]
     if not fit:

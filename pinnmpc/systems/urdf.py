@@ -46,8 +46,9 @@ class RigidArm(CasadiArm):
     """A fixed-base serial arm from a URDF with joint state x = (q, v) and one input per joint.
 
     actuation='torque': joint torque = u - D v - C tanh(s v) (viscous plus smoothed Coulomb friction).
-    actuation='velocity_servo': joint torque = g(q) + K (u - v) - C tanh(s v), a gravity-compensated velocity
-    servo (C optional: none in the nominal arms, a fitted model's joint friction the servo must overcome);
+    actuation='velocity_servo': joint torque = g(q) + K (u - v) - D v - C tanh(s v), a gravity-compensated velocity
+    servo (D and C optional: none in the nominal arms, a fitted model's joint damping and friction the servo must
+    overcome);
     servo_compensation='bias' adds the Coriolis and centrifugal torques too (g(q) + C(q, v) v, as franky-sim's joint
     velocity controller does), so that M(q) dv/dt = K (u - v) for the arm without a payload.
     mass_scale multiplies M and h (every link's mass and inertia) and friction_scale D and C, or K and C for a
@@ -193,6 +194,8 @@ class RigidArm(CasadiArm):
         if self.actuation == "torque":
             return u - f * (self._coeffs("viscous", v) * v + self._coeffs("coulomb", v) * self._slip(v))
         out = f * self._coeffs("servo_gain", v) * (u - v)
+        if self.viscous:  # the joint's own damping, which the servo must overcome too (a fitted model's)
+            out = out - f * self._coeffs("viscous", v) * v
         return out - self.dry_friction(v) if self.coulomb else out
 
     def dry_friction(self, v: Any) -> Any:
@@ -285,9 +288,11 @@ class RigidArm(CasadiArm):
     # -- the arm frozen at q0: the linear part a learned flow map builds on (pinnmpc.surrogate.prior) -----------------
     @property
     def linear_gain(self) -> tuple[float, ...]:
-        """kv of the frozen model: the actuation's torque per unit joint velocity (D, or K of a servo), scaled."""
-        gain = self.viscous if self.actuation == "torque" else self.servo_gain
-        return tuple(self.friction_scale * g for g in gain)
+        """kv of the frozen model: the actuation's torque per unit joint velocity (D, or K + D of a servo), scaled."""
+        if self.actuation == "torque":
+            return tuple(self.friction_scale * d for d in self.viscous)
+        damping = self.viscous or (0.0,) * len(self.servo_gain)
+        return tuple(self.friction_scale * (k + d) for k, d in zip(self.servo_gain, damping))
 
     def frozen_terms(self, q: Tensor, u: Tensor, settled: bool = True) -> tuple[Tensor, Tensor]:
         """M(q) (B, n, n) and c0 (B, n) of M(q) dv/dt = c0 - kv v: the arm held at q, without Coriolis terms (a
@@ -308,8 +313,12 @@ class RigidArm(CasadiArm):
         drive = gain * u - self._bias(g, comp) if self.payload is not None else gain * u
         if not self.coulomb or not settled:
             return drive
-        ratio = self._coeffs("coulomb", u) / self._coeffs("servo_gain", u)  # the velocity the friction takes off
-        return gain * settled_velocity(drive / gain, ratio, self.coulomb_slope)
+        per_speed = self._coeffs("servo_gain", u)  # torque per unit velocity: K, and the joint's damping D with it
+        if self.viscous:
+            per_speed = per_speed + self._coeffs("viscous", u)
+        linear = self.friction_scale * per_speed
+        ratio = self._coeffs("coulomb", u) / per_speed  # the velocity the friction takes off
+        return linear * settled_velocity(drive / linear, ratio, self.coulomb_slope)
 
     def _rhs_torch(self, x: Tensor, u: Tensor) -> Tensor:
         """dx/dt through adam: differentiable to any order."""
