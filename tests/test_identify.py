@@ -18,7 +18,7 @@ from pinnmpc.plant.mujoco_robot import MujocoPlant  # noqa: E402
 from pinnmpc.robot_data.collect import collect  # noqa: E402
 from pinnmpc.robot_data.identify import identify  # noqa: E402
 from pinnmpc.robot_data.identify_job import system_yaml, write_system  # noqa: E402
-from pinnmpc.robot_data.logs import read_log, write_log  # noqa: E402
+from pinnmpc.robot_data.logs import RobotLog, read_log, write_log  # noqa: E402
 from pinnmpc.systems.urdf import Payload, RigidArm, locked_urdf  # noqa: E402
 
 LAB = {  # planar3's lab robot without its dry friction: what the model can represent exactly
@@ -197,9 +197,8 @@ def test_a_servo_that_compensates_coriolis_too_in_every_backend() -> None:
         dataclasses.replace(arm, servo_compensation="all")
 
 
-def test_identify_recovers_a_servos_joint_friction(tmp_path: Path) -> None:
-    """A Panda whose servos fight known joint friction, excited for 8 s: the fit recovers the servo gains and that
-    friction within 3 % from the nominal model, which has none."""
+def excited_panda_log(tmp_path: Path, robot: RigidArm) -> RobotLog:
+    """8 s of excitation of a Panda robot (at fine = 20), as read back for the nominal Panda."""
     from hydra import compose, initialize_config_dir
 
     conf = Path(__file__).resolve().parents[1] / "conf"
@@ -207,10 +206,15 @@ def test_identify_recovers_a_servos_joint_friction(tmp_path: Path) -> None:
                  "progress=false"]  # fmt: skip
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         cfg = compose(config_name="collect", overrides=overrides)
+    write_log(tmp_path / "robot_log", collect(cfg, robot, None, None, meta={"robot": None}))
+    return read_log(tmp_path / "robot_log.npz", load_system("panda"))
+
+
+def test_identify_recovers_a_servos_joint_friction(tmp_path: Path) -> None:
+    """A Panda whose servos fight known joint friction, excited for 8 s: the fit recovers the servo gains and that
+    friction within 3 % from the nominal model, which has none."""
     nominal = load_system("panda")
-    log = collect(cfg, dataclasses.replace(nominal, coulomb=PANDA_C), None, None, meta={"robot": None})
-    write_log(tmp_path / "robot_log", log)
-    log = read_log(tmp_path / "robot_log.npz", nominal)
+    log = excited_panda_log(tmp_path, dataclasses.replace(nominal, coulomb=PANDA_C))
     fit = identify(nominal, [log], ["servo_gain", "coulomb"], validation_periods=20, rk4_steps=20)
     np.testing.assert_allclose(fit.values["servo_gain"], nominal.servo_gain, rtol=0.03)
     np.testing.assert_allclose(fit.values["coulomb"], PANDA_C, rtol=0.03)
@@ -221,17 +225,8 @@ def test_identify_recovers_a_servos_joint_damping_beside_its_friction(tmp_path: 
     recovers the friction within 5 % on every joint and the damping within 10 % on joints 2 and 4-7 (8 s of
     excitation leaves joints 1 and 3's apart from their friction less well); without the damping column the wrist's
     friction comes out high (it takes up the damping at the excitation's speeds)."""
-    from hydra import compose, initialize_config_dir
-
-    conf = Path(__file__).resolve().parents[1] / "conf"
-    overrides = ["system=panda", "robot_time=8", "fine=20", "episodes.kinds=[excitation]", "excitation.duration=4",
-                 "progress=false"]  # fmt: skip
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose(config_name="collect", overrides=overrides)
     nominal = load_system("panda")
-    log = collect(cfg, dataclasses.replace(nominal, coulomb=PANDA_C, viscous=PANDA_D), None, None, meta={"robot": None})
-    write_log(tmp_path / "robot_log", log)
-    log = read_log(tmp_path / "robot_log.npz", nominal)
+    log = excited_panda_log(tmp_path, dataclasses.replace(nominal, coulomb=PANDA_C, viscous=PANDA_D))
     fit = identify(nominal, [log], ["viscous", "coulomb"], validation_periods=20, rk4_steps=50)
     np.testing.assert_allclose(fit.values["coulomb"], PANDA_C, rtol=0.05)
     observed = [1, 3, 4, 5, 6]
