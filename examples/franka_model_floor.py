@@ -41,6 +41,11 @@ CONF = Path(__file__).resolve().parents[1] / "conf"
 TICK = 1e-3  # franky-sim's physics step and libfranka's command rate, s
 
 
+def ramp_reach(acceleration: np.ndarray, ramp_start: float | None, at: float) -> np.ndarray | float:
+    """How far franky's ramp has moved each joint's command from the last one `at` s into the period (inf: no ramp)."""
+    return np.inf if ramp_start is None else acceleration * max(0.0, at - ramp_start)
+
+
 class FrankySimPhysics:
     """franky-sim's FR3 (MuJoCo, its pinocchio model for the servo's bias torques) stepped here, tick by tick."""
 
@@ -66,7 +71,7 @@ class FrankySimPhysics:
         d.qacc_warmstart[:] = 0.0
         mujoco.mj_forward(self.model, d)
         for i in range(round(tau / TICK)):
-            reach = np.inf if self.ramp_start is None else self.acceleration * max(0.0, i * TICK - self.ramp_start)
+            reach = ramp_reach(self.acceleration, self.ramp_start, i * TICK)
             target = previous + np.clip(command - previous, -reach, reach)
             q, v = d.qpos[self.arm_q], d.qvel[self.arm_v]
             gravity = pin.computeGeneralizedGravity(self.pin_model, self.pin_data, q).copy()
@@ -91,7 +96,7 @@ class RampedArm:
         one = ca.Function("one", [x, v], [rk4_step(system.casadi_rhs(), x, v, h, h)])
         u, previous, x1 = inputs[:nu], inputs[nu:], x
         for i in range(round(tau / h)):
-            reach = np.inf if ramp_start is None else acceleration * max(0.0, (i + 0.5) * h - ramp_start)
+            reach = ramp_reach(acceleration, ramp_start, (i + 0.5) * h)
             x1 = one(x1, previous + ca.fmin(ca.fmax(u - previous, -reach), reach))
         start = "none" if ramp_start is None else f"{ramp_start * 1e4:.0f}"
         step = ca.Function(f"{system.name}_ramped_{start}_{h * 1e6:.0f}", [x, inputs], [x1])
