@@ -579,6 +579,21 @@ def test_the_floor_section_times_the_network_beside_each_solve(bench: tuple[dict
     assert "## 9. The network controller against its floor" in (run_dir / "bench.md").read_text()
 
 
+def test_the_floor_probe_hands_the_closed_loops_dead_time_to_its_controller() -> None:
+    """A plant that runs each command a period late (plant=franka) sets delay_periods on the controller it is given:
+    through the floor's probe it must reach the controller that plans, or that loop rings (plant.delay_periods)."""
+    from pinnmpc.bench.common import controller_cfg
+    from pinnmpc.bench.floor import FloorProbe
+    from pinnmpc.controller.build import build_nmpc
+
+    cfg = _cfg(TINY)
+    surrogate = load_surrogate(system="powercube")
+    probe = FloorProbe(build_nmpc(controller_cfg(cfg), surrogate, PowerCube()), surrogate)
+    assert probe.delay_periods == 0
+    probe.delay_periods = 1
+    assert probe.inner.delay_periods == 1 and "delay_periods" not in vars(probe)
+
+
 def test_the_floor_section_times_a_cold_start_with_and_without_a_jump(bench: tuple[dict[str, Any], Path]) -> None:
     """Section 9's cold start: a closed loop's first solve on the reference and on it with a jump inside the first
     horizon, each against its loop's warm median; the jump costs the cold solve more iterations, never fewer."""

@@ -144,6 +144,26 @@ def test_the_watchdog_stops_the_arm_when_the_controller_misses_its_period(sim_ho
     assert plant.report()["errors"] == []
 
 
+def test_the_loop_starts_with_the_arm_settled_on_the_references_start(sim_host: str) -> None:
+    """franky's move to the start ends while franky-sim's servo still closes in (mrad off, cm/s): the plant waits on
+    the robot's clock until every joint is slower than plant.start_settle_speed, so the loop starts where it should."""
+    from pinnmpc.plant.franka import FrankaPlant
+    from pinnmpc.plant.settings import FrankaPlantSettings
+    from pinnmpc.systems import load_system
+
+    fr3 = load_system("fr3")
+    settings = FrankaPlantSettings(simulator="none", host=sim_host)
+    plant = FrankaPlant(fr3, fr3.tau, settings)
+    target = np.array(FR3_HOME) + np.array([0.0, 0.2, 0.0, 0.3, 0.0, -0.3, 0.0])
+    try:
+        for q0 in (target, np.array(FR3_HOME)):
+            x = plant.start(np.concatenate([q0, np.zeros(7)]))
+            assert np.abs(x[7:]).max() <= settings.start_settle_speed and np.abs(x[:7] - q0).max() < 3e-4
+    finally:
+        plant.close()
+    assert plant.report()["errors"] == []
+
+
 def test_a_target_outside_the_limits_is_refused_before_the_arm_moves(sim_host: str) -> None:
     from pinnmpc.plant.base import PlantError
     from pinnmpc.plant.franka import FrankaPlant
@@ -295,10 +315,14 @@ def test_the_bench_robot_section_runs_on_the_franka_plant(sim_host: str, tmp_pat
     cmd += [f"plant.host={sim_host}", "robot.enabled=true", "robot.references=[default]", "closed_loop.max_steps=5"]
     cmd += ["step.enabled=false", "closed_loop.enabled=false", "optimality.enabled=false", "scaling.enabled=false"]
     cmd += ["robot.paired_ocp=false", "robot.classical_variants=false", "progress=false", f"hydra.run.dir={run_dir}"]
-    cmd += ["peers.enabled=false"]
+    cmd += ["peers.enabled=false", "floor.horizons=[3]", "floor.max_steps=10", "floor.cold.enabled=false"]
     r = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-2000:]
-    rows = json.loads((run_dir / "bench.json").read_text())["robot"]["rows"]
+    bench = json.loads((run_dir / "bench.json").read_text())
+    (floor,) = bench["floor"]["rows"]  # a timing section: on the nominal model, not on the real-time robot
+    worst = max(v for k, v in floor["mae"].items() if k.startswith("q_"))  # 0.2 rad when it ran on the robot
+    assert bench["floor"]["plant"] == "scipy" and floor["status"] == "ok" and worst < 1e-4
+    rows = bench["robot"]["rows"]
     robot_rows = [row for key, row in rows.items() if "franka" in row]
     assert len(robot_rows) == 2  # the nominal classical NMPC and the shipped network on the robot
     for row in robot_rows:

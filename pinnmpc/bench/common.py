@@ -6,11 +6,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from pinnmpc.plant.base import Plant
 from pinnmpc.plant.build import make_plant as closed_loop_plant
 from pinnmpc.plant.build import simulated_arm
+from pinnmpc.plant.settings import ScipyPlantSettings
 from pinnmpc.references.files import PROJECT_ROOT, Reference, resolve_reference_path
 from pinnmpc.simulation.setup import system_reference
 from pinnmpc.systems.base import System
@@ -23,6 +24,23 @@ NO_DISTURBANCE = {"gain": 0.0}  # controller.disturbance override: the paper's c
 def make_plant(cfg: DictConfig, system: System, tau: float) -> Plant:
     """The simulated robot of every closed loop and of the RK45 row, as pinnmpc.closed_loop builds it."""
     return closed_loop_plant(simulated_arm(system, cfg.system), cfg.plant, tau, cfg.system.get("robots"))
+
+
+def on_the_model(cfg: DictConfig) -> DictConfig:
+    """A copy of cfg with the nominal model as the plant (scipy, default settings): the plant of the rows that
+    measure the model or the controller rather than the robot."""
+    nominal = cfg.copy()
+    with open_dict(nominal):
+        nominal.plant = OmegaConf.structured(ScipyPlantSettings)
+    return nominal
+
+
+def timing_cfg(cfg: DictConfig) -> DictConfig:
+    """cfg for the sections that time the controller (the robot's paired OCP, floor, peers): on a real-time robot
+    (plant=franka) the nominal model instead, as two controllers cannot take turns on one robot's clock, a peer
+    slower than the period would trip the watchdog and the cold start's jump is no motion for an arm; cfg itself on
+    a simulated plant."""
+    return on_the_model(cfg) if cfg.plant.get("kind") == "franka" else cfg
 
 
 def bench_reference(cfg: DictConfig, system: System, tau: float, name: str | None = None) -> Reference:

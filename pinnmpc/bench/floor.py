@@ -41,6 +41,16 @@ class FloorProbe:
         """Everything else is the controller's (stats, bounds, describe, the monitor)."""
         return getattr(self.inner, name)
 
+    @property
+    def delay_periods(self) -> int:
+        """The controller's: the closed loop sets it on a plant that runs each command a period late."""
+        return self.inner.delay_periods
+
+    @delay_periods.setter
+    def delay_periods(self, periods: int) -> None:
+        """Set on the controller itself, not on this probe."""
+        self.inner.delay_periods = periods
+
     def make_step(self, x: np.ndarray, x_ref: np.ndarray) -> np.ndarray:
         """The controller's input, then the floor on the plan it just made."""
         start = time.perf_counter()
@@ -84,7 +94,8 @@ def bench_floor(cfg: DictConfig, system: System, surrogate: Surrogate, ref: Refe
             }
         )
         log.info("floor: H=%d done, %.2fx the floor", horizon, rows[-1]["ratio_median"])
-    section = {"solver": str(cfg.controller.solver), "reference": ref.name, "rows": rows}
+    plant = str(cfg.plant.get("kind", "scipy"))
+    section = {"solver": str(cfg.controller.solver), "reference": ref.name, "rows": rows, "plant": plant}
     if cfg.floor.get("cold") is not None and cfg.floor.cold.enabled:
         section["cold"] = bench_cold(cfg, system, surrogate, ref)
     return section
@@ -137,7 +148,8 @@ def md_floor(section: dict[str, Any], names: Sequence[str]) -> str:
     """Section 9's table: the controller's OCP time against its floor, per horizon."""
     nq = len(names) // 2
     lines = [
-        f"## 9. The network controller against its floor ({section['solver']}, {section['reference']})",
+        f"## 9. The network controller against its floor ({section['solver']}, {section['reference']}, "
+        f"plant={section.get('plant', 'scipy')})",
         "",
         "Floor: the network's values and Jacobians at the horizon's nodes and the estimator's one step, timed right "
         "after each solve of the same closed loop; ratio: the median of the per-sample OCP / floor.",

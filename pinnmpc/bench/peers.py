@@ -68,7 +68,8 @@ def bench_peers(cfg: DictConfig, system: System, surrogate: Surrogate, ref: Refe
         if fastest is not None:
             ratio = pairs[fastest]["ratio_median"][fastest]
             log.info("peers: H=%d, the fastest peer %s at %.2fx ours", horizon, fastest, ratio)
-    return {"solver": str(cfg.controller.solver), "reference": ref.name, "rows": rows, "missing": missing_peers()}
+    section = {"solver": str(cfg.controller.solver), "reference": ref.name, "rows": rows, "missing": missing_peers()}
+    return {**section, "plant": str(cfg.plant.get("kind", "scipy"))}
 
 
 def md_peers(section: dict[str, Any]) -> str:
@@ -77,7 +78,7 @@ def md_peers(section: dict[str, Any]) -> str:
         return f"## 10. Peers on the same network\n\nSkipped: {section['skipped']}.\n"
     lines = [
         f"## 10. Peers on the same network ({section['solver']} against CasADi's real-time iteration on the exported "
-        f"flow map, {section['reference']})",
+        f"flow map, {section['reference']}, plant={section.get('plant', 'scipy')})",
         "",
         "Each peer paired with ours, samples interleaved in one process; peer / ours: the median of the per-sample OCP "
         "ratio (above 1: ours is faster).",

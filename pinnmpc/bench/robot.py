@@ -9,14 +9,14 @@ import logging
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.bench.classical import classical_cfg, classical_solvers
-from pinnmpc.bench.common import bench_reference, controller_cfg, make_plant
+from pinnmpc.bench.common import bench_reference, controller_cfg, make_plant, on_the_model, timing_cfg
 from pinnmpc.bench.loops import loop_row
 from pinnmpc.bench.paired import paired_ocp
 from pinnmpc.controller.build import build_nmpc
-from pinnmpc.plant.settings import ScipyPlantSettings, robot_name
+from pinnmpc.plant.settings import robot_name
 from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
 from pinnmpc.systems.base import System
 from pinnmpc.systems.previous_input import takes_previous_input
@@ -108,14 +108,11 @@ def bench_robot(cfg: DictConfig, system: System, shipped: Surrogate) -> dict[str
             row = loop_row(cfg, system, controller, box, system.tau, ref)
             rows[f"{key}@{ref.name}"] = {**row, "label": label, "controller": key, "reference": ref.name}
             log.info("robot: %s on %s done in %.1f s", label, ref.name, row["wall_s"])
-    nominal = cfg.copy()
-    with open_dict(nominal):
-        nominal.plant = OmegaConf.structured(ScipyPlantSettings)  # the model as the plant, default settings
+    nominal = on_the_model(cfg)
     paired = []
     nets = {key: c for key, _, c, _ in built if key in networks}
     if cfg.robot.paired_ocp and len(nets) > 1:  # the fine-tuned network's OCP against the shipped one's, interleaved
-        timed = nominal if cfg.plant.get("kind") == "franka" else cfg  # two robots cannot take turns on their clocks
-        plant = lambda: make_plant(timed, system, system.tau)  # noqa: E731
+        plant = lambda: make_plant(timing_cfg(cfg), system, system.tau)  # noqa: E731
         for ref in refs:
             paired.append(paired_ocp(nets, plant, ref, cfg.closed_loop.max_steps))
             log.info("robot: paired OCP times on %s done", ref.name)

@@ -12,7 +12,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.bench.classical import CASADI_CONFIG, available, bench_classical, classical_plot
-from pinnmpc.bench.common import bench_reference, optimality_solvers, paper_rows
+from pinnmpc.bench.common import bench_reference, optimality_solvers, paper_rows, timing_cfg
 from pinnmpc.bench.floor import bench_floor
 from pinnmpc.bench.kinds import bench_kinds
 from pinnmpc.bench.loops import OCPProblem, bench_closed_loop, run_controller
@@ -115,9 +115,9 @@ def run_bench(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         ran = [s for s in ("closed_loop", "classical") if s in result and "skipped" not in result[s]]
         result["kinds"] = timed("kinds", lambda: bench_kinds(cfg, system, ref, ran))
     if floor:
-        result["floor"] = timed("floor", lambda: bench_floor(cfg, system, pinn64, ref))
+        result["floor"] = timed("floor", lambda: bench_floor(timing_cfg(cfg), system, pinn64, ref))
     if peers:
-        result["peers"] = timed("peers", lambda: bench_peers(cfg, system, pinn64, ref))
+        result["peers"] = timed("peers", lambda: bench_peers(timing_cfg(cfg), system, pinn64, ref))
     elif cfg.get("peers") is not None and cfg.peers.enabled:  # the peers are the classical NMPC on the network
         log.warning("peers: skipped, %s is absent", CASADI_CONFIG)
         result["peers"] = {"skipped": f"{CASADI_CONFIG} is absent"}

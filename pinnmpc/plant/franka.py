@@ -124,6 +124,7 @@ class FrankaPlant:
                     self.franky.JointState(q0.tolist()), relative_dynamics_factor=self.settings.start_dynamics_factor
                 )
                 self._guarded(lambda m=motion: self._move_and_join(m, "move to the start"), "move to the start")
+            self.at_rest(self.settings.start_settle_time, self.settings.start_settle_speed)
         self.sent = 0
         t, x = self.measure()
         self.fine = []
@@ -245,12 +246,13 @@ class FrankaPlant:
                 self._move_and_join(self.franky.JointVelocityStopMotion(), "stop motion")
         self._recover()
 
-    def at_rest(self, settle: float = 1.0) -> bool:
-        """Whether every joint speed falls below plant.rest_speed within `settle` s of robot time."""
+    def at_rest(self, settle: float = 1.0, speed: float | None = None) -> bool:
+        """Whether every joint speed falls below `speed` (plant.rest_speed) within `settle` s of robot time."""
+        speed = self.settings.rest_speed if speed is None else speed
         try:
             t, x = self.measure()
             end, deadline = t + settle, time.monotonic() + self.settings.stall_timeout
-            while np.abs(x[self.nq :]).max() > self.settings.rest_speed:
+            while np.abs(x[self.nq :]).max() > speed:
                 if t >= end or time.monotonic() > deadline:
                     return False
                 time.sleep(self.settings.poll_s)

@@ -119,6 +119,8 @@ FRANKA_CHECKS: dict[str, Check] = {
     "start_timeout": positive(),
     "stall_timeout": positive(),
     "start_tolerance": positive(),
+    "start_settle_speed": positive(),
+    "start_settle_time": real(0.0),
     "rest_speed": positive(),
     "poll_s": positive(),
     "command_at": real(0.0),
@@ -152,6 +154,11 @@ class FrankaPlantSettings(MismatchSettings):
     """... at this fraction of franky's limits: slow, for a first motion whose path nobody planned."""
     start_tolerance: float = 0.01
     """... and refuse to run when the arm stopped farther than this from the start, rad."""
+    start_settle_speed: float = 1e-4
+    """rad/s: when franky's move to the start ends the arm's own servo is still closing in on it (on franky-sim up to
+    3 mrad off, at 0.05 rad/s); the loop begins once every joint is slower than this ..."""
+    start_settle_time: float = 3.0
+    """... or after this many s of robot time, wherever the arm is then (plant.start_tolerance still applies)."""
     hold_periods: float = 2.0
     """Each command is held this many periods, then the arm brakes by itself: the robot-side watchdog when this
     process stalls (a new command replaces the last long before)."""
