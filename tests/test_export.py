@@ -59,6 +59,23 @@ def test_casadi_round_trip_matches_torch(system: str, tmp_path: Path) -> None:
         assert np.abs(a - a_ref[i]).max() <= 1e-10 and np.abs(b - b_ref[i]).max() <= 1e-10
 
 
+def test_a_network_with_dead_units_exports_finite_jacobians() -> None:
+    """fr3.pt's last hidden layer sits at silu pre-activations down to -1530, where 1 / (1 + exp(-a)) overflows: its
+    value stays 0 but its derivative came out NaN in every entry of the exported Jacobian (the bench's CasADi peers
+    then left the reference). The export's sigmoid is the tanh form, finite everywhere, and matches torch."""
+    from pinnmpc.surrogate.casadi_network import casadi_flow
+
+    s = load_surrogate(system="fr3")
+    _, jac = casadi_flow(s)
+    x0, u = held_out(s, 20, seed=3)
+    ref, a_ref, b_ref = _torch(shipped("fr3"), x0, u)
+    for i in range(0, 20, 5):
+        x1, a, b = (np.asarray(v) for v in jac(x0[i], u[i]))
+        assert np.isfinite(a).all() and np.isfinite(b).all()
+        assert np.abs(x1.ravel() - ref[i]).max() <= 1e-12
+        assert np.abs(a - a_ref[i]).max() <= 1e-9 and np.abs(b - b_ref[i]).max() <= 1e-9
+
+
 @pytest.mark.parametrize("system", ["powercube", "planar3"])
 def test_c_source_compiles_and_matches_torch(system: str, tmp_path: Path) -> None:
     ckpt, out = shipped(system), tmp_path / "c"

@@ -33,7 +33,7 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 CASADI = Ops(
     "casadi", ca.tanh, ca.sin, ca.cos,
-    sigmoid=lambda a: 1 / (1 + ca.exp(-a)),
+    sigmoid=lambda a: 0.5 + 0.5 * ca.tanh(0.5 * a),  # 1 / (1 + exp(-a)) overflows its derivative below -709
     softplus=lambda a: ca.if_else(a > SOFTPLUS_THRESHOLD, a, ca.log1p(ca.exp(a))),  # as torch computes it
     affine=lambda z, w, b: ca.mtimes(w, z) + b,  # column vectors, nn.Linear's (out, in) weight as a DM
     linear=lambda z, w: ca.mtimes(w, z),
