@@ -272,6 +272,22 @@ def test_collect_logs_the_robot_stream_through_libfranka(sim_host: str, tmp_path
     np.testing.assert_allclose(ramp, [15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0])  # the Panda's limits, factor 1
     u = log.u[log.episode == 0][:-1]  # the excitation: no command further from the last than half a period's ramp
     assert np.all(np.abs(np.diff(np.vstack((np.zeros(7), u)), axis=0)) <= 0.5 * 0.05 * ramp + 1e-12)
+    # the command the robot reported at each fine sample (libfranka's dq_d): zero at each start; 5 ms into a period
+    # whose input stepped, still short of it (franky's ramp); by nearly every period's end settled on the input logged
+    # for it, the command as the safety layer sent it (logging the excitation's own wrist command of 2.63 rad/s where
+    # franky takes 2.61 settled on 75 %)
+    held, stepped = log.u_fine(), 0
+    assert log.command_fine is not None and log.command_fine.shape == log.x_fine.shape[:1] + (7,)
+    for e in (0, 1):
+        cf, hf = log.command_fine[log.episode_fine == e], held[log.episode_fine == e]
+        assert np.abs(cf[0]).max() < 1e-6
+        step = np.abs(hf[10:-1:10] - hf[:-11:10])  # each period's input against the one before
+        short = np.abs(cf[11::10] - hf[10:-1:10])  # 5 ms into the period
+        assert np.all(short[step > 0.05] > 0.1 * step[step > 0.05])
+        stepped += int(np.count_nonzero(step > 0.05))
+        settled = np.abs(cf[10::10] - hf[:-1:10]).max(axis=1) < 2e-3
+        assert settled.mean() >= 0.9
+    assert stepped > 10
 
 
 def franka_sim_children() -> list[int]:

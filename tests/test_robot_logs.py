@@ -76,6 +76,26 @@ def test_round_trip_npz_and_csv(tmp_path: Path) -> None:
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left
 
 
+def test_a_robots_reported_commands_round_trip_and_follow_a_split(tmp_path: Path) -> None:
+    """The command a robot reported at each fine sample (plant=franka: libfranka's dq_d) is kept by the .npz and the
+    fine CSV (`<input>_reported` columns), travels with the episodes a split keeps, and a wrong shape is refused."""
+    from pinnmpc.robot_data.episodes import select_episodes
+
+    log = synthetic()
+    log = replace(log, command_fine=log.u_fine() + 0.01 * np.sin(log.t_fine)[:, None])
+    write_log(tmp_path / "log", log)
+    assert "u_b_reported" in (tmp_path / "log_fine.csv").read_text().splitlines()[1]
+    for suffix in (".npz", ".csv"):
+        back = read_log(tmp_path / f"log{suffix}", ARM)
+        same(back, log)
+        np.testing.assert_array_equal(back.command_fine, log.command_fine)
+    np.testing.assert_array_equal(log.u_fine()[log.episode_fine == 3][::FINE], log.u[log.episode == 3])
+    part = select_episodes(log, [3])
+    np.testing.assert_array_equal(part.command_fine, log.command_fine[log.episode_fine == 3])
+    with pytest.raises(ValueError, match=r"reported commands of shape \(10, 2\)"):
+        write_log(tmp_path / "bad", replace(log, command_fine=log.command_fine[:10]))
+
+
 def test_write_failure_leaves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import pinnmpc.robot_data.logs as logs
 

@@ -34,7 +34,8 @@ class FrankaPlant:
         self.step_times: list[float] = []
         self.stick_slip_steps = 0
         self.errors: list[str] = []
-        self.fine: list[tuple[float, np.ndarray]] = []  # (t, x) of every state read while a period ran
+        self.fine: list[tuple[float, np.ndarray, np.ndarray]] = []  # (t, x, command) of every state read in a period
+        self.commanded = np.zeros(self.nq)  # the joint velocity command the robot reported with the last state read
         self.server: SimServer | None = None
         self.robot: Any = None
         self.command_acceleration: np.ndarray | None = None  # how fast franky ramps each joint's command, rad/s^2
@@ -108,8 +109,10 @@ class FrankaPlant:
         return float(self.robot.state.time.to_sec())
 
     def measure(self) -> tuple[float, np.ndarray]:
-        """The robot's time and state (q, dq) read together."""
+        """The robot's time and state (q, dq) read together; the command it reports receiving (libfranka's dq_d:
+        franky's ramp to each command, libfranka's filter) kept in self.commanded."""
         s = self.robot.state
+        self.commanded = np.asarray(s.dq_d, dtype=float)
         return float(s.time.to_sec()), np.concatenate([np.asarray(s.q, dtype=float), np.asarray(s.dq, dtype=float)])
 
     def start(self, x0: np.ndarray) -> np.ndarray:
@@ -184,7 +187,7 @@ class FrankaPlant:
     def _keep(self, t: float, x: np.ndarray) -> None:
         """A state read on the robot's clock, kept for the fine samples (plant.record_fine) when it is new."""
         if self.settings.record_fine and (not self.fine or t > self.fine[-1][0]):
-            self.fine.append((t, x))
+            self.fine.append((t, x, self.commanded))
 
     def _wait_until(self, target: float) -> tuple[float, np.ndarray]:
         """Poll the robot's clock until it reaches target; motion errors are recorded and end the run."""
@@ -298,8 +301,9 @@ class FrankaPlant:
         }
 
     def fine_samples(self) -> dict[str, np.ndarray]:
-        """The states read while periods ran (plant.record_fine): t (n,), x (n, nx), the robot's clock."""
+        """The states read while periods ran (plant.record_fine): t (n,), x (n, nx) and the command the robot
+        reported with each (n, nq), on the robot's clock."""
         if not self.fine:
-            return {"t": np.zeros(0), "x": np.zeros((0, 2 * self.nq))}
-        t, x = zip(*self.fine)
-        return {"t": np.asarray(t), "x": np.stack(x)}
+            return {"t": np.zeros(0), "x": np.zeros((0, 2 * self.nq)), "command": np.zeros((0, self.nq))}
+        t, x, command = zip(*self.fine)
+        return {"t": np.asarray(t), "x": np.stack(x), "command": np.stack(command)}

@@ -48,6 +48,8 @@ class FineRecorder:
     plant: Plant
     fine: int
     states: list[np.ndarray] = field(default_factory=list)
+    commands: list[np.ndarray] = field(default_factory=list)  # a robot's reported command at each state (or none)
+    sent: list[np.ndarray] = field(default_factory=list)  # a robot's commands as its safety layer sent them (or none)
     step_times: list[float] = field(default_factory=list)
     stick_slip_steps: int = 0
 
@@ -85,6 +87,7 @@ class Episode:
     x_fine: np.ndarray
     u: np.ndarray
     status: str
+    command_fine: np.ndarray | None = None  # the command a robot reported at each fine state; None: not reported
 
 
 def fine_plant(system: System, plant_cfg: DictConfig, fine: int, robots: Any) -> FineRecorder:
@@ -154,7 +157,19 @@ def excitation_episode(
             status = "left the state box"
             break
     return Episode("excitation", "excitation", np.array(recorder.states[: len(us) * recorder.fine + 1]),
-                   applied(np.array(us).reshape(-1, n), recorder.plant), status)  # fmt: skip
+                   applied(as_sent(recorder, np.array(us).reshape(-1, n)), recorder.plant), status,
+                   reported(recorder, len(us) * recorder.fine + 1))  # fmt: skip
+
+
+def as_sent(recorder: FineRecorder, commands: np.ndarray) -> np.ndarray:
+    """The commands as the robot's safety layer sent them (clipped to its velocity limits, slowed before its joint
+    limits), where it reports them; else the commands given."""
+    return np.array(recorder.sent[: len(commands)]).reshape(commands.shape) if recorder.sent else commands
+
+
+def reported(recorder: FineRecorder, samples: int) -> np.ndarray | None:
+    """The commands the robot reported at the episode's first `samples` fine states (None where it reports none)."""
+    return np.array(recorder.commands[:samples]) if recorder.commands else None
 
 
 def applied(commands: np.ndarray, plant: Any) -> np.ndarray:
@@ -183,7 +198,8 @@ def closed_loop_episode(
                    progress=False, stop=stop)  # fmt: skip
     periods = len(run.x) - 1  # a failed step's input has no state after it
     return Episode(kind, ref.name, np.array(recorder.states[: periods * recorder.fine + 1]),
-                   applied(run.u[:periods], recorder.plant), run.status)  # fmt: skip
+                   applied(as_sent(recorder, run.u[:periods]), recorder.plant), run.status,
+                   reported(recorder, periods * recorder.fine + 1))  # fmt: skip
 
 
 def collect(
@@ -248,7 +264,8 @@ def _collect(
             continue
         x_fine = ep.x_fine[: periods * fine + 1]
         measured = x_fine + sigma * noise.standard_normal(x_fine.shape) if sigma > 0 else x_fine
-        episodes.append((number - 1, measured, ep.u[:periods]))
+        commands = None if ep.command_fine is None else ep.command_fine[: periods * fine + 1]
+        episodes.append((number - 1, measured, ep.u[:periods], commands))
         done += periods
         bar.update(periods * tau)
         if checkpoint is not None and done < total:
@@ -267,17 +284,18 @@ def cut_short(why: str, logged_s: float, asked_s: float) -> str:
 
 
 def assemble(
-    episodes: list[tuple[int, np.ndarray, np.ndarray]],
+    episodes: list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]],
     system: System,
     fine: int,
     sigma: float,
     meta: dict[str, Any],
 ) -> RobotLog:
     """One log from the episodes (fine states as measured, inputs): episode after episode in time (one tau apart)
-    and the control-rate samples taken from the fine ones; an episode's last sample repeats the input before it."""
+    and the control-rate samples taken from the fine ones; an episode's last sample repeats the input before it. The
+    commands a robot reported at the fine samples go in where every episode has them."""
     tau, h = system.tau, system.tau / fine
     t, x, u, ep, tf, xf, ef, t0 = [], [], [], [], [], [], [], 0.0
-    for number, measured, inputs in episodes:
+    for number, measured, inputs, _ in episodes:
         m = len(measured)
         times = t0 + h * np.arange(m)
         times[::fine] = t0 + tau * np.arange(len(inputs) + 1)
@@ -297,7 +315,9 @@ def assemble(
         "noise_sigma": sigma,
         "robot_time_s": robot_time,
     }
-    return RobotLog(cat(t), cat(x), cat(u), cat(ep), cat(tf), cat(xf), cat(ef), meta)
+    reported = [e[3] for e in episodes]
+    commands = cat(reported) if all(c is not None for c in reported) else None
+    return RobotLog(cat(t), cat(x), cat(u), cat(ep), cat(tf), cat(xf), cat(ef), meta, command_fine=commands)
 
 
 def refuse_existing(stem: Path, out: str) -> None:

@@ -100,6 +100,8 @@ def select_episodes(log: RobotLog, ids: Sequence[int]) -> RobotLog:
     if log.t_fine is not None:
         kf = np.isin(log.episode_fine, ids)
         out = replace(out, t_fine=log.t_fine[kf], x_fine=log.x_fine[kf], episode_fine=log.episode_fine[kf])
+        if log.command_fine is not None:
+            out = replace(out, command_fine=log.command_fine[kf])
     return out
 
 

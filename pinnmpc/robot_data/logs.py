@@ -4,7 +4,8 @@ A log holds episodes of zero-hold control: u[k] is held over [t[k], t[k] + tau) 
 The last sample of an episode starts no period; its u repeats the one before (no pair uses it). The fine part
 samples the same episodes `fine` times per period and includes the control-rate samples (every fine-th one).
 Files: <stem>.npz (arrays, meta as JSON), <stem>.csv (control rate, first line `# meta: {json}`) and
-<stem>_fine.csv (the fine part), all written at once or not at all (a collect writes the .npz alone at each episode's
+<stem>_fine.csv (the fine part; with the command a robot reported at each fine sample where it reports one, as
+columns `<input>_reported`), all written at once or not at all (a collect writes the .npz alone at each episode's
 end). Reading runs the checks of checks.py too, and read_logs those of a set.
 """
 
@@ -24,6 +25,7 @@ from pinnmpc.robot_data.checks import check_content, check_fine_promised, check_
 from pinnmpc.util.io import atomic_create, atomic_write
 
 META_PREFIX = "# meta: "
+REPORTED = "_reported"  # the suffix of the fine CSV's columns of the command a robot reported
 TIME_TOL = 1e-6  # relative to the sample period: spacing a log's t may miss it by (float sums of tau)
 BOX_TOL = 1e-9  # relative to an input's range: how far u may lie outside the input box
 META_KEYS = ("system", "tau", "robot", "seed", "noise_sigma", "state_names", "input_names", "fine", "robot_time_s",
@@ -42,6 +44,8 @@ class RobotLog:
     x_fine: np.ndarray | None = None  # (M, nx)
     episode_fine: np.ndarray | None = None  # (M,)
     meta: dict[str, Any] = field(default_factory=dict)
+    command_fine: np.ndarray | None = None  # (M, nu) the command the robot reported at each fine sample (libfranka's
+    #   dq_d: franky's ramp to each period's command and libfranka's filter); None: not reported (simulated robots)
 
     @property
     def tau(self) -> float:
@@ -68,9 +72,9 @@ class RobotLog:
         """(M, nu) the input of each fine sample: that of the period it starts (an episode's last: the one before)."""
         if self.t_fine is None:
             raise ValueError("this log has no fine part")
-        first = first_index(self.episode_fine)
-        period = (np.arange(len(self.t_fine)) - first) // self.fine
-        return self.u[first_index(self.episode) + period]
+        period = (np.arange(len(self.t_fine)) - first_index(self.episode_fine)) // self.fine
+        ids, first = np.unique(self.episode, return_index=True)  # each episode's first control-rate sample
+        return self.u[first[np.searchsorted(ids, self.episode_fine)] + period]
 
 
 def first_index(episode: np.ndarray) -> np.ndarray:
@@ -85,9 +89,10 @@ def period_starts(episode: np.ndarray) -> np.ndarray:
 
 
 # -- writing --------------------------------------------------------------------------------------------------
-def _table(log: RobotLog, t: np.ndarray, ep: np.ndarray, x: np.ndarray, u: np.ndarray | None) -> str:
-    """One CSV: the meta line, a header and rows in full precision."""
-    names = ["t", "episode", *log.meta["state_names"], *(log.meta["input_names"] if u is not None else ())]
+def _table(log: RobotLog, t: np.ndarray, ep: np.ndarray, x: np.ndarray, u: np.ndarray | None, suffix: str = "") -> str:
+    """One CSV: the meta line, a header and rows in full precision (input columns named <input><suffix>)."""
+    inputs = [f"{name}{suffix}" for name in log.meta["input_names"]] if u is not None else []
+    names = ["t", "episode", *log.meta["state_names"], *inputs]
     out = io.StringIO()
     out.write(META_PREFIX + json.dumps(log.meta, default=str) + "\n")
     out.write(",".join(names) + "\n")
@@ -114,13 +119,15 @@ def write_log(path_stem: str | Path, log: RobotLog, csv: bool = True, new: bool 
     arrays = {"t": log.t, "x": log.x, "u": log.u, "episode": log.episode}
     if log.t_fine is not None:
         arrays.update(t_fine=log.t_fine, x_fine=log.x_fine, episode_fine=log.episode_fine)
+        if log.command_fine is not None:
+            arrays["command_fine"] = log.command_fine
     arrays["meta"] = np.array(json.dumps(log.meta, default=str))
     put = atomic_create if new else atomic_write
     jobs: list[tuple[Path, Any]] = []
     if csv:
         jobs.append((table, _text(_table(log, log.t, log.episode, log.x, log.u), put)))
         if log.t_fine is not None:
-            fine = _table(log, log.t_fine, log.episode_fine, log.x_fine, None)
+            fine = _table(log, log.t_fine, log.episode_fine, log.x_fine, log.command_fine, REPORTED)
             jobs.append((fine_table, _text(fine, put)))
     jobs.append((npz, lambda p: put(p, lambda tmp: _savez(tmp, arrays))))
     done: list[Path] = []
@@ -188,7 +195,7 @@ def _read_npz(path: Path) -> RobotLog:
     if missing:
         raise ValueError(f"robot log {path}: no arrays {missing}; expected t, x, u, episode (and meta)")
     meta = _meta(str(data["meta"]) if "meta" in data else "{}", path)
-    fine = {k: data.get(k) for k in ("t_fine", "x_fine", "episode_fine")}
+    fine = {k: data.get(k) for k in ("t_fine", "x_fine", "episode_fine", "command_fine")}
     return RobotLog(data["t"], data["x"], data["u"], data["episode"], meta=meta, **fine)
 
 
@@ -242,14 +249,21 @@ def _read_csv(path: Path) -> RobotLog:
     fine = path.with_name(path.stem + "_fine.csv")
     if fine.is_file():
         fmeta, fheader, fdata = _read_table(fine)
-        if fheader != ["t", "episode", *meta["state_names"]]:
-            raise ValueError(f"robot log {fine}: columns {fheader}; expected t, episode, {meta['state_names']}")
+        reported = [f"{name}{REPORTED}" for name in meta["input_names"]]
+        if fheader not in (["t", "episode", *meta["state_names"]], ["t", "episode", *meta["state_names"], *reported]):
+            raise ValueError(
+                f"robot log {fine}: columns {fheader}; expected t, episode, {meta['state_names']} (then {reported})"
+            )
         if fmeta and {k: fmeta.get(k) for k in ("system", "tau", "fine")} != {
             k: meta.get(k) for k in ("system", "tau", "fine")
         }:
             raise ValueError(f"robot log {fine}: meta differs from {path.name}'s; expected the same log's fine part")
         meta.setdefault("fine", fmeta.get("fine"))
-        log = replace(log, t_fine=fdata[:, 0], x_fine=fdata[:, 2:], episode_fine=_episode_column(fdata[:, 1], fine))
+        nxf, command = 2 + len(meta["state_names"]), None
+        if fdata.shape[1] > nxf:
+            command = fdata[:, nxf:]
+        log = replace(log, t_fine=fdata[:, 0], x_fine=fdata[:, 2:nxf], episode_fine=_episode_column(fdata[:, 1], fine),
+                      command_fine=command)  # fmt: skip
     return log
 
 
@@ -364,3 +378,9 @@ def _check_fine(log: RobotLog, meta: dict[str, Any], tau: float, nx: int, fail: 
     if not (np.allclose(tt, log.t, rtol=0, atol=TIME_TOL * tau) and np.all(np.abs(xt - log.x) <= 1e-9 * scale)):
         fail("fine samples at the control times differ from the control-rate samples; expected them included")
     log.t_fine, log.x_fine, log.episode_fine = tf.astype(np.float64), xf.astype(np.float64), ef.astype(np.int64)
+    if log.command_fine is not None:
+        cf, nu = np.asarray(log.command_fine), len(meta["input_names"])
+        if cf.shape != (m, nu) or not np.isfinite(cf).all():
+            finite = bool(np.isfinite(cf).all())
+            fail(f"reported commands of shape {cf.shape} (finite: {finite}); expected ({m}, {nu}), finite")
+        log.command_fine = cf.astype(np.float64)
