@@ -35,12 +35,17 @@ def on_the_model(cfg: DictConfig) -> DictConfig:
     return nominal
 
 
+def plant_kind(cfg: DictConfig) -> str:
+    """The plant's kind (scipy, mujoco, franka), as the sections name the plant they ran on."""
+    return str(cfg.plant.get("kind", "scipy"))
+
+
 def timing_cfg(cfg: DictConfig) -> DictConfig:
     """cfg for the sections that time the controller (the robot's paired OCP, floor, peers): on a real-time robot
     (plant=franka) the nominal model instead, as two controllers cannot take turns on one robot's clock, a peer
     slower than the period would trip the watchdog and the cold start's jump is no motion for an arm; cfg itself on
     a simulated plant."""
-    return on_the_model(cfg) if cfg.plant.get("kind") == "franka" else cfg
+    return on_the_model(cfg) if plant_kind(cfg) == "franka" else cfg
 
 
 def bench_reference(cfg: DictConfig, system: System, tau: float, name: str | None = None) -> Reference:

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from pinnmpc.bench.common import controller_cfg
+from pinnmpc.bench.common import controller_cfg, plant_kind
 from pinnmpc.bench.loops import loop_row
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.references.files import Reference
@@ -94,8 +94,7 @@ def bench_floor(cfg: DictConfig, system: System, surrogate: Surrogate, ref: Refe
             }
         )
         log.info("floor: H=%d done, %.2fx the floor", horizon, rows[-1]["ratio_median"])
-    plant = str(cfg.plant.get("kind", "scipy"))
-    section = {"solver": str(cfg.controller.solver), "reference": ref.name, "rows": rows, "plant": plant}
+    section = {"solver": str(cfg.controller.solver), "reference": ref.name, "rows": rows, "plant": plant_kind(cfg)}
     if cfg.floor.get("cold") is not None and cfg.floor.cold.enabled:
         section["cold"] = bench_cold(cfg, system, surrogate, ref)
     return section

@@ -16,7 +16,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from pinnmpc.bench.classical import classical_cfg
-from pinnmpc.bench.common import controller_cfg, make_plant
+from pinnmpc.bench.common import controller_cfg, make_plant, plant_kind
 from pinnmpc.bench.paired import paired_ocp
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.controller.classical.nmpc import build_casadi_nmpc
@@ -69,7 +69,7 @@ def bench_peers(cfg: DictConfig, system: System, surrogate: Surrogate, ref: Refe
             ratio = pairs[fastest]["ratio_median"][fastest]
             log.info("peers: H=%d, the fastest peer %s at %.2fx ours", horizon, fastest, ratio)
     section = {"solver": str(cfg.controller.solver), "reference": ref.name, "rows": rows, "missing": missing_peers()}
-    return {**section, "plant": str(cfg.plant.get("kind", "scipy"))}
+    return {**section, "plant": plant_kind(cfg)}
 
 
 def md_peers(section: dict[str, Any]) -> str:
