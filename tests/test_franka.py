@@ -78,8 +78,10 @@ def test_commands_go_out_at_a_fixed_robot_time_after_their_state(sim_host: str, 
     overrides.append("plant.command_at=0.03")
     m = run_closed_loop(make_cfg("closed_loop", [*overrides, "max_steps=8", "progress=false"]), tmp_path)
     assert m["status"] == "ok" and m["franka"]["errors"] == [], m["status"]
-    offset = m["franka"]["command_offset_s"]
-    assert 0.0295 <= offset["median"] <= offset["max"] < 0.05, offset  # within its tick, inside the period
+    offset, late = m["franka"]["command_offset_s"], m["franka"]["late_commands"]
+    assert 0.0295 <= offset["median"] <= 0.032, offset  # within its ticks (plant.franka.LATE_TICKS)
+    # a command the controller answered later than that (a loaded machine) goes out at once and is counted as late
+    assert offset["max"] <= 0.032 or late >= 1, (offset, late)
 
 
 def test_commands_a_whole_period_late_are_planned_for(sim_host: str, make_cfg, tmp_path: Path) -> None:
