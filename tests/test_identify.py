@@ -343,3 +343,38 @@ def test_settle_leaves_out_the_ramp_after_each_command(tmp_path: Path) -> None:
     np.testing.assert_allclose(gains[0.02], nominal.servo_gain, rtol=0.01)
     with pytest.raises(ValueError, match=r"settle=0.05; expected 0 <= settle < the control period 0.05 s"):
         identify(nominal, [log], ["servo_gain"], validation_periods=0, settle=0.05)
+
+
+def test_a_load_the_servo_compensates_shows_only_its_inertia() -> None:
+    """load (a Franka's configured hand): M is the arm's with that point mass, as with it as a payload, in torch,
+    numpy and CasADi alike; its gravity and Coriolis torques are the servo's, so at v = u the arm does not
+    accelerate, where the same mass as a payload sags; a bad load is refused in one line."""
+    arm = dataclasses.replace(load_system("fr3"), armature=())
+    hand = Payload(0.73, (-0.01, 0.0, 0.03), "link8")
+    loaded, carried = dataclasses.replace(arm, load=hand), dataclasses.replace(arm, payload=hand)
+    x, _ = states(arm, 6)
+    q, v = torch.from_numpy(x[:, :7]), torch.from_numpy(x[:, 7:])
+    m_load, m_payload, m_arm = (a.dynamics_terms(q, v)[0] for a in (loaded, carried, arm))
+    assert torch.allclose(m_load, m_payload, rtol=1e-12) and not torch.allclose(m_load, m_arm, rtol=1e-3)
+    u = x[:, 7:]  # at v = u the servo's K (u - v) is zero
+    rest = loaded.rhs(x, u)
+    assert np.abs(rest[:, 7:]).max() < 1e-9
+    assert np.abs(carried.rhs(x, u)[:, 7:]).max() > 0.1
+    y, w = states(arm, 4, seed=1)
+    ref = loaded.rhs(y, w)
+    assert np.abs(loaded.rhs(torch.from_numpy(y), torch.from_numpy(w)).numpy() - ref).max() <= 1e-9 * np.abs(ref).max()
+    got = np.asarray(loaded.casadi_rhs()(y[0], w[0])).ravel()
+    assert np.abs(got - ref[0]).max() <= 1e-9 * np.abs(ref).max()
+    with pytest.raises(ValueError, match=r"fr3: load.mass=-1; expected a finite number >= 0"):
+        dataclasses.replace(arm, load={"mass": -1})
+
+
+def test_identify_by_the_reported_command_needs_logs_that_have_it(known_log: Path) -> None:
+    """command=reported on a log without the robot's reported commands (a MuJoCo robot's) is refused in one line, as
+    is an unknown command."""
+    system = load_system("planar3")
+    log = read_log(known_log, system)
+    with pytest.raises(ValueError, match=r"command=reported: log 0 has no reported commands \(command_fine"):
+        identify(system, [log], ["armature"], validation_periods=0, command="reported")
+    with pytest.raises(ValueError, match=r"command='late'; expected one of \['held', 'reported'\]"):
+        identify(system, [log], ["armature"], validation_periods=0, command="late")

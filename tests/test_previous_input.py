@@ -256,3 +256,23 @@ def test_the_self_loop_feeds_the_previous_input():
             both = torch.from_numpy(np.concatenate((u[k], u[max(k - 1, 0)])))
             manual.append(hearing.step(manual[-1], both))
     assert np.allclose(x, torch.stack(manual).numpy(), atol=1e-12, rtol=0) and not np.allclose(x, deaf, atol=1e-6)
+
+
+def test_fine_tuning_split_at_a_command_delay_records_it_and_validates_the_split_period(make_cfg, tmp_path, lag_log):
+    """model.command_delay: a real fine-tuning on the lagging robot's log records the delay, its best validation is
+    the controller's split step on held-out periods (recomputed here to the printed digits), and the controller on
+    it carries the previous input."""
+    overrides = [*TINY, "trainer.max_epochs=2", f"data.logs=[{lag_log}]", "module.weight_robot=1e4",
+                 "init_from=pinnmpc/checkpoints/planar3.pt", "model.hidden=[64,64,64,64]",
+                 "model.command_delay=0.01"]  # fmt: skip
+    train(make_cfg("train", overrides), tmp_path)
+    net = load_surrogate(tmp_path / "surrogate.pt")
+    assert net.meta["command_delay"] == 0.01 and not takes_previous_input(net)
+    from pinnmpc.surrogate.delayed_command import controller_flow
+
+    flow = controller_flow(net)
+    assert takes_previous_input(flow) and flow.input_names[3:] == ("u_joint1_prev", "u_joint2_prev", "u_joint3_prev")
+    settings = {"horizon": 3, "Q": [1.0] * 3 + [0.0] * 3, "R": [1e-4] * 3, "R_rate_previous_input": [1e-3] * 3}
+    assert isinstance(build_nmpc(settings, net, load_system("planar3")), PreviousInputNMPC)
+    best = net.meta["best_val_rmse_position"]
+    assert best is not None and 0 < best < 0.05

@@ -35,8 +35,13 @@ def test_it_starts_at_x0_and_its_time_derivative_is_exact() -> None:
 def test_its_compiled_and_exported_forms_and_jacobian_match_torch_and_finite_differences() -> None:
     prior = ArmPrior(ARM, KIND)
     check_compiled_prior(prior, *(a[:6] for a in POINTS))
-    with pytest.raises(ValueError, match="a midpoint_arm prior's sub-steps cut the arm's period"):
-        prior.compiled(2 * ARM.tau)
+    x0, u = (a[:6] for a in POINTS)
+    for part in (0.3 * ARM.tau, 0.7 * ARM.tau):  # a period split in two (pinnmpc.surrogate.delayed_command)
+        got = prior.compiled(part).with_jacobian(x0.numpy(), u.numpy())[0]
+        want = prior(torch.full((6, 1), part, dtype=torch.float64), x0, u)[0].numpy()
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-10 * max(1.0, np.abs(want).max()))
+    with pytest.raises(ValueError, match="a frozen_arm_friction prior's sub-steps cut the arm's period"):
+        ArmPrior(ARM, "frozen_arm_friction").compiled(0.3 * ARM.tau)
 
 
 def test_on_a_long_arm_its_value_is_exact_and_the_held_inertia_jacobian_stands_in() -> None:

@@ -257,3 +257,18 @@ def test_collect_with_an_unknown_robot_exits_2_in_one_line(tmp_path: Path) -> No
     lines = [line for line in run.stderr.splitlines() if line.strip()]
     said = "pinnmpc.collect: error: plant.robot='nope'; expected null or one of ['lab', 'shop']"
     assert lines[-1].startswith(said), lines
+
+
+def test_pairs_from_a_command_delay_begin_that_far_into_each_period() -> None:
+    """start_at (model.command_delay): only pairs from the sample that far into its period, the input still the
+    period's; a delay off the fine samples is refused in one line."""
+    log = synthetic((5, 3))
+    h = TAU / FINE
+    t, x0, u, xt = transitions([log], t_max=TAU, start_at=2 * h)
+    assert len(t) == (4 + 2) * (FINE - 2)  # from that sample to each later one of the period
+    into = np.array([(ti - log.t[np.searchsorted(log.t, ti + 1e-9) - 1]) for ti in x0[:, 2].numpy()])
+    np.testing.assert_allclose(into, 2 * h, atol=1e-12)
+    whole, *_ = transitions([log], t_max=TAU - 2 * h, start_at=2 * h)
+    assert float(whole.max()) == pytest.approx(TAU - 2 * h)
+    with pytest.raises(ValueError, match=r"pairs from 0.0003 s into each period \(model.command_delay\)"):
+        transitions([log], t_max=TAU, start_at=0.0003)

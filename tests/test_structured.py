@@ -42,7 +42,7 @@ def test_the_class_defaults_are_the_dataclass_defaults(section) -> None:
     defaults = dataclasses.asdict(settings())
     del defaults["_target_"]
     params = inspect.signature(cls.__init__).parameters
-    own = {"self", "system", "model", "tau", "t_max", "seed", "physics"}  # what the run passes, not a setting
+    own = {"self", "system", "model", "tau", "t_max", "seed", "physics", "robot_start"}  # what the run passes
     assert set(params) - own == set(defaults)
     for name, value in defaults.items():
         got = params[name].default

@@ -18,6 +18,7 @@ from pinnmpc.bench.paired import paired_ocp
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.plant.settings import robot_name
 from pinnmpc.surrogate.checkpoint import Surrogate, load_surrogate
+from pinnmpc.surrogate.delayed_command import controller_flow
 from pinnmpc.systems.base import System
 from pinnmpc.systems.previous_input import takes_previous_input
 from pinnmpc.systems.registry import load_system
@@ -159,9 +160,9 @@ def held_out_rmse(
     at_tau = (t[:, 0] - system.tau).abs() <= 1e-9 * system.tau
     x0, both, x1 = x0[at_tau], both[at_tau], x1[at_tau]
     u = both[:, : len(system.input_names)]
-    steps = {  # a network given the previous input gets it too
-        k: (lambda a, b, n=net: n.step(a, both)) if takes_previous_input(net) else net.step
-        for k, net in networks.items()
+    flows = {k: controller_flow(net) for k, net in networks.items()}  # each as its controller predicts
+    steps = {  # a network given the previous input (or split at a command delay) gets it too
+        k: (lambda a, b, n=net: n.step(a, both)) if takes_previous_input(net) else net.step for k, net in flows.items()
     }
     for key, model in (models or {}).items():
         steps[key] = lambda a, b, m=model: rk4_fixed(m.rhs, a, b, system.tau / rk4_steps, rk4_steps)

@@ -11,6 +11,7 @@ from pinnmpc.controller.previous_input import PreviousInputNMPC, padded_weight
 from pinnmpc.controller.settings import NetworkSettings
 from pinnmpc.controller.solvers import make_solver
 from pinnmpc.surrogate.checkpoint import Surrogate
+from pinnmpc.surrogate.delayed_command import controller_flow
 from pinnmpc.surrogate.flowmap import CompiledRK4, ExactValues, FlowMap, PriorOnly
 from pinnmpc.surrogate.previous_input import PreviousInputFlow
 from pinnmpc.systems.base import System
@@ -72,6 +73,7 @@ def build_nmpc(cfg: Any, surrogate: Surrogate, system: System | None = None) -> 
     """NMPC from its settings (NetworkSettings, or a config node or dict of them: conf/controller/nmpc.yaml), each
     checked; what a Python caller leaves out takes NetworkSettings' default, as the commands do. Input bounds null:
     the surrogate's input box; model=exact_values needs the system."""
+    surrogate = controller_flow(surrogate)  # a network split at its command_delay takes (u, u_prev)
     previous = takes_previous_input(surrogate)  # its inputs are (u, u_prev): the OCP's states carry u_prev
     flow = PreviousInputFlow(surrogate) if previous else surrogate
     cfg = checked_settings(NetworkSettings, cfg, {"nx": len(surrogate.state_names), "nu": len(flow.input_names)})

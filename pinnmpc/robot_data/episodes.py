@@ -28,16 +28,27 @@ def previous_inputs(log: RobotLog) -> np.ndarray:
 
 
 def transitions(
-    logs: Sequence[RobotLog], t_max: float, max_input_step: float | None = None, previous_input: bool = False
+    logs: Sequence[RobotLog],
+    t_max: float,
+    max_input_step: float | None = None,
+    previous_input: bool = False,
+    start_at: float | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Every pair i < j of samples (fine where present) within one hold period of one episode with
     t = t_j - t_i <= t_max: float64 tensors t (n, 1), x0 (n, nx), u (n, nu), x_t (n, nx); with max_input_step,
     only periods whose input moved at most that far from the previous period's (input_steps). previous_input: u is
     (u, u_prev) (n, 2 nu) and only pairs from a period's start count (within it, what the actuator still carries of
-    u_prev is unknown)."""
+    u_prev is unknown). start_at: only pairs from the sample that far (s, on the fine samples) into the period (a
+    network split at model.command_delay: x(t) from there under the period's own input)."""
     parts = []
     for log in logs:
         fine = log.fine
+        skip = 0 if start_at is None else round(start_at / (log.tau / fine))
+        if start_at is not None and (abs(skip * log.tau / fine - start_at) > TIME_TOL * log.tau / fine or skip >= fine):
+            raise ValueError(
+                f"pairs from {start_at:g} s into each period (model.command_delay) on a log with fine samples every "
+                f"{log.tau / fine:g} s; expected a multiple of that below the period"
+            )
         tt, xx, ee = (log.t_fine, log.x_fine, log.episode_fine) if fine > 1 else (log.t, log.x, log.episode)
         first = first_index(ee)
         start = np.flatnonzero(((np.arange(len(tt)) - first) % fine == 0) & period_starts(ee))  # fine index per period
@@ -47,7 +58,8 @@ def transitions(
             u = np.concatenate((u, previous_inputs(log)[periods]), axis=1)
         calm = np.ones(len(u), dtype=bool) if max_input_step is None else input_steps(log)[periods] <= max_input_step
         tol = TIME_TOL * log.tau / fine
-        for a in range(1 if previous_input else fine):  # the pair's first sample within the period
+        one = previous_input or start_at is not None  # pairs from one sample of the period only
+        for a in range(skip, skip + 1 if one else fine):  # the pair's first sample within the period
             for b in range(a + 1, fine + 1):
                 i, j = start + a, start + b
                 dt = tt[j] - tt[i]

@@ -36,7 +36,9 @@ from pinnmpc.robot_data.logs import RobotLog
 from pinnmpc.systems.urdf import Payload, RigidArm
 from pinnmpc.systems.urdf_files import payload_place
 
-KEYS = ("viscous", "coulomb", "servo_gain", "payload", "payload_pos", "armature")  # what can be fitted
+KEYS = ("viscous", "coulomb", "servo_gain", "payload", "payload_pos", "armature", "load")  # what can be fitted
+COMMANDS = ("held", "reported")  # what drives each fine interval: the period's input held, or the command the robot
+#   reported (the log's command_fine) at the interval's end, against the velocity at its start
 # Places around the start (in units of the stencil's size) whose unit-mass columns fix the quadratic in c exactly.
 STENCIL = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0, -1, 0], [0, 0, -1], [1, 1, 0],
                     [1, 0, 1], [0, 1, 1]], dtype=float)  # fmt: skip
@@ -45,13 +47,15 @@ STENCIL = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0, 
 @dataclass
 class Intervals:
     """Fine intervals inside hold periods: both ends' q, v (n, 2, nq), their length dt (n,), the input u (n, nu) and
-    whether each joint's servo follows u there (n, nq): false while a robot still ramps towards the command."""
+    whether each joint's servo follows u there (n, nq): false while a robot still ramps towards the command;
+    feedback (n, nq): the velocity a servo's term K (u - v) takes, None: the interval's mean (its dq / dt)."""
 
     q: np.ndarray
     v: np.ndarray
     dt: np.ndarray
     u: np.ndarray
     settled: np.ndarray
+    feedback: np.ndarray | None = None
 
 
 @dataclass
@@ -69,13 +73,23 @@ class Fit:
 
 
 def intervals(
-    logs: Sequence[RobotLog], max_samples: int | None = None, seed: int = 0, settle: float = 0.0
+    logs: Sequence[RobotLog],
+    max_samples: int | None = None,
+    seed: int = 0,
+    settle: float = 0.0,
+    command: str = "held",
 ) -> Intervals:
     """Every fine interval inside a hold period of the logs (control-rate periods where a log has no fine part), up
     to max_samples of them drawn at random. A joint's servo counts as settled (Intervals.settled) in intervals that
     begin `settle` s or more after their period, and where a log's meta gives the robot's `command_acceleration`
     (rad/s^2 per joint: franky ramps each velocity command at most that fast) only once the ramp from the period's
-    start velocity to the command has had time to end too."""
+    start velocity to the command has had time to end too. command="reported": each interval's input is instead the
+    command the robot reported at its end (the target its servo tracked over that tick), fed back against the
+    velocity at its start, and no ramp is left out (the logs' fine step must be the servo's tick)."""
+    if command not in COMMANDS:
+        raise ValueError(f"command={command!r}; expected one of {list(COMMANDS)}")
+    if command == "reported":
+        return _reported_intervals(logs, max_samples, seed, settle)
     parts = []
     for log in logs:
         fine = log.fine
@@ -97,6 +111,30 @@ def intervals(
         keep = np.sort(np.random.default_rng(seed).choice(len(q), max_samples, replace=False))
         q, v, dt, u, settled = q[keep], v[keep], dt[keep], u[keep], settled[keep]
     return Intervals(q, v, dt, u, settled)
+
+
+def _reported_intervals(logs: Sequence[RobotLog], max_samples: int | None, seed: int, settle: float) -> Intervals:
+    """intervals() of command="reported": every fine interval of an episode, driven by the reported command."""
+    parts = []
+    for path, log in enumerate(logs):
+        if log.command_fine is None or log.fine < 2:
+            raise ValueError(
+                f"command=reported: log {path} has no reported commands (command_fine, fine={log.fine}); expected "
+                "logs of plant=franka collected with fine > 1, or command=held"
+            )
+        n, t, x, ep = len(log.meta["input_names"]), log.t_fine, log.x_fine, log.episode_fine
+        i = np.flatnonzero(ep[1:] == ep[:-1])
+        first = np.r_[True, ep[1:] != ep[:-1]]
+        begin = np.maximum.accumulate(np.where(first, np.arange(len(ep)), 0))
+        into = (t[i] - t[begin[i]]) % log.tau  # how far into its period each interval begins
+        ends = np.stack((x[i], x[i + 1]), axis=1)
+        settled = np.broadcast_to((into >= settle - 1e-9 * log.tau)[:, None], (len(i), n))
+        parts.append((ends[..., :n], ends[..., n:], t[i + 1] - t[i], log.command_fine[i + 1], settled, x[i, n:]))
+    q, v, dt, u, settled, feedback = (np.concatenate(p) for p in zip(*parts))
+    if max_samples is not None and len(q) > max_samples:
+        keep = np.sort(np.random.default_rng(seed).choice(len(q), max_samples, replace=False))
+        q, v, dt, u, settled, feedback = (a[keep] for a in (q, v, dt, u, settled, feedback))
+    return Intervals(q, v, dt, u, settled, feedback)
 
 
 def _terms(system: RigidArm, q: np.ndarray, v: np.ndarray, chunk: int = 4096) -> tuple[np.ndarray, ...]:
@@ -125,6 +163,15 @@ def _unit_column(base: RigidArm, s: Intervals, payload: Payload, m0: np.ndarray,
     return np.einsum("bij,bj->bi", m1 - m0, s.v[:, 1] - s.v[:, 0]) / s.dt[:, None] + h1 - h0
 
 
+def _load_column(base: RigidArm, s: Intervals, load: Payload, terms: tuple[np.ndarray, ...]) -> np.ndarray:
+    """(n, nq): what a unit point mass at load's place, which the servo compensates with the arm, adds to each
+    interval's torque equation: its inertia, and whatever of its bias the servo leaves (gravity compensation: its
+    Coriolis torques)."""
+    m0, h0, g0 = terms
+    m1, h1, g1 = _interval_terms(dataclasses.replace(base, load=dataclasses.replace(load, mass=1.0)), s)
+    return np.einsum("bij,bj->bi", m1 - m0, s.v[:, 1] - s.v[:, 0]) / s.dt[:, None] + (h1 - g1) - (h0 - g0)
+
+
 def _quadratic(c: np.ndarray) -> np.ndarray:
     """The ten monomials of degree <= 2 in c (..., 3): a point mass's spatial inertia is linear in them."""
     x, y, z = np.moveaxis(c, -1, 0)
@@ -147,16 +194,21 @@ def place_columns(
 
 
 def _bare(system: RigidArm) -> RigidArm:
-    """The arm without payload and armature and with unscaled friction: the fit's starting point."""
+    """The arm (its load kept) without payload and armature and with unscaled friction: the fit's starting point."""
     return dataclasses.replace(system, payload=None, armature=(), friction_scale=1.0)
 
 
 def regression(
-    system: RigidArm, s: Intervals, fit: Sequence[str], payload: Payload, terms: tuple[np.ndarray, ...] | None = None
+    system: RigidArm,
+    s: Intervals,
+    fit: Sequence[str],
+    payload: Payload,
+    terms: tuple[np.ndarray, ...] | None = None,
+    load: Payload | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
     """A theta = b, the equation integrated over each interval and divided by its length (torque units) for the
     coefficients named in fit (rows: interval-major, joint-minor), the column names and each row's joint;
-    coefficients not fitted keep their nominal value (payload and armature: none)."""
+    coefficients not fitted keep their nominal value (payload, load and armature: none; load: at its place)."""
     base = _bare(system)
     n, servo = system.nq, system.actuation == "velocity_servo"
     dq, dv, dt = s.q[:, 1] - s.q[:, 0], s.v[:, 1] - s.v[:, 0], s.dt[:, None]
@@ -165,11 +217,14 @@ def regression(
     cols: dict[str, np.ndarray] = {}
     if "payload" in fit:  # where its place is searched, the search fills the column in
         cols["payload_mass"] = np.zeros_like(dv) if "payload_pos" in fit else _unit_column(base, s, payload, m0, h0)
+    if "load" in fit:
+        cols["load_mass"] = _load_column(base, s, load or Payload(0.0), (m0, h0, g0))
+    feedback = dq / dt if s.feedback is None else s.feedback  # the velocity the servo's term takes
     per_joint = {
         "armature": dv / dt,
         "viscous": dq / dt,
         "coulomb": np.tanh(system.coulomb_slope * s.v).mean(1),
-        "servo_gain": dq / dt - s.u,
+        "servo_gain": feedback - s.u,
     }
     eye = np.eye(n)
     for key, value in per_joint.items():
@@ -198,13 +253,18 @@ def identify(
     rk4_steps: int = 50,
     seed: int = 0,
     settle: float = 0.0,
+    load: Payload | None = None,
+    command: str = "held",
 ) -> Fit:
     """Fit the named coefficients (of KEYS) to the logs; payload gives the mass's place (mass ignored; None: the
     tip, as the MuJoCo robots' convention), with "payload_pos" where the search for it starts (within place_range
-    m per axis). A joint's equation counts only where its speed exceeds min_speed at both ends of the interval:
-    slower, a real arm's dry friction sticks and slips, which no smooth model follows. Intervals that begin less than
-    `settle` s into their period are left out (a command reaching the servo late or ramped: plant=franka), and those
-    while a logged command ramp (meta `command_acceleration`) runs."""
+    m per axis); load the place of a mass the servo compensates with the arm ("load": its mass fitted, in place of
+    the system's load; None: the system's load's place, else the tip). A joint's equation counts only where its
+    speed exceeds min_speed at both ends of the interval: slower, a real arm's dry friction sticks and slips, which
+    no smooth model follows. Intervals that begin less than `settle` s into their period are left out (a command
+    reaching the servo late or ramped: plant=franka), and with command="held" those while a logged command ramp
+    (meta `command_acceleration`) runs; command="reported" drives each interval by the command the robot reported
+    (intervals())."""
     unknown = [k for k in fit if k not in KEYS]
     if unknown:
         raise ValueError(f"fit {unknown}; expected some of {list(KEYS)}")
@@ -215,14 +275,17 @@ def identify(
     if "payload_pos" in fit and not (math.isfinite(place_range) and place_range > 0):
         raise ValueError(f"payload.range={place_range!r}; expected a finite number > 0 (m)")
     friction = ("servo_gain", "viscous", "coulomb") if system.actuation == "velocity_servo" else ("viscous", "coulomb")
-    allowed = (*friction, "payload", "payload_pos", "armature")
+    allowed = (*friction, "payload", "payload_pos", "armature", "load")
     fit = [k for k in fit if k in allowed]
     if not fit:
         raise ValueError(f"nothing to fit for actuation {system.actuation}; expected some of {list(allowed)}")
     payload = payload or Payload(0.0)
-    s = intervals(logs, max_samples, seed, settle)
+    load = load or system.load or Payload(0.0)
+    if "load" in fit:  # the fitted load takes the system's place
+        system = dataclasses.replace(system, load=None)
+    s = intervals(logs, max_samples, seed, settle, command)
     terms = _interval_terms(_bare(system), s)  # M, h, g of the bare arm: the regression's and the place search's
-    a, b, names, joint = regression(system, s, fit, payload, terms)
+    a, b, names, joint = regression(system, s, fit, payload, terms, load)
     used = ((np.abs(s.v).min(axis=1) > min_speed) & s.settled).reshape(-1)
     check_enough(int(used.sum()) // system.nq, 20 * len(names), f"the logs (joints above min_speed={min_speed})",
                  tau=system.tau, fine=logs[0].fine, t_max=system.tau / logs[0].fine)  # fmt: skip
@@ -234,7 +297,7 @@ def identify(
     values = _values(system, names, theta, fit)
     if "payload_pos" in fit:
         values["payload_pos"] = list(payload.pos)
-    fitted = fitted_system(system, values, payload, name)
+    fitted = fitted_system(system, values, payload, name, load)
     mask = used.reshape(-1, system.nq)
     res, res0 = ((a @ th - b).reshape(-1, system.nq) for th in (theta, _nominal_theta(system, names)))
     pred, pred0 = (one_period_rmse(m, logs, validation_periods, rk4_steps, seed) for m in (fitted, system))
@@ -309,11 +372,15 @@ def _values(system: RigidArm, names: list[str], theta: np.ndarray, fit: Sequence
         elif getattr(system, key):
             out[key] = [f * v for v in getattr(system, key)]
     out["payload_mass"] = got.get("payload_mass", 0.0)
+    if "load" in fit:
+        out["load_mass"] = got["load_mass"]
     return out
 
 
-def fitted_system(system: RigidArm, values: dict[str, Any], payload: Payload, name: str | None = None) -> RigidArm:
-    """The nominal arm with the fitted coefficients (friction scale 1, payload and armature where nonzero)."""
+def fitted_system(
+    system: RigidArm, values: dict[str, Any], payload: Payload, name: str | None = None, load: Payload | None = None
+) -> RigidArm:
+    """The nominal arm with the fitted coefficients (friction scale 1, payload, load and armature where nonzero)."""
     changes: dict[str, Any] = {"friction_scale": 1.0, "name": name or system.name}
     for key in ("viscous", "coulomb", "servo_gain"):
         if key in values:
@@ -322,6 +389,9 @@ def fitted_system(system: RigidArm, values: dict[str, Any], payload: Payload, na
     changes["payload"] = dataclasses.replace(payload, mass=mass) if mass > 0 else None
     armature = tuple(values.get("armature", ()))
     changes["armature"] = armature if any(v > 0 for v in armature) else ()
+    if "load_mass" in values:
+        mass = values["load_mass"]
+        changes["load"] = dataclasses.replace(load or Payload(0.0), mass=mass) if mass > 0 else None
     return dataclasses.replace(system, **changes)
 
 

@@ -63,12 +63,13 @@ def system_yaml(
     for key in ("viscous", "coulomb", "servo_gain"):
         if key in dyn or key in fit.fitted:
             dyn[key] = _round(list(getattr(arm, key)))
-    payload = arm.payload
-    dyn["payload"] = None if payload is None else {
-        "mass": _round([payload.mass])[0],
-        "pos": None if payload.pos is None else _round(list(payload.pos)),
-        "link": payload.link,
-    }  # fmt: skip
+    for key in ("payload", "load"):
+        mass = getattr(arm, key)
+        dyn[key] = None if mass is None else {
+            "mass": _round([mass.mass])[0],
+            "pos": None if mass.pos is None else _round(list(mass.pos)),
+            "link": mass.link,
+        }  # fmt: skip
     dyn["armature"] = _round(list(arm.armature)) if arm.armature else None
     cfg["identified_from"] = {
         "system": nominal_name,
@@ -122,6 +123,11 @@ def check_out(out: Path, given: str | None, overwrite: bool) -> None:
         raise ValueError(f"{key}: the file exists; expected a new path, or overwrite=true to replace it")
 
 
+def _place(pos: Any) -> tuple[float, ...] | None:
+    """A configured place (three numbers, m) as a tuple; null stays None."""
+    return None if pos is None else tuple(float(v) for v in pos)
+
+
 def run_identify(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     """Read and check the logs, fit, write the system .yaml (read back as a system) and fit.json."""
     start = time.perf_counter()
@@ -135,7 +141,8 @@ def run_identify(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     paths = [str(p) for p in cfg.logs]
     logs = read_logs(paths, system)
     notes = [n for n in (cut_short_note(lg, p) for lg, p in zip(logs, paths)) if n]
-    pos = None if cfg.payload.pos is None else tuple(float(v) for v in cfg.payload.pos)
+    pos = _place(cfg.payload.pos)
+    load = None if cfg.load.pos is None and cfg.load.link is None else Payload(0.0, _place(cfg.load.pos), cfg.load.link)
     fit = identify(
         system,
         logs,
@@ -149,6 +156,8 @@ def run_identify(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         rk4_steps=int(cfg.rk4_steps),
         seed=int(cfg.seed),
         settle=float(cfg.settle),
+        load=load,
+        command=str(cfg.command),
     )
     fraction = residual_fraction(system, fit)
     outside = max(fraction) > float(cfg.class_residual)

@@ -118,6 +118,11 @@ class Surrogate(Dimensions):
         batch = _batch(t=t, x0=x0, u=u)
         return self.model(t.expand(*batch, 1), x0.expand(*batch, self.nx), u.expand(*batch, self.nu))
 
+    def at(self, tau: float) -> Surrogate:
+        """The same network stepping tau s instead (0 < tau <= t_max): a part of a period split in two
+        (pinnmpc.surrogate.delayed_command)."""
+        return Surrogate(self.model, tau, self.state_names, self.input_names, self.meta, self.dtype)
+
     def step(self, x0: Tensor, u: Tensor) -> Tensor:
         """x(tau): one zero-hold sampling period."""
         x0, u = self._check(x0, u)

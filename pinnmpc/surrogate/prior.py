@@ -316,19 +316,20 @@ class ArmPrior(nn.Module):
         (pinnmpc.surrogate.prior_stand_in); built once per tau and checked against the torch form."""
         if tau in self._compiled:
             return self._compiled[tau]
-        if self.steps and not math.isclose(tau, self.arm.tau, rel_tol=1e-12):
+        period = math.isclose(tau, self.arm.tau, rel_tol=1e-12)
+        if self.steps and not self.midpoint and not period:
             raise ValueError(
                 f"a {self.kind} prior's sub-steps cut the arm's period ({self.arm.tau} s); a flow over tau={tau} s "
                 "would be another function: use the system's tau"
             )
         from pinnmpc.systems.compiled import BatchedFunction, compile_functions
 
-        n, h, kv = self.nq, tau / max(1, self.steps), ca.DM(self.kv.numpy())
+        n, h, kv = self.nq, (self.arm.tau if self.midpoint else tau) / max(1, self.steps), ca.DM(self.kv.numpy())
         s = self.squarings(h, symmetric=True)
-        tag = f"{self.arm.name}_frozen_prior{self._suffix()}"
+        tag = f"{self.arm.name}_frozen_prior{self._suffix()}" + ("" if period else f"_{round(tau * 1e6)}us")
         frozen = self.arm.casadi_frozen_terms(settled=not self.steps)
 
-        def held(q: ca.SX, u: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX]:
+        def held(q: ca.SX, u: ca.SX, h: float = h) -> tuple[ca.SX, ca.SX, ca.SX]:
             """v_ss, kv^-1 M (I - E) (at q0: dq(tau)/dv0) and E over h of the arm held at q."""
             m, c0 = frozen(q, u)
             e = matrix_exp.decay(m, self.kv.numpy(), h, s)
@@ -338,13 +339,7 @@ class ArmPrior(nn.Module):
             qs, us = ca.SX.sym("q", n), ca.SX.sym("u", n)
             held_arm = ca.Function(f"{tag}_held", [qs, us], list(held(qs, us)), {"cse": True})
             x, u = ca.MX.sym("x", 2 * n), ca.MX.sym("u", n)
-
-            def terms(q: ca.MX) -> tuple[ca.MX, Callable]:
-                """v_ss and the relaxation over h of the arm held at q."""
-                vss, lag, e = held_arm(q, u)
-                return vss, lambda d: (ca.mtimes(lag, d), ca.mtimes(e, d))
-
-            xp = ca.vertcat(*midpoint_substeps((x[:n], x[n:]), terms, self.moving_torque, kv, h, self.steps))
+            xp = ca.vertcat(*self._midpoint_flow(held, held_arm, (x, u), tau, h, tag))
         else:
             x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
             q0, v0 = x[:n], x[n:]
@@ -360,6 +355,8 @@ class ArmPrior(nn.Module):
             # the Jacobian of the arm frozen at q0 with its inertia held stands in for this one's: the controller's
             # linearisation is that arm's, its model's value exact (an inexact-Jacobian SQP; docs/design.md)
             steady = steady_velocity_jacobian(frozen, kv, f"{tag}_steady")
+            if not period:  # the stand-in's held arm over tau / steps, as over the period
+                held_arm = ca.Function(f"{tag}_held_j", [qs, us], list(held(qs, us, tau / self.steps)), {"cse": True})
             held = held_inertia_jacobian(held_arm, steady, self.steps, tau, f"{tag}_held_inertia")
             lib = compile_functions(tag, [value, held], opt="-O2")
             exact, stand_in = BatchedFunction(lib[value.name()]), BatchedFunction(lib[held.name()])
@@ -389,6 +386,31 @@ class ArmPrior(nn.Module):
         self._check_compiled(fast.with_jacobian, tau, jacobian=not self.stand_in_jacobian)
         self._compiled[tau] = fast
         return fast
+
+    def _midpoint_flow(
+        self, held: Callable, held_arm: ca.Function, xu: tuple[ca.MX, ca.MX], tau: float, h: float, tag: str
+    ) -> tuple[ca.MX, ca.MX]:
+        """midpoint_arm's x_p(tau) in CasADi on _solve_midpoint's grid of h: the whole sub-steps before tau, then
+        the one holding tau over its span from its start (a period split in two: pinnmpc.surrogate.delayed_command)."""
+        (x, u), n, kv = xu, self.nq, ca.DM(self.kv.numpy())
+
+        def terms(q: ca.MX, arm: ca.Function = held_arm) -> tuple[ca.MX, Callable]:
+            """v_ss and the relaxation over h (or arm's span) of the arm held at q."""
+            vss, lag, e = arm(q, u)
+            return vss, lambda d: (ca.mtimes(lag, d), ca.mtimes(e, d))
+
+        whole = math.floor(tau / h + 1e-9)
+        span = tau - whole * h
+        trail: list = []
+        end = midpoint_substeps((x[:n], x[n:]), terms, self.moving_torque, kv, h, whole, trail)
+        if span <= 1e-9 * h:
+            return end
+        start, before, lagged = trail[whole]
+        mid = predicted_mid(start, terms(before), h)
+        qs, us = ca.SX.sym("q", n), ca.SX.sym("u", n)
+        over = ca.Function(f"{tag}_held_span", [qs, us], list(held(qs, us, span)), {"cse": True})
+        relax = (span, terms(mid, over)[1])
+        return midpoint_step(start, terms(mid), self.moving_torque(mid), kv, h, lagged, relax)[0]
 
     def _check_compiled(self, fast: Any, tau: float, samples: int = 8, jacobian: bool = True) -> None:
         """Refuse a compiled prior that disagrees with the torch one (value, and Jacobian unless it stands in for

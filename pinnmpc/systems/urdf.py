@@ -55,6 +55,8 @@ class RigidArm(CasadiArm):
     servo: plant mismatch for robustness runs; 1.0 is the nominal arm the surrogate learns.
     payload (a point mass on a link) and armature (per joint, on M's diagonal) are what an identified model adds;
     neither is scaled by mass_scale, and a servo compensates the gravity (and bias) of the arm without the payload.
+    load is a point mass the servo knows (a Franka's configured end effector, such as its hand): part of the arm it
+    compensates, so only its inertia shows in the motion.
     """
 
     name: str
@@ -77,6 +79,7 @@ class RigidArm(CasadiArm):
     joint_limits: Box | None = None  # joint position limits, nq entries (None: none; see urdf_limits for the URDF's)
     payload: Payload | None = None  # a point mass fixed to a link ({mass, pos, link} in config); None: none
     armature: tuple[float, ...] = ()  # kg m^2 per joint added to M's diagonal (rotor inertia); (): none
+    load: Payload | None = None  # a point mass the servo compensates with the arm ({mass, pos, link}); None: none
     servo_compensation: str = "gravity"  # a velocity servo's model-based torque: "gravity" g(q) or "bias" g + C v
     joint_prefix: str | None = None  # stripped from joint names in state and input names (None: "<name>_"); an
     #   identified model of an arm keeps its arm's names with it
@@ -127,8 +130,10 @@ class RigidArm(CasadiArm):
         if not self.tau > 0 or not self.mass_scale > 0:
             raise ValueError(f"{self.name}: need tau > 0 and mass_scale > 0, got {self.tau} and {self.mass_scale}")
         set_("payload", _payload(self.name, self.payload))
-        if self.payload is not None:
-            payload_urdf(locked_urdf(path, joints), self.payload, self.tip_frame, joints)  # a bad link fails here
+        set_("load", _payload(self.name, self.load, "load"))
+        for mass in (self.payload, self.load):
+            if mass is not None:
+                payload_urdf(locked_urdf(path, joints), mass, self.tip_frame, joints)  # a bad link fails here
         armature = tuple(self.armature or ())
         if armature and (len(armature) != n or any(not (math.isfinite(float(v)) and v >= 0) for v in armature)):
             raise ValueError(f"{self.name}: armature={list(armature)}; expected {n} finite numbers >= 0 (kg m^2)")
@@ -227,12 +232,19 @@ class RigidArm(CasadiArm):
 
     # -- torch (adam): the public, differentiable rhs ---------------------------------------------------------
     @functools.cached_property
-    def model_urdf(self) -> str:
-        """The URDF text every backend loads: the locked arm, plus the payload's link when there is one."""
+    def servo_urdf(self) -> str:
+        """The URDF text of the arm a servo compensates: the locked arm, plus the load's link when there is one."""
         text = locked_urdf(Path(self.urdf), self.joints)
-        if self.payload is None:
+        if self.load is None:
             return text
-        return payload_urdf(text, self.payload, self.tip_frame, self.joints, self.mass_scale)
+        return payload_urdf(text, self.load, self.tip_frame, self.joints, self.mass_scale, "pinnmpc_load")
+
+    @functools.cached_property
+    def model_urdf(self) -> str:
+        """The URDF text every backend loads: the servo's arm, plus the payload's link when there is one."""
+        if self.payload is None:
+            return self.servo_urdf
+        return payload_urdf(self.servo_urdf, self.payload, self.tip_frame, self.joints, self.mass_scale)
 
     @functools.cached_property
     def _adam(self) -> dict[tuple[torch.dtype, bool], Any]:
@@ -240,11 +252,11 @@ class RigidArm(CasadiArm):
         return {}
 
     def _kindyn(self, dtype: torch.dtype, nominal: bool = False) -> Any:
-        """adam's torch model in this dtype (nominal: without the payload), built on first use."""
+        """adam's torch model in this dtype (nominal: the servo's arm, without the payload), built on first use."""
         if (dtype, nominal) not in self._adam:
             from adam.pytorch import KinDynComputations
 
-            text = locked_urdf(Path(self.urdf), self.joints) if nominal else self.model_urdf
+            text = self.servo_urdf if nominal else self.model_urdf
             with torch.inference_mode(False):  # cached constants must stay usable by later autograd calls
                 g = torch.tensor([*self.gravity, 0.0, 0.0, 0.0], dtype=dtype)
                 kd = KinDynComputations(text, list(self.joints), dtype=dtype, gravity=g, device="cpu")
@@ -347,12 +359,13 @@ class RigidArm(CasadiArm):
 
     @functools.cached_property
     def _nominal_pinocchio(self) -> tuple[Any, Any]:
-        """The arm without payload and armature: the gravity a servo compensates, the tip drawn."""
+        """The servo's arm (load included) without payload and armature: the gravity a servo compensates, the tip
+        drawn."""
         if self.payload is None and not self.armature:
             return self.pinocchio
         import pinocchio as pin
 
-        model = pin.buildModelFromXML(locked_urdf(Path(self.urdf), self.joints))
+        model = pin.buildModelFromXML(self.servo_urdf)
         model.gravity.linear = np.array(self.gravity)
         return model, model.createData()
 

@@ -3,13 +3,10 @@ path and the frozen-arm prior's Jacobians, through adam's CasADi backend."""
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import casadi as ca
 import numpy as np
-
-from pinnmpc.systems.urdf_files import locked_urdf
 
 
 class CasadiArm:
@@ -71,8 +68,8 @@ class CasadiArm:
         return m, h, g
 
     def _casadi_kindyn(self, nominal: bool = False) -> Any:
-        """adam's CasADi model of the arm (the other joints locked; nominal: without the payload)."""
+        """adam's CasADi model of the arm (the other joints locked; nominal: the servo's arm, without the payload)."""
         from adam.casadi import KinDynComputations
 
-        text = locked_urdf(Path(self.urdf), self.joints) if nominal else self.model_urdf
+        text = self.servo_urdf if nominal else self.model_urdf
         return KinDynComputations(text, list(self.joints), gravity=np.array([*self.gravity, 0, 0, 0]))

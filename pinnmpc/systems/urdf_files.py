@@ -132,22 +132,23 @@ class Payload:
     link: str | None = None
 
 
-def _payload(name: str, value: Any) -> Payload | None:
-    """A payload from config (a mapping) or as given, checked: mass >= 0 and finite, pos three finite numbers."""
+def _payload(name: str, value: Any, key: str = "payload") -> Payload | None:
+    """A payload (or load: key) from config (a mapping) or as given, checked: mass >= 0 and finite, pos three finite
+    numbers."""
     if value is None or isinstance(value, Payload):
         return value
     keys = ("mass", "pos", "link")
     if not isinstance(value, Mapping) or "mass" not in value or any(k not in keys for k in value):
         raise ValueError(
-            f"{name}: payload={value!r}; expected {{mass: kg, pos: [x, y, z] m or null, link: name or null}}"
+            f"{name}: {key}={value!r}; expected {{mass: kg, pos: [x, y, z] m or null, link: name or null}}"
         )
     mass, pos = value["mass"], value.get("pos")
     if isinstance(mass, bool) or not isinstance(mass, int | float) or not math.isfinite(mass) or mass < 0:
-        raise ValueError(f"{name}: payload.mass={mass!r}; expected a finite number >= 0 (kg)")
+        raise ValueError(f"{name}: {key}.mass={mass!r}; expected a finite number >= 0 (kg)")
     if pos is not None:
         ok = isinstance(pos, Sequence) and not isinstance(pos, str) and len(pos) == 3
         if not ok or not all(not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v) for v in pos):
-            raise ValueError(f"{name}: payload.pos={pos!r}; expected 3 finite numbers (m, in the link's frame) or null")
+            raise ValueError(f"{name}: {key}.pos={pos!r}; expected 3 finite numbers (m, in the link's frame) or null")
         pos = tuple(float(v) for v in pos)
     return Payload(float(mass), pos, value.get("link"))
 
@@ -176,16 +177,24 @@ def payload_place(
     return link, tuple(float(v) for v in (pos or (0.0, 0.0, 0.0)))
 
 
-def payload_urdf(text: str, payload: Payload, tip_frame: str | None, joints: Sequence[str], scale: float = 1.0) -> str:
-    """URDF text with the payload as a fixed child link of zero inertia (mass / scale: the arm's mass_scale leaves
-    it unscaled), so adam and Pinocchio see one arm; its default link and pos are the MuJoCo robots' convention."""
+def payload_urdf(
+    text: str,
+    payload: Payload,
+    tip_frame: str | None,
+    joints: Sequence[str],
+    scale: float = 1.0,
+    name: str = "pinnmpc_payload",
+) -> str:
+    """URDF text with the payload as a fixed child link `name` of zero inertia (mass / scale: the arm's mass_scale
+    leaves it unscaled), so adam and Pinocchio see one arm; its default link and pos are the MuJoCo robots'
+    convention."""
     link, pos = payload_place(text, payload, tip_frame, joints)
     root = ET.fromstring(text)
-    joint = ET.SubElement(root, "joint", {"name": "pinnmpc_payload_joint", "type": "fixed"})
+    joint = ET.SubElement(root, "joint", {"name": f"{name}_joint", "type": "fixed"})
     ET.SubElement(joint, "parent", {"link": link})
-    ET.SubElement(joint, "child", {"link": "pinnmpc_payload"})
+    ET.SubElement(joint, "child", {"link": name})
     ET.SubElement(joint, "origin", {"xyz": " ".join(repr(v) for v in pos), "rpy": "0 0 0"})
-    inertial = ET.SubElement(ET.SubElement(root, "link", {"name": "pinnmpc_payload"}), "inertial")
+    inertial = ET.SubElement(ET.SubElement(root, "link", {"name": name}), "inertial")
     ET.SubElement(inertial, "origin", {"xyz": "0 0 0", "rpy": "0 0 0"})
     ET.SubElement(inertial, "mass", {"value": repr(payload.mass / scale)})
     ET.SubElement(inertial, "inertia", dict.fromkeys(("ixx", "ixy", "ixz", "iyy", "iyz", "izz"), "0"))

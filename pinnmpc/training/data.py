@@ -91,6 +91,7 @@ class CollocationDataModule(L.LightningDataModule):
         val_episodes: float = DataSettings.val_episodes,
         robot_max_input_step: float | None = DataSettings.robot_max_input_step,
         physics: System | None = None,  # the model anchors and the model's validation flow integrate (None: system)
+        robot_start: float | None = None,  # s into each period the robot's pairs start from (model.command_delay)
     ) -> None:
         super().__init__()
         if n_collocation < 1 or n_data < 0 or n_val < 1 or n_anchor < 0:
@@ -128,6 +129,7 @@ class CollocationDataModule(L.LightningDataModule):
         if robot_max_input_step is not None and not 0 < robot_max_input_step < math.inf:
             raise ValueError(f"data.robot_max_input_step={robot_max_input_step}; expected a positive number or null")
         self.robot_max_input_step = None if robot_max_input_step is None else float(robot_max_input_step)
+        self.robot_start = None if robot_start is None else float(robot_start)
         self.robot: dict[str, Tensor] = {}  # the logs' training transitions (t, x0, u, dx), read once
         self.robot_meta: list[dict[str, Any]] = []  # each log's meta, for the network's provenance
         self.draws = 0
@@ -246,16 +248,28 @@ class CollocationDataModule(L.LightningDataModule):
         # checked as a set: shared episodes would leak into validation
         logs = read_logs(self.logs, arm_system(self.system))
         parts = [split_episodes(log, self.val_episodes, self.seed) for log in logs]
-        t, x0, u, xt = transitions([train for train, _ in parts], self.t_max, self.robot_max_input_step, prev)
+        train, step, start = [p for p, _ in parts], self.robot_max_input_step, self.robot_start
+        t, x0, u, xt = transitions(train, self.t_max, step, prev, start)
         fine = min(log.fine for log in logs)
         check_enough(
-            len(t), MIN_ROBOT_TRANSITIONS, "data.logs", tau=self.tau, fine=fine, t_max=self.t_max, from_start=prev
+            len(t),
+            MIN_ROBOT_TRANSITIONS,
+            "data.logs",
+            tau=self.tau,
+            fine=fine,
+            t_max=self.t_max,
+            from_start=prev or start is not None,
         )
         self.robot = {"t": t, "x0": x0, "u": u, "dx": xt - x0}
-        vt, vx0, vu, vx1 = transitions([val for _, val in parts], self.tau, self.robot_max_input_step, prev)
+        split = start is not None  # the controller's step: start s under u_prev, then the rest under u
+        vt, vx0, vu, vx1 = transitions([val for _, val in parts], self.tau, step, prev or split)
         at_tau = (vt[:, 0] - self.tau).abs() <= 1e-9 * self.tau  # one control period: what the controller asks for
         check_enough(int(at_tau.sum()), MIN_ROBOT_VALIDATION, "the held-out episodes of data.logs", tau=self.tau)
         self.val = {"x0": vx0[at_tau], "u": vu[at_tau], "x1": vx1[at_tau]}
+        if split:
+            nu = vu.shape[1] // 2
+            self.val["u"], self.val["u_prev"] = vu[at_tau, :nu], vu[at_tau, nu:]
+            self.val["t_split"] = torch.full_like(vt[at_tau], start)
         self.robot_meta = [log.meta for log in logs]
 
     def setup(self, stage: str | None = None) -> None:

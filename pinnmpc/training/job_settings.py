@@ -81,6 +81,7 @@ TRAIN: dict[str, Check] = {
     "stage.h": c.positive(),
     "model.prior": c.optional(c.one_of(*PRIOR_KINDS)),
     "model.previous_input": c.boolean(),
+    "model.command_delay": c.optional(c.positive()),
     "module.anchor_state_weight": c.optional(
         c.vector("nx", c.positive())
     ),  # its length; the rest: validate_module_data
@@ -149,5 +150,11 @@ def validate_train(cfg: DictConfig, system: Any) -> None:
         raise SettingError(
             "model.previous_input=true with data.logs=[]: only a robot's logs say what the previous input does; "
             "expected data.logs=[<robot_log.npz>, ...]"
+        )
+    delay = cfg.model.get("command_delay")
+    if delay is not None and (cfg.model.get("previous_input") or not delay < system.tau):
+        raise SettingError(
+            f"model.command_delay={delay} with model.previous_input={cfg.model.get('previous_input')}; expected a "
+            f"delay below the period {system.tau} s and model.previous_input=false (the split flow takes u_prev)"
         )
     _t_max_covers_tau(cfg, system, "the network predicts x(tau)")

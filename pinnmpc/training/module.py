@@ -285,10 +285,13 @@ class PINNModule(L.LightningModule):
             datamodule.draw()
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
-        """One-step RMSE at t = tau per state against the accurate reference rollouts."""
+        """One-step RMSE at t = tau per state against the accurate reference rollouts (a batch with t_split: the
+        period split at a command delay, its first t_split s under u_prev, as the controller predicts it)."""
         b = self._cast(batch)
-        t = torch.full_like(b["x0"][..., :1], self.tau)
-        err = self.model(t, b["x0"], b["u"]) - b["x1"]
+        t, x0 = torch.full_like(b["x0"][..., :1], self.tau), b["x0"]
+        if "t_split" in b:
+            t, x0 = t - b["t_split"], self.model(b["t_split"], x0, b["u_prev"])
+        err = self.model(t, x0, b["u"]) - b["x1"]
         rmse = err.double().square().mean(dim=0).sqrt()
         for name, value in zip(self.system.state_names, rmse):  # sync_dist: the same set on every DDP process
             self.log(f"val/rmse_{name}", value, batch_size=1, sync_dist=True)

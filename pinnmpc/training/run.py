@@ -124,9 +124,16 @@ def anchor_count(cfg: DictConfig) -> int:
 
 
 def build_datamodule(cfg: DictConfig, system: System, physics: System | None = None) -> CollocationDataModule:
-    """The run's training points, anchors of `physics` (the arm's own model by default)."""
+    """The run's training points, anchors of `physics` (the arm's own model by default); with model.command_delay
+    the robot's pairs from that far into each period."""
     return instantiate(cfg.data, _partial_=True, _convert_="all")(
-        system=system, tau=system.tau, t_max=cfg.t_max, seed=cfg.seed, n_anchor=anchor_count(cfg), physics=physics
+        system=system,
+        tau=system.tau,
+        t_max=cfg.t_max,
+        seed=cfg.seed,
+        n_anchor=anchor_count(cfg),
+        physics=physics,
+        robot_start=cfg.model.get("command_delay"),
     )
 
 
@@ -245,6 +252,8 @@ def train(
         meta["physics"] = physics_meta
     if previous:  # its inputs are (u, u_prev): the controller feeds u_prev (pinnmpc.surrogate.previous_input)
         meta["previous_input"] = True
+    if cfg.model.get("command_delay"):  # the controller splits each period there (pinnmpc.surrogate.delayed_command)
+        meta["command_delay"] = float(cfg.model.command_delay)
     if interrupted and stop is not None:
         meta["signal"] = stop.name
     if distributed is not None:
