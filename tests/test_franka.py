@@ -97,6 +97,23 @@ def test_commands_a_whole_period_late_are_planned_for(sim_host: str, make_cfg, t
     assert max(m["mae"][f"q_joint{j}"] for j in range(1, 8)) < 5e-3
 
 
+def test_a_state_read_a_tick_late_is_carried_back_to_its_time() -> None:
+    """state_at: from reads 1 ms either side of the target on a smooth motion (q = sin t per joint) the state at the
+    target (q to 1e-9); from the late read alone to its acceleration's half a tick squared; the raw late read is a
+    tick's travel off."""
+    from pinnmpc.plant.franka import state_at
+
+    target, nq = 1.3, 2
+    at = lambda t: np.r_[np.sin([t, 2 * t]), np.cos([t, 2 * t]) * [1.0, 2.0]]  # noqa: E731
+    before, after = (target - 1e-3, at(target - 1e-3)), (target + 1e-3, at(target + 1e-3))
+    got = state_at(target, before, after, nq)
+    np.testing.assert_allclose(got[:nq], at(target)[:nq], atol=1e-9)  # q
+    np.testing.assert_allclose(got[nq:], at(target)[nq:], atol=8 * 0.5e-6)  # v, linear: |v''| <= 8 here
+    alone = state_at(target, None, after, nq)
+    assert np.abs(alone[:nq] - at(target)[:nq]).max() < 4.0 * 0.5e-6  # |q''| <= 4 here
+    assert np.abs(after[1][:nq] - at(target)[:nq]).max() > 1e-3  # the raw read: v x 1 ms
+
+
 def test_the_safety_layer_slows_before_the_limits_and_clips_the_speed() -> None:
     from pinnmpc.plant.franka_safety import SafetyLayer
     from pinnmpc.plant.settings import FrankaPlantSettings
@@ -328,10 +345,9 @@ def test_collect_with_an_embedded_robot_leaves_no_server_and_logs_the_inputs_hel
 
 def test_identify_by_the_reported_command_finds_franky_sims_arm(sim_host: str, tmp_path: Path) -> None:
     """4 s of excitation logged at 1 ms through libfranka: identify driven by the command the robot reported (the
-    servo's tick law) and the hand as a load the servo compensates finds franky-sim's MJCF (within 20 %: armature 0.195 on joints
-    1-4 and 0.074 on the wrist, the friction torque at 0.5 rad/s of its frictionloss 1.137 x4, 0.763, 0.44, 0.248 N m and damping 0.21, the hand
-    0.73 kg); driven by the held
-    input instead franky's ramp stays in its residual."""
+    servo's tick law), the hand a load the servo compensates, finds franky-sim's MJCF within 20 % (armature 0.195 on
+    joints 1-4 and 0.074 on the wrist, the hand 0.73 kg) and its friction at 0.5 rad/s within 10 % (frictionloss
+    1.137 x4, 0.763, 0.44, 0.248 N m, damping 0.21); driven by the held input franky's ramp stays in the residual."""
     from pinnmpc.robot_data.identify import identify
     from pinnmpc.robot_data.logs import read_logs
     from pinnmpc.systems import load_system

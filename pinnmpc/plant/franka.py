@@ -19,6 +19,21 @@ from pinnmpc.systems.base import System
 LATE_TICKS = 2  # a command sent this many 1 ms ticks past plant.command_at counts as late
 
 
+def state_at(
+    target: float, before: tuple[float, np.ndarray] | None, after: tuple[float, np.ndarray], nq: int
+) -> np.ndarray:
+    """The state at robot time target from the reads around it: v linear between them (the later read's alone
+    without an earlier one), q back from the later read by the trapezoid of v. A loop that reads its state a tick
+    late would otherwise see the arm a tick's travel further on, and plan and estimate from it (docs/franka.md)."""
+    t1, x1 = after
+    q1, v1 = x1[:nq], x1[nq:]
+    v = v1
+    if before is not None and before[0] < target:
+        t0, v0 = before[0], before[1][nq:]
+        v = v1 + (t1 - target) / (t1 - t0) * (v0 - v1)
+    return np.concatenate([q1 - (t1 - target) * 0.5 * (v + v1), v])
+
+
 class FrankaPlant:
     """The robot as a plant: step(x, u) sends u (made safe) as an asynchronous joint velocity motion that replaces
     the last, waits until the robot's clock is one period past the state the command answers, and returns the
@@ -54,6 +69,7 @@ class FrankaPlant:
         self.measured_at = 0.0  # robot time that state was read at (within a tick after it)
         self.period_began = 0.0  # robot time the last period run began at, s
         self.late = 0  # commands that came after their period had ended
+        self.carried_back = 0  # states read a tick or more past their time, carried back to it (state_at)
         self.sent = 0  # commands sent since the arm was last brought to rest
         self.robot_periods: list[float] = []  # robot time between measurements, s
         self.send_offsets: list[float] = []  # robot time from each command's state to its sending, s
@@ -190,13 +206,19 @@ class FrankaPlant:
             self.fine.append((t, x, self.commanded))
 
     def _wait_until(self, target: float) -> tuple[float, np.ndarray]:
-        """Poll the robot's clock until it reaches target; motion errors are recorded and end the run."""
+        """Poll the robot's clock until it reaches target: the time read and the state at target (a state read a
+        tick or more later carried back to it, state_at); motion errors are recorded and end the run."""
         deadline = time.monotonic() + self.settings.stall_timeout
+        before = None
         while True:
             t, x = self.measure()
             self._keep(t, x)
             if t >= target - 5e-4:  # the state stream's 1 ms tick
-                return t, x
+                if t <= target + 5e-4:
+                    return t, x
+                self.carried_back += 1
+                return t, state_at(target, before, (t, x), self.nq)
+            before = (t, x)
             self._guarded(self.robot.poll_motion, "wait for the period's end")
             if time.monotonic() > deadline:
                 self.stop_arm()
@@ -289,6 +311,7 @@ class FrankaPlant:
             "errors": list(self.errors),
             "safety": dict(self.safety.events),
             "late_commands": int(self.late),
+            "states_carried_back": int(self.carried_back),
             "command_offset_s": {
                 "median": float(np.median(self.send_offsets)) if self.send_offsets else float("nan"),
                 "max": float(max(self.send_offsets)) if self.send_offsets else float("nan"),

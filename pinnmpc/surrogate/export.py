@@ -30,7 +30,9 @@ from pinnmpc.systems.settings import job_system
 
 FORMATS = ("casadi", "c", "onnx")
 FLOAT64_FORMATS = ("casadi", "c")  # evaluated in float64; onnx runs in float32
-META_KEYS = ("status", "epochs", "best_val_rmse_position", "training_time_s")  # the checkpoint's meta worth keeping
+META_KEYS = ("status", "epochs", "best_val_rmse_position", "training_time_s", "command_delay")  # the checkpoint's meta
+#   worth keeping; command_delay: its controller splits each period there (pinnmpc.surrogate.delayed_command), while
+#   the exported flow is the network's over the whole period under a held input
 FLOW_NAME = "flow"  # the exported functions: flow(x0, u) -> x1 and flow_jacobian(x0, u) -> (x1, A, B)
 
 
