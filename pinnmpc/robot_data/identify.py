@@ -208,7 +208,8 @@ def regression(
 ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
     """A theta = b, the equation integrated over each interval and divided by its length (torque units) for the
     coefficients named in fit (rows: interval-major, joint-minor), the column names and each row's joint;
-    coefficients not fitted keep their nominal value (payload, load and armature: none; load: at its place)."""
+    coefficients not fitted keep their nominal value (payload and armature: none; the system's load kept), a fitted
+    load sits at `load`'s place."""
     base = _bare(system)
     n, servo = system.nq, system.actuation == "velocity_servo"
     dq, dv, dt = s.q[:, 1] - s.q[:, 0], s.v[:, 1] - s.v[:, 0], s.dt[:, None]
