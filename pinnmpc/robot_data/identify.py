@@ -32,7 +32,7 @@ from scipy.optimize import least_squares, lsq_linear
 
 from pinnmpc.plant.integrators import rk4_fixed
 from pinnmpc.robot_data.episodes import check_enough
-from pinnmpc.robot_data.logs import RobotLog
+from pinnmpc.robot_data.logs import RobotLog, first_index, period_starts
 from pinnmpc.systems.urdf import Payload, RigidArm
 from pinnmpc.systems.urdf_files import payload_place
 
@@ -123,10 +123,8 @@ def _reported_intervals(logs: Sequence[RobotLog], max_samples: int | None, seed:
                 "logs of plant=franka collected with fine > 1, or command=held"
             )
         n, t, x, ep = len(log.meta["input_names"]), log.t_fine, log.x_fine, log.episode_fine
-        i = np.flatnonzero(ep[1:] == ep[:-1])
-        first = np.r_[True, ep[1:] != ep[:-1]]
-        begin = np.maximum.accumulate(np.where(first, np.arange(len(ep)), 0))
-        into = (t[i] - t[begin[i]]) % log.tau  # how far into its period each interval begins
+        i = np.flatnonzero(period_starts(ep))  # every fine sample with a next one in its episode
+        into = (t[i] - t[first_index(ep)[i]]) % log.tau  # how far into its period each interval begins
         ends = np.stack((x[i], x[i + 1]), axis=1)
         settled = np.broadcast_to((into >= settle - 1e-9 * log.tau)[:, None], (len(i), n))
         parts.append((ends[..., :n], ends[..., n:], t[i + 1] - t[i], log.command_fine[i + 1], settled, x[i, n:]))
