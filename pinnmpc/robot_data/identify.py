@@ -106,11 +106,15 @@ def intervals(
             i = start + a
             ends = np.stack((x[i], x[i + 1]), axis=1)
             parts.append((ends[..., :n], ends[..., n:], t[i + 1] - t[i], u, (t[i] - t[start])[:, None] >= ramp))
-    q, v, dt, u, settled = (np.concatenate(p) for p in zip(*parts))
-    if max_samples is not None and len(q) > max_samples:
-        keep = np.sort(np.random.default_rng(seed).choice(len(q), max_samples, replace=False))
-        q, v, dt, u, settled = q[keep], v[keep], dt[keep], u[keep], settled[keep]
-    return Intervals(q, v, dt, u, settled)
+    return _drawn(Intervals(*(np.concatenate(p) for p in zip(*parts))), max_samples, seed)
+
+
+def _drawn(s: Intervals, max_samples: int | None, seed: int) -> Intervals:
+    """s, or max_samples of its intervals drawn at random (in their order)."""
+    if max_samples is None or len(s.q) <= max_samples:
+        return s
+    keep = np.sort(np.random.default_rng(seed).choice(len(s.q), max_samples, replace=False))
+    return Intervals(*(None if a is None else a[keep] for a in dataclasses.astuple(s)))
 
 
 def _reported_intervals(logs: Sequence[RobotLog], max_samples: int | None, seed: int, settle: float) -> Intervals:
@@ -128,11 +132,7 @@ def _reported_intervals(logs: Sequence[RobotLog], max_samples: int | None, seed:
         ends = np.stack((x[i], x[i + 1]), axis=1)
         settled = np.broadcast_to((into >= settle - 1e-9 * log.tau)[:, None], (len(i), n))
         parts.append((ends[..., :n], ends[..., n:], t[i + 1] - t[i], log.command_fine[i + 1], settled, x[i, n:]))
-    q, v, dt, u, settled, feedback = (np.concatenate(p) for p in zip(*parts))
-    if max_samples is not None and len(q) > max_samples:
-        keep = np.sort(np.random.default_rng(seed).choice(len(q), max_samples, replace=False))
-        q, v, dt, u, settled, feedback = (a[keep] for a in (q, v, dt, u, settled, feedback))
-    return Intervals(q, v, dt, u, settled, feedback)
+    return _drawn(Intervals(*(np.concatenate(p) for p in zip(*parts))), max_samples, seed)
 
 
 def _terms(system: RigidArm, q: np.ndarray, v: np.ndarray, chunk: int = 4096) -> tuple[np.ndarray, ...]:

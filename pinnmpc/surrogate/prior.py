@@ -335,11 +335,15 @@ class ArmPrior(nn.Module):
             e = matrix_exp.decay(m, self.kv.numpy(), h, s)
             return c0 / kv, ca.mtimes(ca.diag(1 / kv), ca.mtimes(m, ca.SX.eye(n) - e)), e
 
-        if self.midpoint:  # sub-steps at configurations of their own: the held arm compiled once, called per sub-step
+        def held_over(name: str, h: float = h) -> ca.Function:
+            """held as a function (q, u) -> (v_ss, L, E) over h, compiled once and called per sub-step."""
             qs, us = ca.SX.sym("q", n), ca.SX.sym("u", n)
-            held_arm = ca.Function(f"{tag}_held", [qs, us], list(held(qs, us)), {"cse": True})
+            return ca.Function(f"{tag}_{name}", [qs, us], list(held(qs, us, h)), {"cse": True})
+
+        if self.midpoint:  # sub-steps at configurations of their own: the held arm compiled once, called per sub-step
+            held_arm = held_over("held")
             x, u = ca.MX.sym("x", 2 * n), ca.MX.sym("u", n)
-            xp = ca.vertcat(*self._midpoint_flow(held, held_arm, (x, u), tau, h, tag))
+            xp = ca.vertcat(*self._midpoint_flow(held_over, held_arm, (x, u), tau, h))
         else:
             x, u = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n)
             q0, v0 = x[:n], x[n:]
@@ -356,7 +360,7 @@ class ArmPrior(nn.Module):
             # linearisation is that arm's, its model's value exact (an inexact-Jacobian SQP; docs/design.md)
             steady = steady_velocity_jacobian(frozen, kv, f"{tag}_steady")
             if not period:  # the stand-in's held arm over tau / steps, as over the period
-                held_arm = ca.Function(f"{tag}_held_j", [qs, us], list(held(qs, us, tau / self.steps)), {"cse": True})
+                held_arm = held_over("held_j", tau / self.steps)
             held = held_inertia_jacobian(held_arm, steady, self.steps, tau, f"{tag}_held_inertia")
             lib = compile_functions(tag, [value, held], opt="-O2")
             exact, stand_in = BatchedFunction(lib[value.name()]), BatchedFunction(lib[held.name()])
@@ -388,7 +392,7 @@ class ArmPrior(nn.Module):
         return fast
 
     def _midpoint_flow(
-        self, held: Callable, held_arm: ca.Function, xu: tuple[ca.MX, ca.MX], tau: float, h: float, tag: str
+        self, held_over: Callable, held_arm: ca.Function, xu: tuple[ca.MX, ca.MX], tau: float, h: float
     ) -> tuple[ca.MX, ca.MX]:
         """midpoint_arm's x_p(tau) in CasADi on _solve_midpoint's grid of h: the whole sub-steps before tau, then
         the one holding tau over its span from its start (a period split in two: pinnmpc.surrogate.delayed_command)."""
@@ -407,9 +411,7 @@ class ArmPrior(nn.Module):
             return end
         start, before, lagged = trail[whole]
         mid = predicted_mid(start, terms(before), h)
-        qs, us = ca.SX.sym("q", n), ca.SX.sym("u", n)
-        over = ca.Function(f"{tag}_held_span", [qs, us], list(held(qs, us, span)), {"cse": True})
-        relax = (span, terms(mid, over)[1])
+        relax = (span, terms(mid, held_over("held_span", span))[1])
         return midpoint_step(start, terms(mid), self.moving_torque(mid), kv, h, lagged, relax)[0]
 
     def _check_compiled(self, fast: Any, tau: float, samples: int = 8, jacobian: bool = True) -> None:
