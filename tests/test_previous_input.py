@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from pinnmpc import load_surrogate, load_system
 from pinnmpc.controller.build import build_nmpc
@@ -18,6 +19,7 @@ from pinnmpc.simulation.loop import run_loop
 from pinnmpc.surrogate.checkpoint import Surrogate
 from pinnmpc.surrogate.previous_input import PreviousInputFlow
 from pinnmpc.systems.previous_input import WithPreviousInput, takes_previous_input
+from pinnmpc.systems.registry import system_config
 from pinnmpc.training.grow import widened
 from pinnmpc.training.run import train
 from tests.conftest import TINY_TRAIN, write_test_log
@@ -276,3 +278,32 @@ def test_fine_tuning_split_at_a_command_delay_records_it_and_validates_the_split
     assert isinstance(build_nmpc(settings, net, load_system("planar3")), PreviousInputNMPC)
     best = net.meta["best_val_rmse_position"]
     assert best is not None and 0 < best < 0.05
+
+
+def test_the_run_starts_with_the_lag_settled_at_its_first_input():
+    """The plant and the logs start a run's actuator settled at its first input (here the shop robot's, which the
+    network was fine-tuned on): so does the controller's record of the first period, else its first prediction error
+    holds a lag from the cold start's zero input that the robot never had, and the offset-free estimate jolts the
+    first seconds of the run."""
+    system = load_system("planar3")
+    controller = build_nmpc(
+        {"horizon": 5, "Q": [1, 1, 1, 0, 0, 0], "R": [1e-8, 1e-7, 1e-6], "disturbance": {"gain": 0.7, "notch": False}},
+        load_surrogate("pinnmpc/checkpoints/planar3-shop.pt"),
+        system,
+    )
+    t = np.arange(0.0, 1.0, system.tau)
+    q = np.tile([0.4, -0.3, 0.2], (len(t), 1))  # held against gravity: the first input is far from zero
+    shop = OmegaConf.to_container(system_config("planar3").robots.shop, resolve=True)  # the network's robot
+    run = run_loop(controller, _robot(shop), Reference(t, np.hstack([q, 0 * q]), "hold"), max_steps=2, progress=False)
+    assert run.status == "ok"
+    x, u = run.x, run.u
+
+    def first_error(carried: np.ndarray) -> np.ndarray:
+        """The model's miss over the first period with the actuator starting at `carried`."""
+        s, ran = np.concatenate((x[0], carried)), np.concatenate((x[1], u[0]))
+        return controller.ocp.prediction_error(s, u[0], ran)[:6]
+
+    settled, from_zero = first_error(u[0]), first_error(0 * u[0])
+    np.testing.assert_allclose(controller.disturbance, 0.7 * settled, rtol=0, atol=1e-12)  # no bound set here
+    np.testing.assert_allclose(run.prediction_error[0], settled, rtol=0, atol=1e-12)  # the monitor's first miss
+    assert np.abs(from_zero).max() > 5 * np.abs(settled).max()  # the two differ: the test tells them apart

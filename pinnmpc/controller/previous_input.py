@@ -59,12 +59,16 @@ class PreviousInputNMPC(NMPC):
             raise ValueError(f"the state must have {self.arm_nx} entries, got shape {x0.shape}")
         if ref.ndim != 2 or ref.shape[-1] != self.arm_nx:
             raise ValueError(f"x_ref must be (H, {self.arm_nx}) reference states, got shape {ref.shape}")
+        first = self._last is None and not self.delay_periods  # the run's first input, which runs at once
         before = self._u_prev.copy()
         s = np.concatenate((x0, self._memory()))
         padded = self._padded(len(ref))  # u_prev untracked (weight 0): zeros after the arm's states
         padded[:, : self.arm_nx] = ref
         u = super().make_step(s, padded)
         self._older, self._before = self._before, before
+        if first:  # the actuator starts settled at it (as the plant and the logs take it), not at the cold start's
+            self._older, self._before = u.copy(), u.copy()
+            self._last, self._predicted = (np.concatenate((x0, u)), u.copy()), None
         return u
 
     def _padded(self, rows: int) -> np.ndarray:
