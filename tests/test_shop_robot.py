@@ -101,6 +101,19 @@ def test_the_lag_carries_its_state_between_periods() -> None:
     np.testing.assert_allclose(plain.step(x1, u1), lone, rtol=0, atol=1e-12)
 
 
+def test_a_period_from_a_given_actuator_state_is_the_robots_own_and_leaves_the_loops() -> None:
+    """period_from predicts a period of the robot with the lag's filter where it is told (settled at u: a lone step's),
+    and a closed loop's filter state carries on past it as if it had not been called."""
+    system = load_system("planar3")
+    x0, u0, u1 = np.zeros(6), np.array([30.0, 10.0, 2.0]), np.array([-30.0, -10.0, -2.0])
+    loop, fresh = (MujocoPlant(system, system.tau, {"lag": 0.05}) for _ in range(2))
+    x1 = loop.step(x0, u0)
+    np.testing.assert_array_equal(loop.period_from(x0, u0, u0), x1)  # settled at u0: the lone step
+    from_zero = loop.period_from(x0, u0, 0 * u0)
+    assert np.abs(from_zero - x1).max() > 1e-3  # the filter told to start elsewhere: another period
+    np.testing.assert_array_equal(loop.step(x1, u1), fresh.step(fresh.step(x0, u0), u1))  # the loop's filter kept
+
+
 @pytest.mark.parametrize(
     "robot, says",
     [

@@ -265,6 +265,17 @@ class MujocoPlant:
         self._held = (x1.copy(), a)
         return x1
 
+    def period_from(self, x0: np.ndarray, u: np.ndarray, actuator: np.ndarray) -> np.ndarray:
+        """x(tau) from x0 under u with the actuator's filter starting at `actuator` (the input it still carries;
+        ignored without a lag), this robot's own prediction, apart from any closed loop's state: what a model could
+        at best predict (examples/shop_model_floor.py)."""
+        x0, loop = np.array(x0, dtype=np.float64), self._held
+        self._held = (x0.copy(), np.array(actuator, dtype=np.float64)) if self._lag else None
+        try:
+            return self._integrate(x0, np.array(u, dtype=np.float64))
+        finally:
+            self._held = loop  # the closed loop's filter state, as it was
+
     def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
         """One zero-hold period; raises PlantError on a bad input or a non-finite state."""
         x0 = np.asarray(x0, dtype=np.float64)

@@ -1,0 +1,102 @@
+"""How close could a model track a robot the model is not? The network controller predicts each period with the
+robot's own MuJoCo dynamics (its values; the actuator's lag starting at the input applied before) and a network's
+Jacobians (a network given the previous input: its own; a plain one: none in u_prev), on that robot as the plant:
+what this controller and its estimator allow once the model is exact, the floor of any network fine-tuned on it.
+
+    python examples/shop_model_floor.py --reference random-101                 # docs/robot.md, the shop robot
+    python examples/shop_model_floor.py --reference random-101 --no-estimator
+    python examples/shop_model_floor.py --system panda --checkpoint pinnmpc/checkpoints/panda-shop.pt --steps 120
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from pinnmpc import load_surrogate
+from pinnmpc.cli.structured import register_configs
+from pinnmpc.controller.build import build_nmpc
+from pinnmpc.plant.build import make_plant
+from pinnmpc.simulation import run_loop
+from pinnmpc.simulation.setup import system_reference
+from pinnmpc.surrogate.checkpoint import Dimensions
+from pinnmpc.systems.base import Box
+from pinnmpc.systems.previous_input import WithPreviousInput, takes_previous_input
+from pinnmpc.systems.registry import build_system
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+class RobotFlow(Dimensions):
+    """A flow map on inputs (u, u_prev): values by the robot's own period (MujocoPlant.period_from), Jacobians of a
+    network."""
+
+    array_api = "numpy"
+
+    def __init__(self, robot: Any, network: Any, system: Any) -> None:
+        with_previous = WithPreviousInput(system)
+        self.robot, self.network, self.tau = robot, network.numpy_flow(), system.tau
+        self.hears_previous = takes_previous_input(network)  # its Jacobians in u_prev are its own, else zero
+        self.state_names, self.input_names = tuple(system.state_names), tuple(with_previous.input_names)
+        self.state_box, self.input_box = system.state_box, with_previous.input_box
+        self.domain = Box([-np.inf] * len(self.state_names), [np.inf] * len(self.state_names))
+        self.meta = {"previous_input": True}  # the controller feeds u_prev (pinnmpc.controller.previous_input)
+
+    def numpy_flow(self) -> RobotFlow:
+        """Itself: numpy in and out."""
+        return self
+
+    def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """x(tau) row by row (..., nx) for x0 (..., nx) and (u, u_prev) (..., nu)."""
+        lead, m = np.shape(x0)[:-1], self.nu // 2
+        xs, us = np.broadcast_arrays(np.reshape(x0, (-1, self.nx)), np.reshape(u, (-1, self.nu)))
+        rows = [self.robot.period_from(x, v[:m], v[m:]) for x, v in zip(xs, us)]
+        return np.reshape(np.stack(rows), (*lead, self.nx))
+
+    def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """step's values; A and B of the network."""
+        if self.hears_previous:
+            _, a, b = self.network.step_with_jacobian(np.ascontiguousarray(x0), np.ascontiguousarray(u))
+            return self.step(x0, u), a, b
+        m = self.nu // 2
+        _, a, b = self.network.step_with_jacobian(np.ascontiguousarray(x0), np.ascontiguousarray(u[..., :m]))
+        return self.step(x0, u), a, np.concatenate((b, np.zeros_like(b)), axis=-1)
+
+
+def main() -> None:
+    """One closed loop on the robot with its own dynamics as the model; prints the worst joint-angle MAE."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--system", default="planar3", help="an arm with a robot of that name (system.robots)")
+    parser.add_argument("--robot", default="shop", help="the robot (plant=mujoco plant.robot=...)")
+    parser.add_argument("--checkpoint", default="pinnmpc/checkpoints/planar3-shop.pt", help="the Jacobians' network")
+    parser.add_argument("--reference", default="default", help="a built-in reference of the arm")
+    parser.add_argument("--no-estimator", action="store_true", help="controller.disturbance.gain=0")
+    parser.add_argument("--steps", type=int, default=200, help="control periods")
+    args = parser.parse_args()
+    register_configs()
+    overrides = [f"system={args.system}", "plant=mujoco", f"plant.robot={args.robot}"]
+    overrides += [f"reference.name={args.reference}", "progress=false"]
+    with initialize_config_dir(config_dir=str(CONF), version_base=None):
+        cfg = compose(config_name="closed_loop", overrides=overrides)
+    system = build_system(cfg.system)
+    reference = system_reference(cfg, system, system.tau)
+    plant, model = (make_plant(system, cfg.plant, system.tau, cfg.system.get("robots")) for _ in range(2))
+    flow = RobotFlow(model, load_surrogate(args.checkpoint), system)
+    settings = OmegaConf.to_container(cfg.controller, resolve=True)
+    settings = {k: v for k, v in settings.items() if k not in ("kind", "checkpoint")}
+    if args.no_estimator:
+        settings["disturbance"] = {**settings["disturbance"], "gain": 0.0}
+    controller = build_nmpc(settings, flow, system)
+    result = run_loop(controller, plant, reference, max_steps=args.steps, progress=False)
+    n = system.nq
+    error = np.abs(result.x[:, :n] - reference.x[: len(result.x), :n]).mean(axis=0).max()
+    print(f"{result.status}: worst joint-angle MAE {error:.3e} rad over {len(result.x) - 1} periods")
+
+
+if __name__ == "__main__":
+    main()
