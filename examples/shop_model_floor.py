@@ -5,6 +5,7 @@ what this controller and its estimator allow once the model is exact, the floor 
 
     python examples/shop_model_floor.py --reference random-101                 # docs/robot.md, the shop robot
     python examples/shop_model_floor.py --reference random-101 --no-estimator
+    python examples/shop_model_floor.py --reference random-101 --converged   # each sample solved fully
     python examples/shop_model_floor.py --system panda --checkpoint pinnmpc/checkpoints/panda-shop.pt --steps 120
 """
 
@@ -76,6 +77,7 @@ def main() -> None:
     parser.add_argument("--checkpoint", default="pinnmpc/checkpoints/planar3-shop.pt", help="the Jacobians' network")
     parser.add_argument("--reference", default="default", help="a built-in reference of the arm")
     parser.add_argument("--no-estimator", action="store_true", help="controller.disturbance.gain=0")
+    parser.add_argument("--converged", action="store_true", help="controller.rti=false: each sample solved fully")
     parser.add_argument("--steps", type=int, default=200, help="control periods")
     args = parser.parse_args()
     register_configs()
@@ -91,6 +93,8 @@ def main() -> None:
     settings = {k: v for k, v in settings.items() if k not in ("kind", "checkpoint")}
     if args.no_estimator:
         settings["disturbance"] = {**settings["disturbance"], "gain": 0.0}
+    if args.converged:
+        settings["rti"] = False
     controller = build_nmpc(settings, flow, system)
     result = run_loop(controller, plant, reference, max_steps=args.steps, progress=False)
     n = system.nq
