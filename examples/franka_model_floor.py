@@ -12,7 +12,6 @@ shipped fr3.pt's. The plant is the real franky-sim through libfranka (plant=fran
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -31,10 +30,8 @@ from pinnmpc.plant.build import make_plant
 from pinnmpc.plant.integrators import rk4_step
 from pinnmpc.simulation import run_loop
 from pinnmpc.simulation.setup import system_reference
-from pinnmpc.surrogate.checkpoint import Dimensions
-from pinnmpc.systems.base import Box
+from pinnmpc.surrogate.previous_input import RowValuesFlow
 from pinnmpc.systems.compiled import BatchedFunction, compile_functions
-from pinnmpc.systems.previous_input import WithPreviousInput
 from pinnmpc.systems.registry import build_system, load_system
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -107,37 +104,6 @@ class RampedArm:
         return self._step(np.ascontiguousarray(x0), np.ascontiguousarray(inputs))[0]
 
 
-class RampFlow(Dimensions):
-    """A flow map on inputs (u, u_prev): values by a model's rows (FrankySimPhysics, RampedArm), Jacobians of a
-    network in u (none in u_prev)."""
-
-    array_api = "numpy"
-
-    def __init__(self, values: Callable[..., np.ndarray], network: Any, system: Any) -> None:
-        with_previous = WithPreviousInput(system)
-        self.values, self.network, self.tau = values, network.numpy_flow(), system.tau
-        self.state_names, self.input_names = tuple(system.state_names), tuple(with_previous.input_names)
-        self.state_box, self.input_box = system.state_box, with_previous.input_box
-        self.domain = Box([-np.inf] * len(self.state_names), [np.inf] * len(self.state_names))
-        self.meta = {"previous_input": True}  # the controller feeds u_prev (pinnmpc.controller.previous_input)
-
-    def numpy_flow(self) -> RampFlow:
-        """Itself: numpy in and out."""
-        return self
-
-    def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """x(tau) row by row (..., nx) for x0 (..., nx) and (u, u_prev) (..., nu)."""
-        lead = np.shape(x0)[:-1]
-        rows = np.broadcast_arrays(np.reshape(x0, (-1, self.nx)), np.reshape(u, (-1, self.nu)))
-        return np.reshape(self.values(*rows, self.tau), (*lead, self.nx))
-
-    def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """step's values; A and B of the network in u, zero in u_prev."""
-        m = self.nu // 2
-        _, a, b = self.network.step_with_jacobian(np.ascontiguousarray(x0), np.ascontiguousarray(u[..., :m]))
-        return self.step(x0, u), a, np.concatenate((b, np.zeros_like(b)), axis=-1)
-
-
 def main() -> None:
     """One closed loop on franky-sim with the model above; prints the worst joint-angle MAE."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -162,7 +128,7 @@ def main() -> None:
             model: Any = FrankySimPhysics(reference.x[0, :7], np.asarray(system.servo_gain), acceleration, ramp_start)
         else:
             model = RampedArm(load_system(args.model), acceleration, ramp_start, system.tau, args.substep)
-        flow = RampFlow(model.rows, load_surrogate(system="fr3"), system)
+        flow = RowValuesFlow(model.rows, load_surrogate(system="fr3"), system)
         controller_cfg = OmegaConf.to_container(cfg.controller, resolve=True)
         settings = {k: v for k, v in controller_cfg.items() if k not in ("kind", "checkpoint")}
         if args.no_estimator:

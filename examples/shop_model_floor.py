@@ -12,6 +12,7 @@ what this controller and its estimator allow once the model is exact, the floor 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -25,48 +26,22 @@ from pinnmpc.controller.build import build_nmpc
 from pinnmpc.plant.build import make_plant
 from pinnmpc.simulation import run_loop
 from pinnmpc.simulation.setup import system_reference
-from pinnmpc.surrogate.checkpoint import Dimensions
-from pinnmpc.systems.base import Box
-from pinnmpc.systems.previous_input import WithPreviousInput, takes_previous_input
+from pinnmpc.surrogate.previous_input import RowValuesFlow
 from pinnmpc.systems.registry import build_system
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
 
-class RobotFlow(Dimensions):
-    """A flow map on inputs (u, u_prev): values by the robot's own period (MujocoPlant.period_from), Jacobians of a
-    network."""
+def robot_rows(robot: Any) -> Callable[..., np.ndarray]:
+    """The robot's own period for each row of x0 (B, nx) and (u, u_prev) (B, 2 nu): the lag's filter starts at u_prev
+    (MujocoPlant.period_from)."""
 
-    array_api = "numpy"
+    def rows(x0: np.ndarray, inputs: np.ndarray, tau: float) -> np.ndarray:
+        """x(tau) of each row."""
+        m = inputs.shape[-1] // 2
+        return np.stack([robot.period_from(x, p[:m], p[m:]) for x, p in zip(x0, inputs)])
 
-    def __init__(self, robot: Any, network: Any, system: Any) -> None:
-        with_previous = WithPreviousInput(system)
-        self.robot, self.network, self.tau = robot, network.numpy_flow(), system.tau
-        self.hears_previous = takes_previous_input(network)  # its Jacobians in u_prev are its own, else zero
-        self.state_names, self.input_names = tuple(system.state_names), tuple(with_previous.input_names)
-        self.state_box, self.input_box = system.state_box, with_previous.input_box
-        self.domain = Box([-np.inf] * len(self.state_names), [np.inf] * len(self.state_names))
-        self.meta = {"previous_input": True}  # the controller feeds u_prev (pinnmpc.controller.previous_input)
-
-    def numpy_flow(self) -> RobotFlow:
-        """Itself: numpy in and out."""
-        return self
-
-    def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """x(tau) row by row (..., nx) for x0 (..., nx) and (u, u_prev) (..., nu)."""
-        lead, m = np.shape(x0)[:-1], self.nu // 2
-        xs, us = np.broadcast_arrays(np.reshape(x0, (-1, self.nx)), np.reshape(u, (-1, self.nu)))
-        rows = [self.robot.period_from(x, v[:m], v[m:]) for x, v in zip(xs, us)]
-        return np.reshape(np.stack(rows), (*lead, self.nx))
-
-    def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """step's values; A and B of the network."""
-        if self.hears_previous:
-            _, a, b = self.network.step_with_jacobian(np.ascontiguousarray(x0), np.ascontiguousarray(u))
-            return self.step(x0, u), a, b
-        m = self.nu // 2
-        _, a, b = self.network.step_with_jacobian(np.ascontiguousarray(x0), np.ascontiguousarray(u[..., :m]))
-        return self.step(x0, u), a, np.concatenate((b, np.zeros_like(b)), axis=-1)
+    return rows
 
 
 def main() -> None:
@@ -88,7 +63,7 @@ def main() -> None:
     system = build_system(cfg.system)
     reference = system_reference(cfg, system, system.tau)
     plant, model = (make_plant(system, cfg.plant, system.tau, cfg.system.get("robots")) for _ in range(2))
-    flow = RobotFlow(model, load_surrogate(args.checkpoint), system)
+    flow = RowValuesFlow(robot_rows(model), load_surrogate(args.checkpoint), system)
     settings = OmegaConf.to_container(cfg.controller, resolve=True)
     settings = {k: v for k, v in settings.items() if k not in ("kind", "checkpoint")}
     if args.no_estimator:

@@ -12,6 +12,7 @@ from pinnmpc import load_surrogate, load_system
 from pinnmpc.controller.build import build_nmpc
 from pinnmpc.plant.franka_sim import franky_missing
 from pinnmpc.surrogate.flowmap import CompiledRK4
+from pinnmpc.surrogate.previous_input import RowValuesFlow
 from tests.conftest import ROOT
 
 pytestmark = pytest.mark.skipif(bool(franky_missing()), reason=franky_missing() or "franky present")
@@ -64,7 +65,7 @@ def test_a_system_under_the_ramp_is_its_flow_where_the_command_does_not_change(e
 
 def test_its_flow_map_runs_a_previous_input_nmpc(example):
     system = load_system("fr3")
-    flow = example["RampFlow"](physics(example, 0.002).rows, load_surrogate(system="fr3"), system)
+    flow = RowValuesFlow(physics(example, 0.002).rows, load_surrogate(system="fr3"), system)
     x = np.tile(np.concatenate([HOME, np.zeros(7)]), (2, 1))
     u = np.zeros((2, 14))
     y, a, b = flow.step_with_jacobian(x, u)

@@ -1,6 +1,6 @@
 """examples/shop_model_floor.py's model: the shop robot's own MuJoCo period (its lag starting at the input applied
-before) as a flow map on (u, u_prev), with a network's Jacobians, that the previous-input NMPC runs on (docs/robot.md:
-what the controller allows once its model is exact)."""
+before) as a flow map on (u, u_prev) (pinnmpc.surrogate.previous_input.RowValuesFlow) with a network's Jacobians,
+which the previous-input NMPC runs on (docs/robot.md: what the controller allows once its model is exact)."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from pinnmpc.controller.previous_input import PreviousInputNMPC  # noqa: E402
 from pinnmpc.plant.mujoco_robot import make_mujoco_plant  # noqa: E402
 from pinnmpc.references import Reference  # noqa: E402
 from pinnmpc.simulation.loop import run_loop  # noqa: E402
+from pinnmpc.surrogate.previous_input import RowValuesFlow  # noqa: E402
 from pinnmpc.systems import system_config  # noqa: E402
 from tests.conftest import ROOT  # noqa: E402
 
@@ -28,7 +29,7 @@ def test_the_controller_on_the_robots_own_dynamics_predicts_the_robot():
     robots = OmegaConf.to_container(system_config("planar3").robots, resolve=True)
     robot, model = (make_mujoco_plant(system, system.tau, robots, "shop") for _ in range(2))
     network = load_surrogate("pinnmpc/checkpoints/planar3-shop.pt")
-    flow = example["RobotFlow"](model, network, system)
+    flow = RowValuesFlow(example["robot_rows"](model), network, system)
     settings = {"horizon": 5, "Q": [1, 1, 1, 0, 0, 0], "R": [1e-8, 1e-7, 1e-6], "disturbance": {"gain": 0.7}}
     controller = build_nmpc(settings, flow, system)
     assert isinstance(controller, PreviousInputNMPC)

@@ -8,13 +8,16 @@ it applied last). The networks come from `model.previous_input=true` (pinnmpc.sy
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import torch
 
+from pinnmpc.surrogate.checkpoint import Dimensions
 from pinnmpc.surrogate.flowmap import passes_plain_rows
 from pinnmpc.systems.base import Box
+from pinnmpc.systems.previous_input import WithPreviousInput, takes_previous_input
 
 Array = Any  # a torch Tensor or a numpy array, as the wrapped map's array_api says
 
@@ -114,3 +117,39 @@ class PreviousInputFlow:
             fast = fast() if callable(fast) else None
             self._numpy = None if fast is None else PreviousInputFlow(fast)
         return self._numpy
+
+
+class RowValuesFlow(Dimensions):
+    """A flow map on inputs (u, u_prev) whose values come from another model, row by row (`values(x0, inputs, tau)`
+    on (B, nx) and (B, 2 nu)), and whose Jacobians are a network's (one given the previous input: its own; a plain
+    one: none in u_prev): the controller predicting with, say, a robot's own dynamics (examples/*_model_floor.py)."""
+
+    array_api = "numpy"
+
+    def __init__(self, values: Callable[..., np.ndarray], network: Any, system: Any) -> None:
+        with_previous = WithPreviousInput(system)
+        self.values, self.network, self.tau = values, network.numpy_flow(), system.tau
+        self.hears_previous = takes_previous_input(network)
+        self.state_names, self.input_names = tuple(system.state_names), tuple(with_previous.input_names)
+        self.state_box, self.input_box = system.state_box, with_previous.input_box
+        self.domain = Box([-np.inf] * len(self.state_names), [np.inf] * len(self.state_names))
+        self.meta = {"previous_input": True}  # the controller feeds u_prev (pinnmpc.controller.previous_input)
+
+    def numpy_flow(self) -> RowValuesFlow:
+        """Itself: numpy in and out."""
+        return self
+
+    def step(self, x0: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """x(tau) row by row (..., nx) for x0 (..., nx) and (u, u_prev) (..., nu)."""
+        lead = np.shape(x0)[:-1]
+        rows = np.broadcast_arrays(np.reshape(x0, (-1, self.nx)), np.reshape(u, (-1, self.nu)))
+        return np.reshape(self.values(*rows, self.tau), (*lead, self.nx))
+
+    def step_with_jacobian(self, x0: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """step's values; A and B of the network."""
+        x0, u = np.ascontiguousarray(x0), np.ascontiguousarray(u)
+        if self.hears_previous:
+            _, a, b = self.network.step_with_jacobian(x0, u)
+            return self.step(x0, u), a, b
+        _, a, b = self.network.step_with_jacobian(x0, np.ascontiguousarray(u[..., : self.nu // 2]))
+        return self.step(x0, u), a, np.concatenate((b, np.zeros_like(b)), axis=-1)
