@@ -17,8 +17,7 @@ import numpy as np
 import torch
 
 from pinnmpc.surrogate.checkpoint import Dimensions
-from pinnmpc.systems.base import Box
-from pinnmpc.systems.previous_input import SUFFIX
+from pinnmpc.systems.previous_input import doubled_inputs
 
 Array = Any  # a torch Tensor or a numpy array, as the parts' array_api says
 
@@ -32,9 +31,7 @@ class DelayedCommandFlow(Dimensions):
         self.array_api: str = getattr(first, "array_api", "torch")
         self.tau = float(first.tau) + float(second.tau)
         self.state_names = tuple(source.state_names)
-        names, box = tuple(source.input_names), source.input_box
-        self.input_names = (*names, *(f"{n}{SUFFIX}" for n in names))
-        self.input_box = Box((*box.low, *box.low), (*box.high, *box.high))
+        self.input_names, self.input_box = doubled_inputs(source.input_names, source.input_box)
         self.state_box, self.domain = source.state_box, source.domain
         self.meta = {**source.meta, "previous_input": True}
         self._source = source

@@ -9,6 +9,7 @@ supply it, and the controller feeds it from the input it applied last (pinnmpc.s
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -19,6 +20,11 @@ from pinnmpc.systems.base import Box
 SUFFIX = "_prev"  # the name of u_prev's entries: the input's name and this
 
 
+def doubled_inputs(names: Sequence[str], box: Box) -> tuple[tuple[str, ...], Box]:
+    """The names and box of inputs (u, u_prev) from u's: u_prev's names end in SUFFIX, its box is u's."""
+    return (*names, *(f"{n}{SUFFIX}" for n in names)), Box((*box.low, *box.low), (*box.high, *box.high))
+
+
 class WithPreviousInput:
     """`system` with inputs (u, u_prev): its input box twice, its dynamics of u alone; every other fact its own."""
 
@@ -27,10 +33,8 @@ class WithPreviousInput:
             raise ValueError(f"system {system.name} already takes the previous input; expected a plain system")
         self.base = system
         self.arm_nu = len(system.input_names)  # the arm's inputs, the first of these
-        self.input_names = (*system.input_names, *(f"{n}{SUFFIX}" for n in system.input_names))
+        self.input_names, self.input_box = doubled_inputs(system.input_names, system.input_box)
         self.input_units = (*system.input_units, *system.input_units)
-        box = system.input_box
-        self.input_box = Box((*box.low, *box.low), (*box.high, *box.high))
 
     def __getattr__(self, name: str) -> Any:
         """Every fact besides the inputs is the system's own."""
